@@ -675,8 +675,9 @@ def points_from_image(
       longest contour long is kept (specks dropped); contours are concatenated longest
       first, each closed contour starting at its first vertex, without repeating it.
     * ``edges``: Canny edges (``skimage.feature.canny``, sigma 1, default thresholds) of the
-      grey image, as in Du et al. 2016, computed with the shape made bright (so both
-      polarities give the same edges); edge pixels in raster order (by row, then column).
+      grey image, as in Du et al. 2016, computed with the shape made bright and the grey
+      range stretched to 0..1 (so both polarities and faint scans give the same edges as
+      crisp black on white); edge pixels in raster order (by row, then column).
     * ``skeleton``: ``skimage.morphology.skeletonize`` of the thresholded shape; skeleton
       pixels in raster order.
 
@@ -709,8 +710,11 @@ def points_from_image(
         from skimage.feature import canny
 
         # Canny's non-maximum suppression is not symmetric under inversion: run it with the
-        # shape bright, so both polarities give the same edges.
-        pts = _pixels_xy(canny(255 - grey if fg_dark else grey, sigma=1.0))
+        # shape bright, so both polarities give the same edges. Its thresholds are absolute:
+        # stretch the grey range to 0..1 so faint scans give the edges of crisp ones.
+        lo, hi = float(grey.min()), float(grey.max())
+        g = (grey.astype(np.float64) - lo) / (hi - lo)
+        pts = _pixels_xy(canny(1.0 - g if fg_dark else g, sigma=1.0))
         if len(pts) == 0:
             raise _no_foreground("no edges found")
         return _reduce_raster(pts, target_points, limits)
