@@ -1,0 +1,1 @@
+"""HTTP API: routes, dependencies, error documents and middleware."""

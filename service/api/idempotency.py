@@ -1,0 +1,75 @@
+"""``Idempotency-Key`` support for POST requests.
+
+Each key is scoped to the request path. The first request with a key stores a hash of its body
+and the ids of what it created, in the same write transaction as the resource itself (on
+SQLite the transaction is ``BEGIN IMMEDIATE``, so two concurrent requests with one key are
+serialised and the second sees the first's row). A repeat with the same body is answered
+with the current state of that resource; a repeat with a different body is a 422 problem.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from service.api.problems import ProblemError
+from service.models import IdempotencyKey
+
+
+def hash_json(value: Any) -> str:
+    canonical = json.dumps(value, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def hash_bytes(*parts: bytes) -> str:
+    digest = hashlib.sha256()
+    for part in parts:
+        digest.update(len(part).to_bytes(8, "big"))
+        digest.update(part)
+    return digest.hexdigest()
+
+
+def lookup(
+    session: Session, scope: str, key: str | None, request_hash: str
+) -> IdempotencyKey | None:
+    """The stored entry for ``key`` in ``scope``, or None; 422 if the body differs."""
+    if key is None:
+        return None
+    entry = session.scalars(
+        select(IdempotencyKey).where(IdempotencyKey.scope == scope, IdempotencyKey.key == key)
+    ).one_or_none()
+    if entry is not None and entry.request_hash != request_hash:
+        raise ProblemError(
+            422,
+            "Idempotency-Key was already used with a different request body",
+            type_="/problems/idempotency-key-reused",
+        )
+    return entry
+
+
+def remember(
+    session: Session,
+    scope: str,
+    key: str | None,
+    request_hash: str,
+    *,
+    status_code: int,
+    resource_type: str,
+    resource_ids: list[int],
+) -> None:
+    if key is None:
+        return
+    session.add(
+        IdempotencyKey(
+            scope=scope,
+            key=key,
+            request_hash=request_hash,
+            status_code=status_code,
+            resource_type=resource_type,
+            resource_ids=resource_ids,
+        )
+    )

@@ -1,0 +1,143 @@
+"""Pure-ASGI middleware: request ids and logs, API-key check, request body size limit."""
+
+from __future__ import annotations
+
+import hmac
+import logging
+import time
+import uuid
+
+from starlette.datastructures import Headers
+from starlette.requests import Request
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.api.problems import BodyTooLarge, problem_response
+
+logger = logging.getLogger("regtree.access")
+
+#: Paths answered without an API key: liveness probes and the API documentation (the schema
+#: describes the service, it holds no data).
+PUBLIC_PATHS = frozenset({"/healthz", "/openapi.json", "/docs", "/docs/oauth2-redirect", "/redoc"})
+
+
+class RequestLogMiddleware:
+    """Give every request an ``X-Request-ID`` and log one JSON line when it ends."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        request_id = Headers(scope=scope).get("x-request-id") or uuid.uuid4().hex
+        request_id = request_id[:100]
+        scope.setdefault("state", {})["request_id"] = request_id
+        started = time.perf_counter()
+        status = 500
+
+        async def send_with_id(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+                headers = list(message.get("headers", []))
+                headers.append((b"x-request-id", request_id.encode("latin-1")))
+                message = {**message, "headers": headers}
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_with_id)
+        finally:
+            logger.info(
+                "request",
+                extra={
+                    "method": scope.get("method"),
+                    "path": scope.get("path"),
+                    "status": status,
+                    "duration_ms": round((time.perf_counter() - started) * 1000, 2),
+                    "request_id": request_id,
+                },
+            )
+
+
+class ApiKeyMiddleware:
+    """Answer 401 unless the request carries the key (``X-API-Key`` or ``Bearer``)."""
+
+    def __init__(self, app: ASGIApp, api_key: str) -> None:
+        self.app = app
+        self.api_key = api_key.encode()
+
+    def _authorised(self, headers: Headers) -> bool:
+        candidates = []
+        if "x-api-key" in headers:
+            candidates.append(headers["x-api-key"])
+        authorization = headers.get("authorization", "")
+        scheme, _, token = authorization.partition(" ")
+        if scheme.lower() == "bearer" and token:
+            candidates.append(token.strip())
+        return any(hmac.compare_digest(c.encode(), self.api_key) for c in candidates)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope.get("path") in PUBLIC_PATHS:
+            await self.app(scope, receive, send)
+            return
+        if not self._authorised(Headers(scope=scope)):
+            response = problem_response(
+                Request(scope),
+                401,
+                "missing or wrong API key: send it as `X-API-Key: <key>` or "
+                "`Authorization: Bearer <key>`",
+                type_="/problems/unauthorized",
+                headers={"WWW-Authenticate": 'Bearer realm="regtree"'},
+            )
+            await response(scope, receive, send)
+            return
+        await self.app(scope, receive, send)
+
+
+class BodyLimitMiddleware:
+    """Refuse request bodies over ``max_body_bytes`` with 413.
+
+    A declared ``Content-Length`` over the limit is refused before reading anything; a body
+    without one (chunked) is counted while it streams in, and reading it raises
+    :class:`BodyTooLarge` as soon as it passes the limit.
+    """
+
+    def __init__(self, app: ASGIApp, max_body_bytes: int) -> None:
+        self.app = app
+        self.limit = max_body_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = Headers(scope=scope).get("content-length")
+        if declared is not None:
+            try:
+                too_large = int(declared) > self.limit
+            except ValueError:
+                too_large = False
+            if too_large:
+                response = problem_response(
+                    Request(scope),
+                    413,
+                    f"request body of {declared} bytes is larger than the limit of "
+                    f"{self.limit} bytes",
+                    type_="/problems/body-too-large",
+                    headers={"Connection": "close"},
+                )
+                await response(scope, receive, send)
+                return
+
+        received = 0
+
+        async def counting_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.limit:
+                    raise BodyTooLarge(self.limit)
+            return message
+
+        await self.app(scope, counting_receive, send)

@@ -1,0 +1,191 @@
+"""RFC 9457 problem details (``application/problem+json``) for every error the API returns.
+
+Handlers are installed for :class:`ProblemError` (raised by our own code), Starlette's
+``HTTPException`` (404 for unknown paths, 405, and FastAPI's own 400s), request validation
+errors (422) and any unexpected exception (500, without internals in the body).
+"""
+
+from __future__ import annotations
+
+import logging
+from http import HTTPStatus
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+
+logger = logging.getLogger("regtree.api")
+
+
+class Problem(BaseModel):
+    """An RFC 9457 problem details document."""
+
+    type: str = Field(default="about:blank", examples=["/problems/validation-error"])
+    title: str = Field(examples=["Unprocessable Content"])
+    status: int = Field(examples=[422])
+    detail: str | None = Field(default=None, examples=["points must have shape (n, 2)"])
+    instance: str | None = Field(default=None, examples=["/v1/collections/1/shapes"])
+    errors: list[dict[str, Any]] | None = Field(
+        default=None, description="Field-level validation errors, when there are any."
+    )
+
+
+def _title(status: int) -> str:
+    try:
+        return HTTPStatus(status).phrase
+    except ValueError:
+        return "Error"
+
+
+class ProblemError(Exception):
+    """Raise to answer with a problem document."""
+
+    def __init__(
+        self,
+        status: int,
+        detail: str | None = None,
+        *,
+        type_: str = "about:blank",
+        title: str | None = None,
+        headers: dict[str, str] | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__(detail or _title(status))
+        self.status = status
+        self.detail = detail
+        self.type = type_
+        self.title = title or _title(status)
+        self.headers = headers
+        self.extra = extra or {}
+
+
+class BodyTooLarge(StarletteHTTPException):
+    """Raised while a request body is read once it passes the configured limit.
+
+    A subclass of ``HTTPException`` so that FastAPI's body parsing passes it through
+    unchanged instead of turning it into a generic 400.
+    """
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(413, f"request body larger than the limit of {limit} bytes")
+        self.limit = limit
+
+
+def problem_response(
+    request: Request | None,
+    status: int,
+    detail: str | None = None,
+    *,
+    type_: str = "about:blank",
+    title: str | None = None,
+    headers: dict[str, str] | None = None,
+    extra: dict[str, Any] | None = None,
+) -> JSONResponse:
+    body: dict[str, Any] = {
+        "type": type_,
+        "title": title or _title(status),
+        "status": status,
+        "detail": detail,
+        "instance": request.url.path if request is not None else None,
+    }
+    if extra:
+        body.update(extra)
+    return JSONResponse(
+        jsonable_encoder(body), status_code=status, headers=headers, media_type=PROBLEM_MEDIA_TYPE
+    )
+
+
+async def _problem_error_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, ProblemError)
+    return problem_response(
+        request,
+        exc.status,
+        exc.detail,
+        type_=exc.type,
+        title=exc.title,
+        headers=exc.headers,
+        extra=exc.extra,
+    )
+
+
+async def _http_exception_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    detail = exc.detail if isinstance(exc.detail, str) else None
+    type_ = "/problems/body-too-large" if exc.status_code == 413 else "about:blank"
+    if exc.status_code == 404 and detail == "Not Found":
+        detail = f"no route for {request.method} {request.url.path}"
+    if exc.status_code == 405:
+        detail = f"method {request.method} not allowed on {request.url.path}"
+    return problem_response(
+        request, exc.status_code, detail, type_=type_, headers=getattr(exc, "headers", None)
+    )
+
+
+def _clean_error(error: dict[str, Any]) -> dict[str, Any]:
+    cleaned = {
+        "loc": list(error.get("loc", ())),
+        "msg": error.get("msg"),
+        "type": error.get("type"),
+    }
+    ctx = error.get("ctx")
+    if ctx:
+        cleaned["ctx"] = {k: str(v) for k, v in ctx.items()}
+    return cleaned
+
+
+async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    errors = [_clean_error(e) for e in exc.errors()]
+    first = errors[0] if errors else None
+    detail = "request validation failed"
+    if first is not None:
+        where = ".".join(str(part) for part in first["loc"])
+        detail = f"{where}: {first['msg']}" if where else str(first["msg"])
+    return problem_response(
+        request,
+        422,
+        detail,
+        type_="/problems/validation-error",
+        title="Request validation failed",
+        extra={"errors": errors},
+    )
+
+
+async def _unexpected_handler(request: Request, exc: Exception) -> JSONResponse:
+    logger.error(
+        "unhandled error",
+        exc_info=exc,
+        extra={"method": request.method, "path": request.url.path},
+    )
+    return problem_response(
+        request, 500, "internal error; the server log has the details", type_="/problems/internal"
+    )
+
+
+def install_problem_handlers(app: FastAPI) -> None:
+    app.add_exception_handler(ProblemError, _problem_error_handler)
+    app.add_exception_handler(StarletteHTTPException, _http_exception_handler)
+    app.add_exception_handler(RequestValidationError, _validation_handler)
+    app.add_exception_handler(Exception, _unexpected_handler)
+
+
+def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses=`` entries documenting problem documents for the given statuses."""
+    return {
+        status: {
+            "model": Problem,
+            "description": _title(status),
+            "content": {PROBLEM_MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/Problem"}}},
+        }
+        for status in statuses
+    }
+
+
+def not_found(what: str, ident: object) -> ProblemError:
+    return ProblemError(404, f"{what} {ident} not found", type_="/problems/not-found")

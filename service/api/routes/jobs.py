@@ -1,0 +1,293 @@
+"""``/v1/jobs``: submit, list, read and cancel registration jobs, and read their results."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Query, Request, Response, status
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from service.api import idempotency
+from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
+from service.api.problems import ProblemError, not_found, problem_responses
+from service.jobs import queue
+from service.models import Collection, Job, JobStatus, Result, ResultSubject, Shape
+from service.schemas import (
+    JobCreate,
+    JobOut,
+    JobStatusName,
+    Page,
+    ResultOut,
+    TransformOut,
+    TransformRequest,
+)
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+
+
+def job_out(job: Job) -> JobOut:
+    base = f"/v1/jobs/{job.id}"
+    return JobOut.model_validate(
+        {
+            "id": job.id,
+            "collection_id": job.collection_id,
+            "model_shape_id": job.model_shape_id,
+            "method": job.method,
+            "params": job.params,
+            "n_shapes": len(job.shape_ids),
+            "status": job.status,
+            "progress": {
+                "stage": job.progress_stage,
+                "done": job.progress_done,
+                "total": job.progress_total,
+            },
+            "attempts": job.attempts,
+            "max_attempts": job.max_attempts,
+            "cancel_requested": job.cancel_requested,
+            "error": job.error,
+            "created_at": job.created_at,
+            "updated_at": job.updated_at,
+            "started_at": job.started_at,
+            "finished_at": job.finished_at,
+            "links": {"self": base, "result": f"{base}/result", "cancel": f"{base}/cancel"},
+        }
+    )
+
+
+def _get_job(session: Session, job_id: int) -> Job:
+    job = session.get(Job, job_id)
+    if job is None:
+        raise not_found("job", job_id)
+    return job
+
+
+def _unprocessable(detail: str, type_: str = "/problems/invalid-job") -> ProblemError:
+    return ProblemError(422, detail, type_=type_)
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=JobOut,
+    responses=problem_responses(401, 413, 422),
+    summary="Submit a registration job",
+    description="Queues the job and answers 202 with a `Location` to poll. The job registers "
+    "the model shape onto every shape the collection holds now.",
+)
+def create_job(
+    body: JobCreate,
+    request: Request,
+    response: Response,
+    db: DbDep,
+    settings: SettingsDep,
+    idempotency_key: IdempotencyKeyDep = None,
+) -> JobOut:
+    scope = f"POST {request.url.path}"
+    request_hash = idempotency.hash_json(body.model_dump(mode="json"))
+    with db.write() as session:
+        entry = idempotency.lookup(session, scope, idempotency_key, request_hash)
+        if entry is not None:
+            job = _get_job(session, entry.resource_ids[0])
+        else:
+            if session.get(Collection, body.collection_id) is None:
+                raise _unprocessable(f"collection {body.collection_id} does not exist")
+            model = session.get(Shape, body.model_shape_id)
+            if model is None:
+                raise _unprocessable(f"model shape {body.model_shape_id} does not exist")
+            if model.collection_id != body.collection_id:
+                raise _unprocessable(
+                    f"model shape {body.model_shape_id} belongs to collection "
+                    f"{model.collection_id}, not to collection {body.collection_id}"
+                )
+            shape_ids = list(
+                session.scalars(
+                    select(Shape.id)
+                    .where(Shape.collection_id == body.collection_id)
+                    .order_by(Shape.id)
+                ).all()
+            )
+            if len(shape_ids) < 2:
+                raise _unprocessable(
+                    f"collection {body.collection_id} has {len(shape_ids)} shape(s); a job "
+                    "needs the model and at least one other shape"
+                )
+            params = body.model_dump(
+                mode="json",
+                include={"similarity_threshold", "error_threshold", "compare_direct", "cpd"},
+            )
+            job = Job(
+                collection_id=body.collection_id,
+                model_shape_id=body.model_shape_id,
+                shape_ids=shape_ids,
+                method=body.method,
+                params=params,
+                status=JobStatus.queued.value,
+                max_attempts=settings.max_attempts,
+                progress_done=0,
+                progress_total=0,
+                attempts=0,
+                cancel_requested=False,
+            )
+            session.add(job)
+            session.flush()
+            idempotency.remember(
+                session,
+                scope,
+                idempotency_key,
+                request_hash,
+                status_code=202,
+                resource_type="job",
+                resource_ids=[job.id],
+            )
+        out = job_out(job)
+    response.headers["Location"] = out.links.self
+    return out
+
+
+@router.get("", response_model=Page[JobOut], summary="List jobs, newest first")
+def list_jobs(
+    db: DbDep,
+    page: PaginationDep,
+    collection_id: Annotated[int | None, Query()] = None,
+    status_: Annotated[JobStatusName | None, Query(alias="status")] = None,
+) -> Page[JobOut]:
+    query = select(Job)
+    count = select(func.count(Job.id))
+    if collection_id is not None:
+        query = query.where(Job.collection_id == collection_id)
+        count = count.where(Job.collection_id == collection_id)
+    if status_ is not None:
+        query = query.where(Job.status == status_)
+        count = count.where(Job.status == status_)
+    with db.read() as session:
+        total = session.scalar(count) or 0
+        jobs = session.scalars(
+            query.order_by(Job.id.desc()).limit(page.limit).offset(page.offset)
+        ).all()
+        items = [job_out(j) for j in jobs]
+    return Page[JobOut](items=items, total=total, limit=page.limit, offset=page.offset)
+
+
+@router.get(
+    "/{job_id}", response_model=JobOut, responses=problem_responses(404), summary="Read a job"
+)
+def get_job(job_id: int, db: DbDep) -> JobOut:
+    with db.read() as session:
+        return job_out(_get_job(session, job_id))
+
+
+@router.post(
+    "/{job_id}/cancel",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=JobOut,
+    responses=problem_responses(404, 409),
+    summary="Cancel a job",
+    description="A queued job is cancelled at once. A running job gets `cancel_requested` and "
+    "ends `cancelled` at its worker's next progress report or heartbeat. A finished job: 409.",
+)
+def cancel_job(job_id: int, db: DbDep) -> JobOut:
+    with db.write() as session:
+        job = _get_job(session, job_id)
+        if not queue.request_cancel(session, job):
+            raise ProblemError(
+                409, f"job {job_id} already {job.status}", type_="/problems/job-finished"
+            )
+        session.flush()
+        return job_out(job)
+
+
+def _succeeded_job(session: Session, job_id: int) -> Job:
+    job = _get_job(session, job_id)
+    if job.status != JobStatus.succeeded.value:
+        detail = f"job {job_id} is {job.status}; a result exists once it has succeeded"
+        if job.error:
+            detail += f" (error: {job.error[:500]})"
+        raise ProblemError(409, detail, type_="/problems/result-not-ready")
+    return job
+
+
+@router.get(
+    "/{job_id}/result",
+    response_model=ResultOut,
+    responses=problem_responses(404, 409),
+    summary="Read a job's result",
+)
+def get_result(
+    job_id: int,
+    db: DbDep,
+    full: Annotated[
+        bool, Query(description="Include warped points, correspondences and transforms.")
+    ] = False,
+) -> dict[str, Any]:
+    with db.read() as session:
+        _succeeded_job(session, job_id)
+        result = session.get(Result, job_id)
+        if result is None:
+            raise ProblemError(409, f"job {job_id} has no stored result")
+        document = dict(result.document)
+        if full:
+            rows = session.scalars(
+                select(ResultSubject)
+                .where(ResultSubject.job_id == job_id)
+                .order_by(ResultSubject.position)
+            ).all()
+            document["subjects"] = [r.document for r in rows]
+    return document
+
+
+def _subject(session: Session, job_id: int, shape_id: int) -> ResultSubject:
+    _succeeded_job(session, job_id)
+    row = session.get(ResultSubject, (job_id, shape_id))
+    if row is None:
+        raise not_found(f"subject {shape_id} in the result of job", job_id)
+    return row
+
+
+@router.get(
+    "/{job_id}/result/subjects/{shape_id}",
+    responses=problem_responses(404, 409),
+    summary="Read one subject of a result: tree place, transform, correspondences, error",
+)
+def get_subject(job_id: int, shape_id: int, db: DbDep) -> dict[str, Any]:
+    with db.read() as session:
+        document: dict[str, Any] = _subject(session, job_id, shape_id).document
+        return document
+
+
+@router.post(
+    "/{job_id}/result/subjects/{shape_id}/transform",
+    response_model=TransformOut,
+    responses=problem_responses(404, 409, 422),
+    summary="Map points from the model onto a subject with the stored transform",
+)
+def transform_points(
+    job_id: int, shape_id: int, body: TransformRequest, db: DbDep, settings: SettingsDep
+) -> TransformOut:
+    if len(body.points) > settings.max_points_per_shape:
+        raise ProblemError(
+            422,
+            f"{len(body.points)} points; at most {settings.max_points_per_shape} are allowed",
+            type_="/problems/validation-error",
+        )
+    with db.read() as session:
+        document = _subject(session, job_id, shape_id).document
+    transform = document.get("transform")
+    if not transform:
+        raise ProblemError(
+            409,
+            f"shape {shape_id} has no transform in this result (it was not attached)",
+            type_="/problems/no-transform",
+        )
+    from registration import ChainTransform
+
+    try:
+        mapped = ChainTransform.from_dict(transform).apply(np.asarray(body.points, dtype=float))
+    except ValueError as e:
+        raise ProblemError(422, str(e), type_="/problems/validation-error") from e
+    if not np.isfinite(mapped).all():
+        raise ProblemError(422, "the mapped points are not finite", type_="/problems/transform")
+    return TransformOut(
+        job_id=job_id, shape_id=shape_id, points=[tuple(p) for p in mapped.tolist()]
+    )

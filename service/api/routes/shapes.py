@@ -1,0 +1,492 @@
+"""``/v1/collections/{id}/shapes``: upload, list, read and delete shapes.
+
+One upload endpoint takes every supported form:
+
+* ``application/json``: ``{"name": ..., "points": [[x, y], ...]}``, or a batch
+  ``{"shapes": [{"name": ..., "points": ...}, ...]}``;
+* ``multipart/form-data``: one or many files in the ``files`` field, with optional form fields
+  ``mode`` (contour|edges|skeleton, for images) and ``target_points``;
+* a raw body typed ``text/csv``, ``text/plain``, ``application/octet-stream`` (``.npy``),
+  ``image/png`` or ``image/jpeg``, named with ``?name=``.
+
+Decoding and validation are :mod:`service.ingest`'s. A batch is all-or-nothing: the first bad
+file answers 422 naming the file, and nothing is stored.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Query, Request, Response, status
+from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import UploadFile
+
+from service import ingest
+from service.api import idempotency
+from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
+from service.api.problems import ProblemError, not_found, problem_responses
+from service.api.routes.collections import get_collection_or_404
+from service.core.config import Settings
+from service.models import TERMINAL_STATUSES, Job, Shape, points_to_npy
+from service.schemas import (
+    ImageMode,
+    Page,
+    ShapeBatchOut,
+    ShapeDetail,
+    ShapeOut,
+)
+
+router = APIRouter(prefix="/collections/{collection_id}/shapes", tags=["shapes"])
+
+RAW_TYPES = {
+    "text/csv": "csv",
+    "text/plain": "txt",
+    "application/octet-stream": "npy",
+    "application/x-npy": "npy",
+    "image/png": "png",
+    "image/jpeg": "jpeg",
+}
+
+_UPLOAD_OPENAPI: dict[str, Any] = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "application/json": {
+                "schema": {
+                    "oneOf": [
+                        {"$ref": "#/components/schemas/ShapeJSON"},
+                        {"$ref": "#/components/schemas/ShapeBatchJSON"},
+                    ]
+                },
+                "examples": {
+                    "single": {
+                        "summary": "One shape",
+                        "value": {"name": "tri", "points": [[0, 0], [1, 0], [0, 1]]},
+                    },
+                    "batch": {
+                        "summary": "Several shapes, all or nothing",
+                        "value": {
+                            "shapes": [
+                                {"name": "a", "points": [[0, 0], [1, 0], [0, 1]]},
+                                {"name": "b", "points": [[0, 0], [2, 0], [0, 2]]},
+                            ]
+                        },
+                    },
+                },
+            },
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["files"],
+                    "properties": {
+                        "files": {
+                            "type": "array",
+                            "items": {"type": "string", "format": "binary"},
+                            "description": "JSON, CSV/TXT, NPY, PNG or JPEG files; the file "
+                            "name (without extension) becomes the shape name.",
+                        },
+                        "mode": {
+                            "type": "string",
+                            "enum": ["contour", "edges", "skeleton"],
+                            "default": "contour",
+                        },
+                        "target_points": {"type": "integer", "minimum": 1},
+                    },
+                }
+            },
+            "text/csv": {"schema": {"type": "string"}, "example": "x,y\n0,0\n1,0\n0,1\n"},
+            "text/plain": {"schema": {"type": "string"}, "example": "0 0\n1 0\n0 1\n"},
+            "application/octet-stream": {
+                "schema": {"type": "string", "format": "binary"},
+                "description": "A `.npy` file holding an (n, 2) numeric array.",
+            },
+            "image/png": {"schema": {"type": "string", "format": "binary"}},
+            "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
+        },
+    }
+}
+
+
+@dataclass
+class Decoded:
+    name: str
+    source_format: str
+    points: np.ndarray
+
+
+def _limits(settings: Settings) -> ingest.Limits:
+    return ingest.Limits(
+        min_points=settings.min_points,
+        max_points=settings.max_points_per_shape,
+        max_coordinate=settings.max_coordinate,
+        max_image_pixels=settings.max_image_pixels,
+    )
+
+
+def _invalid(detail: str, *, extra: dict[str, Any] | None = None) -> ProblemError:
+    return ProblemError(
+        422, detail, type_="/problems/invalid-shape", title="Invalid shape", extra=extra
+    )
+
+
+def _source_format(data: bytes, filename: str | None, content_type: str | None, mode: str) -> str:
+    if data.startswith(b"\x89PNG"):
+        return f"png:{mode}"
+    if data.startswith(b"\xff\xd8\xff"):
+        return f"jpeg:{mode}"
+    if data.startswith(b"\x93NUMPY"):
+        return "npy"
+    try:
+        fmt = ingest.detect_format(filename, content_type, data)
+    except ingest.IngestError:
+        return "unknown"
+    if fmt == "image":
+        return f"image:{mode}"
+    if fmt == "text":
+        ext = (filename or "").rsplit(".", 1)[-1].lower() if filename and "." in filename else ""
+        ctype = (content_type or "").split(";")[0].strip().lower()
+        return "csv" if ext == "csv" or ctype == "text/csv" else "txt"
+    return fmt
+
+
+def _stem(filename: str | None, fallback: str) -> str:
+    if not filename:
+        return fallback
+    base = filename.replace("\\", "/").rsplit("/", 1)[-1]
+    stem = base.rsplit(".", 1)[0] if "." in base else base
+    return (stem or fallback)[:300]
+
+
+def _parse_target_points(raw: str | None) -> int | None:
+    if raw is None or raw == "":
+        return None
+    try:
+        return int(raw)
+    except ValueError as e:
+        raise _invalid(f"target_points must be an integer; got {raw[:40]!r}") from e
+
+
+def _parse_mode(raw: str | None) -> ImageMode:
+    mode = raw or "contour"
+    if mode not in ("contour", "edges", "skeleton"):
+        raise _invalid(f"mode must be one of contour, edges, skeleton; got {mode[:40]!r}")
+    return mode  # type: ignore[return-value]
+
+
+def _decode_json_body(body: bytes, limits: ingest.Limits) -> tuple[list[Decoded], bool]:
+    """Shapes from a JSON body, and whether it was a batch."""
+    try:
+        obj = json.loads(body)
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as e:
+        raise _invalid(f"invalid JSON body: {e}") from e
+    if isinstance(obj, dict) and "shapes" in obj:
+        items = obj["shapes"]
+        if not isinstance(items, list) or not items:
+            raise _invalid('"shapes" must be a non-empty array of {"name", "points"} objects')
+        batch = True
+    else:
+        items = [obj]
+        batch = False
+    decoded: list[Decoded] = []
+    for i, item in enumerate(items):
+        label = f"shapes[{i}]" if batch else "body"
+        if not isinstance(item, dict):
+            raise _invalid(f'{label}: expected an object {{"name": ..., "points": [[x, y], ...]}}')
+        name = item.get("name")
+        if name is not None and (not isinstance(name, str) or not 0 < len(name) <= 300):
+            raise _invalid(f"{label}: name must be a string of 1 to 300 characters")
+        try:
+            points = ingest.points_from_json(item, limits=limits)
+        except ingest.IngestError as e:
+            raise _invalid(f"{label}: {e}") from e
+        decoded.append(Decoded(name or f"shape-{i}", "json", points))
+    return decoded, batch
+
+
+def _decode_files(
+    files: list[tuple[str | None, str | None, bytes]],
+    mode: ImageMode,
+    target_points: int | None,
+    limits: ingest.Limits,
+) -> list[Decoded]:
+    decoded: list[Decoded] = []
+    for i, (filename, content_type, data) in enumerate(files):
+        label = filename or f"file {i}"
+        try:
+            points = ingest.decode_points(
+                data,
+                filename=filename,
+                content_type=content_type,
+                mode=mode,
+                target_points=target_points,
+                limits=limits,
+            )
+        except ingest.IngestError as e:
+            raise _invalid(f"{label}: {e}", extra={"file": label, "index": i}) from e
+        decoded.append(
+            Decoded(
+                _stem(filename, f"shape-{i}"),
+                _source_format(data, filename, content_type, mode),
+                points,
+            )
+        )
+    return decoded
+
+
+def shape_out(shape: Shape) -> ShapeOut:
+    return ShapeOut.model_validate(
+        {
+            "id": shape.id,
+            "collection_id": shape.collection_id,
+            "name": shape.name,
+            "source_format": shape.source_format,
+            "n_points": shape.n_points,
+            "bbox": {
+                "min_x": shape.min_x,
+                "min_y": shape.min_y,
+                "max_x": shape.max_x,
+                "max_y": shape.max_y,
+            },
+            "created_at": shape.created_at,
+        }
+    )
+
+
+def _store(
+    db: Any,
+    settings: Settings,
+    collection_id: int,
+    decoded: list[Decoded],
+    scope: str,
+    key: str | None,
+    request_hash: str,
+) -> list[ShapeOut]:
+    from sqlalchemy import func, select
+
+    with db.write() as session:
+        entry = idempotency.lookup(session, scope, key, request_hash)
+        if entry is not None:
+            shapes = [session.get(Shape, sid) for sid in entry.resource_ids]
+            return [shape_out(s) for s in shapes if s is not None]
+        get_collection_or_404(session, collection_id)
+        existing = (
+            session.scalar(select(func.count(Shape.id)).where(Shape.collection_id == collection_id))
+            or 0
+        )
+        if existing + len(decoded) > settings.max_shapes_per_collection:
+            raise ProblemError(
+                422,
+                f"collection {collection_id} has {existing} shapes; adding {len(decoded)} would "
+                f"pass the limit of {settings.max_shapes_per_collection} "
+                "(setting max_shapes_per_collection)",
+                type_="/problems/collection-full",
+            )
+        rows = []
+        for item in decoded:
+            pts = item.points
+            lo, hi = pts.min(axis=0), pts.max(axis=0)
+            row = Shape(
+                collection_id=collection_id,
+                name=item.name,
+                source_format=item.source_format,
+                n_points=int(pts.shape[0]),
+                min_x=float(lo[0]),
+                min_y=float(lo[1]),
+                max_x=float(hi[0]),
+                max_y=float(hi[1]),
+                points_npy=points_to_npy(pts),
+            )
+            session.add(row)
+            rows.append(row)
+        session.flush()
+        idempotency.remember(
+            session,
+            scope,
+            key,
+            request_hash,
+            status_code=201,
+            resource_type="shapes",
+            resource_ids=[r.id for r in rows],
+        )
+        return [shape_out(r) for r in rows]
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    response_model=ShapeOut | ShapeBatchOut,
+    responses=problem_responses(401, 404, 413, 415, 422),
+    openapi_extra=_UPLOAD_OPENAPI,
+    summary="Upload one shape or a batch",
+    description=__doc__,
+)
+async def upload_shapes(
+    collection_id: int,
+    request: Request,
+    response: Response,
+    db: DbDep,
+    settings: SettingsDep,
+    idempotency_key: IdempotencyKeyDep = None,
+    name: Annotated[str | None, Query(max_length=300, description="Name of a raw upload.")] = None,
+    mode: Annotated[ImageMode | None, Query(description="Image mode of a raw upload.")] = None,
+    target_points: Annotated[
+        int | None, Query(ge=1, description="Upper bound on points taken from an image.")
+    ] = None,
+) -> ShapeOut | ShapeBatchOut:
+    content_type = request.headers.get("content-type", "")
+    media_type = content_type.split(";", 1)[0].strip().lower()
+    limits = _limits(settings)
+    scope = f"POST {request.url.path}"
+    batch: bool
+
+    if media_type == "application/json" or media_type.endswith("+json"):
+        body = await request.body()
+        request_hash = idempotency.hash_bytes(b"json", body)
+        decoded, batch = await run_in_threadpool(_decode_json_body, body, limits)
+    elif media_type == "multipart/form-data":
+        async with request.form(max_files=settings.max_batch_files + 1, max_fields=100) as form:
+            uploads = [
+                f
+                for key in ("files", "file")
+                for f in form.getlist(key)
+                if isinstance(f, UploadFile)
+            ]
+            if not uploads:
+                raise _invalid('multipart upload has no file in the "files" field')
+            if len(uploads) > settings.max_batch_files:
+                raise _invalid(
+                    f"{len(uploads)} files in one upload; at most {settings.max_batch_files} are "
+                    "allowed (setting max_batch_files)"
+                )
+            form_mode = form.get("mode")
+            form_target = form.get("target_points")
+            files = [(u.filename, u.content_type, await u.read()) for u in uploads]
+        image_mode = _parse_mode(form_mode if isinstance(form_mode, str) else mode)
+        target = _parse_target_points(form_target if isinstance(form_target, str) else None)
+        target = target if target is not None else target_points
+        request_hash = idempotency.hash_bytes(
+            b"multipart",
+            image_mode.encode(),
+            str(target).encode(),
+            *[part for f in files for part in ((f[0] or "").encode(), f[2])],
+        )
+        decoded = await run_in_threadpool(_decode_files, files, image_mode, target, limits)
+        batch = True
+    elif media_type in RAW_TYPES:
+        body = await request.body()
+        image_mode = mode or "contour"
+        ext = RAW_TYPES[media_type]
+        filename = f"{name or 'shape'}.{ext}"
+        request_hash = idempotency.hash_bytes(
+            b"raw",
+            media_type.encode(),
+            (name or "").encode(),
+            image_mode.encode(),
+            str(target_points).encode(),
+            body,
+        )
+        decoded = await run_in_threadpool(
+            _decode_files, [(filename, media_type, body)], image_mode, target_points, limits
+        )
+        decoded[0].name = name or decoded[0].name
+        batch = False
+    else:
+        raise ProblemError(
+            415,
+            f"unsupported content type {media_type or '(none)'!r}; send application/json, "
+            "multipart/form-data, text/csv, text/plain, application/octet-stream (.npy), "
+            "image/png or image/jpeg",
+            type_="/problems/unsupported-media-type",
+        )
+
+    stored = await run_in_threadpool(
+        _store, db, settings, collection_id, decoded, scope, idempotency_key, request_hash
+    )
+    if batch:
+        return ShapeBatchOut(items=stored, count=len(stored))
+    response.headers["Location"] = f"/v1/collections/{collection_id}/shapes/{stored[0].id}"
+    return stored[0]
+
+
+@router.get(
+    "",
+    response_model=Page[ShapeOut],
+    responses=problem_responses(404),
+    summary="List a collection's shapes (metadata only)",
+)
+def list_shapes(collection_id: int, db: DbDep, page: PaginationDep) -> Page[ShapeOut]:
+    from sqlalchemy import func, select
+    from sqlalchemy.orm import defer
+
+    with db.read() as session:
+        get_collection_or_404(session, collection_id)
+        total = (
+            session.scalar(select(func.count(Shape.id)).where(Shape.collection_id == collection_id))
+            or 0
+        )
+        shapes = session.scalars(
+            select(Shape)
+            .options(defer(Shape.points_npy))
+            .where(Shape.collection_id == collection_id)
+            .order_by(Shape.id)
+            .limit(page.limit)
+            .offset(page.offset)
+        ).all()
+        items = [shape_out(s) for s in shapes]
+    return Page[ShapeOut](items=items, total=total, limit=page.limit, offset=page.offset)
+
+
+def _get_shape(session: Any, collection_id: int, shape_id: int) -> Shape:
+    shape = session.get(Shape, shape_id)
+    if shape is None or shape.collection_id != collection_id:
+        raise not_found(f"shape {shape_id} in collection", collection_id)
+    return shape
+
+
+@router.get(
+    "/{shape_id}",
+    response_model=ShapeDetail,
+    responses=problem_responses(404),
+    summary="Read a shape with its points",
+)
+def get_shape(collection_id: int, shape_id: int, db: DbDep) -> ShapeDetail:
+    with db.read() as session:
+        shape = _get_shape(session, collection_id, shape_id)
+        out = shape_out(shape)
+        return ShapeDetail(**out.model_dump(), points=[tuple(p) for p in shape.points.tolist()])
+
+
+@router.delete(
+    "/{shape_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses=problem_responses(404, 409),
+    summary="Delete a shape",
+)
+def delete_shape(collection_id: int, shape_id: int, db: DbDep) -> Response:
+    from sqlalchemy import select
+
+    with db.write() as session:
+        shape = _get_shape(session, collection_id, shape_id)
+        active = session.scalars(
+            select(Job.id).where(
+                Job.collection_id == collection_id,
+                Job.status.not_in([s.value for s in TERMINAL_STATUSES]),
+            )
+        ).all()
+        using = [
+            jid
+            for jid in active
+            if (job := session.get(Job, jid)) is not None
+            and (job.model_shape_id == shape_id or shape_id in job.shape_ids)
+        ]
+        if using:
+            raise ProblemError(
+                409,
+                f"shape {shape_id} is used by unfinished job(s) {using}; cancel them or wait",
+                type_="/problems/shape-in-use",
+            )
+        session.delete(shape)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)

@@ -1,0 +1,72 @@
+"""Service settings, read from the environment (prefix ``REGTREE_``) and an optional ``.env``.
+
+Every limit that protects the service from a bad upload or a runaway job lives here, so an
+operator can see and change them in one place.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Literal
+
+from pydantic import Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Settings for the API, the workers and the CLI.
+
+    Every field can be set with an environment variable named ``REGTREE_<FIELD>`` in upper
+    case, e.g. ``REGTREE_DATABASE_URL`` or ``REGTREE_API_KEY``.
+    """
+
+    model_config = SettingsConfigDict(
+        env_prefix="REGTREE_", env_file=".env", env_file_encoding="utf-8", extra="ignore"
+    )
+
+    # --- storage -------------------------------------------------------------------------
+    database_url: str = "sqlite:///./var/regtree.sqlite"
+    sqlite_busy_timeout_ms: int = Field(default=30_000, ge=0)
+    migrations_dir: str | None = Field(
+        default=None,
+        description="Folder holding the Alembic env.py; found next to the package when unset.",
+    )
+
+    # --- security ------------------------------------------------------------------------
+    api_key: SecretStr | None = Field(
+        default=None,
+        description="When set, every request except /healthz and the API docs must send it "
+        "as `X-API-Key: <key>` or `Authorization: Bearer <key>`.",
+    )
+
+    # --- request limits --------------------------------------------------------------------
+    max_body_bytes: int = Field(default=32 * 1024 * 1024, ge=1024)
+    max_points_per_shape: int = Field(default=20_000, ge=3)
+    min_points: int = Field(default=3, ge=1)
+    max_shapes_per_collection: int = Field(default=2_000, ge=1)
+    max_batch_files: int = Field(default=500, ge=1)
+    max_coordinate: float = Field(default=1e7, gt=0)
+    max_image_pixels: int = Field(default=25_000_000, ge=1)
+    max_page_size: int = Field(default=500, ge=1)
+
+    # --- job queue -------------------------------------------------------------------------
+    worker_lease_seconds: float = Field(default=60.0, gt=0)
+    worker_heartbeat_seconds: float = Field(default=10.0, gt=0)
+    worker_poll_seconds: float = Field(default=1.0, gt=0)
+    max_attempts: int = Field(default=3, ge=1)
+    progress_min_interval_seconds: float = Field(default=0.5, ge=0)
+
+    # --- workers ---------------------------------------------------------------------------
+    embedded_workers: int = Field(default=1, ge=0)
+    executor: Literal["serial", "process"] = "process"
+    executor_processes: int | None = Field(default=None, ge=1)
+
+    # --- logging ---------------------------------------------------------------------------
+    log_level: str = "INFO"
+    log_json: bool = True
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The process-wide settings, read once from the environment."""
+    return Settings()

@@ -1,0 +1,100 @@
+"""Database engine and sessions.
+
+SQLite is the embedded default. Its connections are opened in WAL mode with a busy timeout and
+foreign keys on, and pysqlite's own transaction handling is switched off so that we can emit
+``BEGIN IMMEDIATE`` for write transactions: a writer takes the write lock when it starts, not
+half-way through, so two writers queue on the busy timeout instead of one failing with
+"database is locked" on lock upgrade (the SQLAlchemy pysqlite "serializable isolation" recipe).
+
+Use :meth:`Database.read` for reads and :meth:`Database.write` for anything that writes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import Engine, create_engine, event, make_url
+from sqlalchemy.orm import Session, sessionmaker
+
+_WRITE_OPTION = "regtree_write"
+
+
+def _is_sqlite(url: str) -> bool:
+    return make_url(url).get_backend_name() == "sqlite"
+
+
+def ensure_sqlite_dir(url: str) -> None:
+    """Create the folder of a file-backed SQLite URL (``./var`` by default)."""
+    parsed = make_url(url)
+    if parsed.get_backend_name() == "sqlite" and parsed.database not in (None, "", ":memory:"):
+        Path(str(parsed.database)).expanduser().parent.mkdir(parents=True, exist_ok=True)
+
+
+def create_db_engine(url: str, *, busy_timeout_ms: int = 30_000) -> Engine:
+    """Create an engine; for SQLite, set up WAL, busy timeout, foreign keys and BEGIN modes."""
+    if not _is_sqlite(url):
+        return create_engine(url, pool_pre_ping=True)
+
+    ensure_sqlite_dir(url)
+    engine = create_engine(
+        url,
+        connect_args={"timeout": busy_timeout_ms / 1000.0, "check_same_thread": False},
+    )
+
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_connection: Any, _record: Any) -> None:
+        # Let us emit BEGIN ourselves (pysqlite would otherwise BEGIN lazily and DEFERRED).
+        dbapi_connection.isolation_level = None
+        cursor = dbapi_connection.cursor()
+        try:
+            cursor.execute("PRAGMA journal_mode=WAL")
+            cursor.execute(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
+            cursor.execute("PRAGMA foreign_keys=ON")
+            cursor.execute("PRAGMA synchronous=NORMAL")
+        finally:
+            cursor.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(connection: Any) -> None:
+        if connection.get_execution_options().get(_WRITE_OPTION):
+            connection.exec_driver_sql("BEGIN IMMEDIATE")
+        else:
+            connection.exec_driver_sql("BEGIN")
+
+    return engine
+
+
+class Database:
+    """An engine plus read and write session factories."""
+
+    def __init__(self, url: str, *, busy_timeout_ms: int = 30_000) -> None:
+        self.url = url
+        self.engine = create_db_engine(url, busy_timeout_ms=busy_timeout_ms)
+        self._read = sessionmaker(bind=self.engine, expire_on_commit=False)
+        self._write = sessionmaker(
+            bind=self.engine.execution_options(**{_WRITE_OPTION: True}), expire_on_commit=False
+        )
+
+    @contextmanager
+    def read(self) -> Iterator[Session]:
+        """A session for reads; its transaction is rolled back at the end."""
+        with self._read() as session:
+            try:
+                yield session
+            finally:
+                session.rollback()
+
+    @contextmanager
+    def write(self) -> Iterator[Session]:
+        """A session whose transaction starts with ``BEGIN IMMEDIATE`` on SQLite.
+
+        Commits when the block ends normally, rolls back on an exception.
+        """
+        with self._write() as session, session.begin():
+            yield session
+
+    def dispose(self) -> None:
+        self.engine.dispose()

@@ -1,0 +1,295 @@
+"""Run one claimed registration job: load its shapes, call the library, store the result.
+
+The library reports progress through a callback, and propagates anything the callback
+raises; :class:`JobControl` uses that to stop a run that was cancelled, whose lease was lost,
+or whose worker is shutting down. A background thread heartbeats the lease meanwhile, and
+carries the latest progress so progress writes stay at a bounded rate.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import traceback
+from typing import Any
+
+import numpy as np
+from sqlalchemy import select
+
+from service.core.config import Settings
+from service.db import Database
+from service.jobs import queue
+from service.models import Job, Shape
+
+logger = logging.getLogger("regtree.runner")
+
+HEAVY_SUBJECT_KEYS = ("warped", "correspondence", "transform")
+
+
+class JobInterrupted(BaseException):
+    """Raised from the progress callback to stop a run.
+
+    A ``BaseException`` so that no ``except Exception`` on the way up swallows it.
+    """
+
+
+class Cancelled(JobInterrupted):
+    pass
+
+
+class LeaseLost(JobInterrupted):
+    pass
+
+
+class WorkerShutdown(JobInterrupted):
+    pass
+
+
+class JobControl:
+    """Progress callback, heartbeat thread, and the flags that interrupt a run."""
+
+    def __init__(
+        self,
+        db: Database,
+        claim: queue.Claim,
+        settings: Settings,
+        shutdown: threading.Event | None = None,
+    ) -> None:
+        self.db = db
+        self.claim = claim
+        self.settings = settings
+        self.shutdown = shutdown or threading.Event()
+        self.cancel = threading.Event()
+        self.lost = threading.Event()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._latest: tuple[str, int, int] | None = None
+        self._last_write = 0.0
+        self._thread = threading.Thread(
+            target=self._heartbeat_loop, name=f"heartbeat-{claim.job_id}", daemon=True
+        )
+
+    # -- lifecycle ------------------------------------------------------------------------
+
+    def __enter__(self) -> JobControl:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=self.settings.worker_heartbeat_seconds + 5)
+
+    def _apply(self, state: queue.LeaseState) -> None:
+        if not state.held:
+            self.lost.set()
+        elif state.cancel_requested:
+            self.cancel.set()
+
+    def _heartbeat_loop(self) -> None:
+        while not self._stop.wait(self.settings.worker_heartbeat_seconds):
+            try:
+                with self._lock:
+                    latest = self._latest
+                state = queue.heartbeat(
+                    self.db,
+                    self.claim,
+                    lease_seconds=self.settings.worker_lease_seconds,
+                    progress=latest,
+                )
+            except Exception:
+                logger.exception("heartbeat failed", extra={"job_id": self.claim.job_id})
+                continue
+            self._apply(state)
+            if self.lost.is_set():
+                logger.warning("lease lost", extra={"job_id": self.claim.job_id})
+                return
+
+    # -- the library's progress callback --------------------------------------------------
+
+    def check(self) -> None:
+        if self.lost.is_set():
+            raise LeaseLost(f"job {self.claim.job_id}: lease lost")
+        if self.cancel.is_set():
+            raise Cancelled(f"job {self.claim.job_id}: cancelled")
+        if self.shutdown.is_set():
+            raise WorkerShutdown(f"job {self.claim.job_id}: worker shutting down")
+
+    def progress(self, stage: str, done: int, total: int) -> None:
+        self.check()
+        now = time.monotonic()
+        with self._lock:
+            self._latest = (str(stage), int(done), int(total))
+            due = now - self._last_write >= self.settings.progress_min_interval_seconds
+            if due:
+                self._last_write = now
+        if due:
+            state = queue.heartbeat(
+                self.db,
+                self.claim,
+                lease_seconds=self.settings.worker_lease_seconds,
+                progress=(str(stage), int(done), int(total)),
+            )
+            self._apply(state)
+            self.check()
+
+
+def _executor(settings: Settings) -> Any:
+    from registration import LocalProcessExecutor, SerialExecutor
+
+    if settings.executor == "serial":
+        return SerialExecutor()
+    return LocalProcessExecutor(max_workers=settings.executor_processes)
+
+
+def _index_to_id(value: Any, shape_ids: list[int]) -> int | None:
+    if value is None or isinstance(value, bool):
+        return None
+    try:
+        index = int(value)
+    except (TypeError, ValueError):
+        return None
+    return shape_ids[index] if 0 <= index < len(shape_ids) else None
+
+
+def to_api_document(
+    job_id: int, doc: dict[str, Any], shape_ids: list[int]
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Map the library's positions onto shape ids.
+
+    Returns the result document (subjects without heavy arrays) and the full subjects.
+    Every subject keeps the library's keys and gains ``shape_id``, ``position``,
+    ``parent_shape_id`` and ``path_shape_ids``.
+    """
+    subjects: list[dict[str, Any]] = []
+    for raw in doc.get("subjects", []):
+        subject = dict(raw)
+        position = int(subject.get("index", len(subjects)))
+        subject["position"] = position
+        subject["shape_id"] = shape_ids[position]
+        subject["parent_shape_id"] = _index_to_id(subject.get("parent"), shape_ids)
+        path = subject.get("path")
+        if isinstance(path, list):
+            subject["path_shape_ids"] = [_index_to_id(p, shape_ids) for p in path]
+        subjects.append(subject)
+    light = [{k: v for k, v in s.items() if k not in HEAVY_SUBJECT_KEYS} for s in subjects]
+    document = {k: v for k, v in doc.items() if k not in ("subjects",)}
+    document.update(
+        job_id=job_id,
+        root_shape_id=_index_to_id(doc.get("root"), shape_ids),
+        shape_ids=list(shape_ids),
+        subjects=light,
+    )
+    return document, subjects
+
+
+def _json_safe(value: Any) -> Any:
+    """Replace non-finite floats (not valid JSON) with None, recursively."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _json_safe(value.tolist())
+    if isinstance(value, np.generic):
+        return _json_safe(value.item())
+    return value
+
+
+def run_registration(
+    job_method: str,
+    shapes: list[np.ndarray],
+    names: list[str],
+    root: int,
+    params: dict[str, Any],
+    *,
+    executor: Any,
+    progress: Any,
+) -> dict[str, Any]:
+    """Call the library for one job and return its JSON-ready result document."""
+    import registration
+
+    functions = {
+        "dynamic_tree": registration.build_dynamic_tree,
+        "static_tree": registration.build_static_tree,
+        "direct": registration.register_direct,
+    }
+    result = functions[job_method](
+        shapes,
+        root=root,
+        similarity_threshold=params.get("similarity_threshold"),
+        error_threshold=params.get("error_threshold"),
+        cpd=registration.CPDOptions(**params.get("cpd", {})),
+        names=names,
+        executor=executor,
+        progress=progress,
+        compare_direct=bool(params.get("compare_direct", False)),
+    )
+    doc: dict[str, Any] = result.to_dict()
+    return doc
+
+
+def run_claimed(
+    db: Database, settings: Settings, claim: queue.Claim, shutdown: threading.Event | None = None
+) -> str:
+    """Run a claimed job to its end; returns the outcome for logs."""
+    log = {"job_id": claim.job_id, "attempt": claim.attempt, "owner": claim.owner}
+    with db.read() as session:
+        job = session.get(Job, claim.job_id)
+        if job is None:
+            return "lost"
+        method, params, model_id = job.method, dict(job.params), job.model_shape_id
+        wanted = list(job.shape_ids)
+        rows = {s.id: s for s in session.scalars(select(Shape).where(Shape.id.in_(wanted))).all()}
+        shape_ids = [sid for sid in wanted if sid in rows]
+        shapes = [rows[sid].points for sid in shape_ids]
+        names = [rows[sid].name for sid in shape_ids]
+
+    if model_id not in shape_ids:
+        queue.fail(db, claim, f"model shape {model_id} was deleted before the job ran")
+        return "failed"
+    if len(shape_ids) < 2:
+        queue.fail(db, claim, "fewer than 2 shapes are left in the collection")
+        return "failed"
+
+    started = time.monotonic()
+    executor = None
+    with JobControl(db, claim, settings, shutdown) as control:
+        try:
+            control.check()
+            executor = _executor(settings)
+            doc = run_registration(
+                method,
+                shapes,
+                names,
+                shape_ids.index(model_id),
+                params,
+                executor=executor,
+                progress=control.progress,
+            )
+            control.check()
+            document, subjects = to_api_document(claim.job_id, _json_safe(doc), shape_ids)
+            outcome = queue.complete(db, claim, document, subjects)
+        except Cancelled:
+            outcome = "cancelled" if queue.finish_cancelled(db, claim) else "lost"
+        except LeaseLost:
+            outcome = "lost"
+        except WorkerShutdown:
+            outcome = "released" if queue.release(db, claim) else "lost"
+        except Exception as exc:
+            logger.error("job failed", exc_info=exc, extra=log)
+            message = f"{type(exc).__name__}: {exc}"
+            if not str(exc):
+                message += "\n" + "".join(traceback.format_exception(exc)[-3:])
+            outcome = "failed" if queue.fail(db, claim, message) else "lost"
+        finally:
+            close = getattr(executor, "close", None)
+            if callable(close):
+                close()
+    logger.info(
+        "job finished",
+        extra={**log, "outcome": outcome, "seconds": round(time.monotonic() - started, 3)},
+    )
+    return outcome

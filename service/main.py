@@ -1,0 +1,126 @@
+"""The FastAPI application factory."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import APIRouter, FastAPI
+from fastapi.openapi.utils import get_openapi
+from sqlalchemy import text
+
+from service import __version__
+from service.api.middleware import (
+    PUBLIC_PATHS,
+    ApiKeyMiddleware,
+    BodyLimitMiddleware,
+    RequestLogMiddleware,
+)
+from service.api.problems import Problem, ProblemError, install_problem_handlers
+from service.api.routes import collections, jobs, shapes
+from service.core.config import Settings, get_settings
+from service.db import Database
+from service.schemas import ShapeBatchJSON, ShapeJSON
+
+DESCRIPTION = """
+Register a model shape onto every shape of a collection, across large shape differences, by
+chaining registrations through similar shapes (Du et al. 2016, dynamic tree).
+
+1. `POST /v1/collections`, then upload shapes to `/v1/collections/{id}/shapes` (JSON,
+   CSV/TXT, NPY, PNG/JPEG; one or many files).
+2. `POST /v1/jobs` with the model shape: 202 and a `Location` to poll.
+3. When the job has `succeeded`, read `/v1/jobs/{id}/result` and, per shape,
+   `/v1/jobs/{id}/result/subjects/{shape_id}`.
+
+Every error is an RFC 9457 `application/problem+json` document. When the service has an API
+key, send it as `X-API-Key` or `Authorization: Bearer`; `/healthz` and the API docs are open.
+"""
+
+TAGS = [
+    {"name": "collections", "description": "Named sets of shapes."},
+    {"name": "shapes", "description": "Upload and read shapes (point sets)."},
+    {"name": "jobs", "description": "Registration jobs, their progress and results."},
+    {"name": "health", "description": "Liveness."},
+]
+
+
+def create_app(settings: Settings | None = None, *, db: Database | None = None) -> FastAPI:
+    """Build the app. The database schema must exist (``regtree migrate``)."""
+    settings = settings or get_settings()
+    database = db or Database(
+        settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms
+    )
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        yield
+        if db is None:
+            database.dispose()
+
+    app = FastAPI(
+        title="regtree",
+        version=__version__,
+        description=DESCRIPTION,
+        openapi_tags=TAGS,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.db = database
+
+    install_problem_handlers(app)
+    # Added innermost first: the request log wraps everything, then the key check, then
+    # the body limit.
+    app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes)
+    if settings.api_key is not None and settings.api_key.get_secret_value():
+        app.add_middleware(ApiKeyMiddleware, api_key=settings.api_key.get_secret_value())
+    app.add_middleware(RequestLogMiddleware)
+
+    v1 = APIRouter(prefix="/v1")
+    v1.include_router(collections.router)
+    v1.include_router(shapes.router)
+    v1.include_router(jobs.router)
+    app.include_router(v1)
+
+    @app.get("/healthz", tags=["health"], summary="Liveness and database check")
+    def healthz() -> dict[str, str]:
+        try:
+            with database.read() as session:
+                session.execute(text("SELECT 1"))
+        except Exception as e:
+            raise ProblemError(503, "database unavailable", type_="/problems/unavailable") from e
+        return {"status": "ok"}
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = get_openapi(
+            title=app.title,
+            version=app.version,
+            description=app.description,
+            routes=app.routes,
+            tags=app.openapi_tags,
+        )
+        components = schema.setdefault("components", {})
+        schemas = components.setdefault("schemas", {})
+        for model in (Problem, ShapeJSON, ShapeBatchJSON):
+            model_schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
+            for name, sub in model_schema.pop("$defs", {}).items():
+                schemas.setdefault(name, sub)
+            schemas.setdefault(model.__name__, model_schema)
+        components["securitySchemes"] = {
+            "ApiKeyHeader": {"type": "apiKey", "in": "header", "name": "X-API-Key"},
+            "Bearer": {"type": "http", "scheme": "bearer"},
+        }
+        if settings.api_key is not None:
+            for path, item in schema.get("paths", {}).items():
+                if path in PUBLIC_PATHS:
+                    continue
+                for operation in item.values():
+                    if isinstance(operation, dict):
+                        operation["security"] = [{"ApiKeyHeader": []}, {"Bearer": []}]
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+    return app

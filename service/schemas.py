@@ -1,0 +1,300 @@
+"""Pydantic request and response models of the HTTP API (the OpenAPI document's schemas)."""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime
+from typing import Annotated, Any, Generic, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+T = TypeVar("T")
+
+Method = Literal["dynamic_tree", "static_tree", "direct"]
+JobStatusName = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+ImageMode = Literal["contour", "edges", "skeleton"]
+
+
+class Page(BaseModel, Generic[T]):
+    """One page of a list."""
+
+    items: list[T]
+    total: int = Field(description="Number of items over all pages.")
+    limit: int
+    offset: int
+
+
+# --- collections -----------------------------------------------------------------------------
+
+
+class CollectionCreate(BaseModel):
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [{"name": "yong-glyphs", "description": "永 from 73 font designs"}]
+        },
+    )
+
+    name: str = Field(min_length=1, max_length=200)
+    description: str = Field(default="", max_length=5000)
+
+
+class CollectionOut(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": 1,
+                    "name": "yong-glyphs",
+                    "description": "永 from 73 font designs",
+                    "n_shapes": 73,
+                    "created_at": "2026-01-01T12:00:00Z",
+                    "updated_at": "2026-01-01T12:00:00Z",
+                }
+            ]
+        }
+    )
+
+    id: int
+    name: str
+    description: str
+    n_shapes: int
+    created_at: datetime
+    updated_at: datetime
+
+
+# --- shapes ----------------------------------------------------------------------------------
+
+
+Point = tuple[float, float]
+
+
+class ShapeJSON(BaseModel):
+    """A shape sent as JSON: a name and its (x, y) points in the user's own units."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [{"name": "fish-1", "points": [[0.0, 0.0], [1.0, 0.2], [0.5, 1.0]]}]
+        }
+    )
+
+    name: str | None = Field(default=None, max_length=300)
+    points: list[Point]
+
+
+class ShapeBatchJSON(BaseModel):
+    """Several shapes in one JSON body; all are stored or none."""
+
+    shapes: list[ShapeJSON]
+
+
+class BBox(BaseModel):
+    min_x: float
+    min_y: float
+    max_x: float
+    max_y: float
+
+
+class ShapeOut(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": 7,
+                    "collection_id": 1,
+                    "name": "fish-1",
+                    "source_format": "json",
+                    "n_points": 91,
+                    "bbox": {"min_x": -1.2, "min_y": -0.8, "max_x": 1.3, "max_y": 0.9},
+                    "created_at": "2026-01-01T12:00:00Z",
+                }
+            ]
+        }
+    )
+
+    id: int
+    collection_id: int
+    name: str
+    source_format: str
+    n_points: int
+    bbox: BBox
+    created_at: datetime
+
+
+class ShapeDetail(ShapeOut):
+    points: list[Point]
+
+
+class ShapeBatchOut(BaseModel):
+    """The shapes stored by one upload, in upload order."""
+
+    items: list[ShapeOut]
+    count: int
+
+
+# --- jobs ------------------------------------------------------------------------------------
+
+
+class CPDParams(BaseModel):
+    """Coherent Point Drift options (Myronenko & Song 2010)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    beta: float = Field(default=2.0, gt=0, le=1e3, description="Gaussian kernel width.")
+    lmbda: float = Field(default=3.0, gt=0, le=1e6, description="Smoothness weight.")
+    w: float = Field(default=0.1, ge=0, lt=1, description="Outlier weight in [0, 1).")
+    max_iter: int = Field(default=150, ge=1, le=10_000)
+    tol: float = Field(default=1e-5, gt=0, le=1)
+
+
+def _finite_positive(value: float | None) -> float | None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ValueError("must be a finite number > 0, or null for automatic")
+    return value
+
+
+class JobCreate(BaseModel):
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {
+                    "collection_id": 1,
+                    "model_shape_id": 7,
+                    "method": "dynamic_tree",
+                    "similarity_threshold": None,
+                    "error_threshold": None,
+                    "compare_direct": True,
+                    "cpd": {"beta": 2.0, "lmbda": 3.0, "w": 0.1, "max_iter": 150, "tol": 1e-5},
+                }
+            ]
+        },
+    )
+
+    collection_id: int
+    model_shape_id: int = Field(description="The model shape; it must be in the collection.")
+    method: Method = "dynamic_tree"
+    similarity_threshold: float | None = Field(
+        default=None, description="Largest similarity distance D for a tree edge; null = auto."
+    )
+    error_threshold: float | None = Field(
+        default=None, description="Largest registration error e to accept; null = automatic."
+    )
+    compare_direct: bool = Field(
+        default=False, description="Also register every subject directly from the model."
+    )
+    cpd: CPDParams = Field(default_factory=CPDParams)
+
+    _check_similarity = field_validator("similarity_threshold")(_finite_positive)
+    _check_error = field_validator("error_threshold")(_finite_positive)
+
+
+class Progress(BaseModel):
+    stage: str | None
+    done: int
+    total: int
+
+
+class JobLinks(BaseModel):
+    self: str
+    result: str
+    cancel: str
+
+
+class JobOut(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": 3,
+                    "collection_id": 1,
+                    "model_shape_id": 7,
+                    "method": "dynamic_tree",
+                    "params": {
+                        "similarity_threshold": None,
+                        "error_threshold": None,
+                        "compare_direct": True,
+                        "cpd": {"beta": 2.0, "lmbda": 3.0, "w": 0.1, "max_iter": 150, "tol": 1e-5},
+                    },
+                    "n_shapes": 73,
+                    "status": "running",
+                    "progress": {"stage": "register", "done": 12, "total": 72},
+                    "attempts": 1,
+                    "max_attempts": 3,
+                    "cancel_requested": False,
+                    "error": None,
+                    "created_at": "2026-01-01T12:00:00Z",
+                    "updated_at": "2026-01-01T12:00:05Z",
+                    "started_at": "2026-01-01T12:00:01Z",
+                    "finished_at": None,
+                    "links": {
+                        "self": "/v1/jobs/3",
+                        "result": "/v1/jobs/3/result",
+                        "cancel": "/v1/jobs/3/cancel",
+                    },
+                }
+            ]
+        }
+    )
+
+    id: int
+    collection_id: int
+    model_shape_id: int
+    method: Method
+    params: dict[str, Any]
+    n_shapes: int
+    status: JobStatusName
+    progress: Progress
+    attempts: int
+    max_attempts: int
+    cancel_requested: bool
+    error: str | None
+    created_at: datetime
+    updated_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    links: JobLinks
+
+
+# --- results ---------------------------------------------------------------------------------
+
+
+class ResultOut(BaseModel):
+    """A job's result: the tree and, per subject, its place, similarity and error.
+
+    Subjects name shapes by ``shape_id``; ``parent_shape_id`` and ``path_shape_ids`` give the
+    tree. Heavy arrays (warped points, correspondences, transforms) are left out unless
+    ``?full=true``; ``/result/subjects/{shape_id}`` always has them.
+    """
+
+    model_config = ConfigDict(extra="allow")
+
+    job_id: int
+    method: str
+    root_shape_id: int
+    subjects: list[dict[str, Any]]
+    summary: dict[str, Any] = Field(default_factory=dict)
+
+
+class TransformRequest(BaseModel):
+    model_config = ConfigDict(
+        extra="forbid", json_schema_extra={"examples": [{"points": [[0.0, 0.0], [1.0, 2.0]]}]}
+    )
+
+    points: Annotated[list[Point], Field(min_length=1)] = Field(
+        description="Points in the model shape's coordinates."
+    )
+
+    @field_validator("points")
+    @classmethod
+    def _finite(cls, points: list[Point]) -> list[Point]:
+        for x, y in points:
+            if not (math.isfinite(x) and math.isfinite(y)):
+                raise ValueError("every coordinate must be a finite number")
+        return points
+
+
+class TransformOut(BaseModel):
+    job_id: int
+    shape_id: int
+    points: list[Point] = Field(description="The points mapped onto the subject's coordinates.")
