@@ -498,9 +498,11 @@ def _open_image(data: bytes, limits: Limits) -> Image.Image:
     try:
         im: Image.Image = Image.open(io.BytesIO(data), formats=("PNG", "JPEG"))
     except Image.DecompressionBombError as e:
+        # Pillow's own guard (2 * Image.MAX_IMAGE_PIXELS) fires while reading the header of
+        # images far beyond any sensible max_image_pixels.
         raise IngestError(
-            f"image too large: {e}; the limit is {limits.max_image_pixels} pixels "
-            f"(setting max_image_pixels)"
+            f"image too large: its declared size is beyond Pillow's decompression-bomb "
+            f"guard; the limit is {limits.max_image_pixels} pixels (setting max_image_pixels)"
         ) from e
     except UnidentifiedImageError as e:
         raise IngestError(
@@ -676,7 +678,7 @@ def points_from_image(
       first, each closed contour starting at its first vertex, without repeating it.
     * ``edges``: Canny edges (``skimage.feature.canny``, sigma 1, default thresholds) of the
       grey image, as in Du et al. 2016, computed with the shape made bright and the grey
-      range stretched to 0..1 (so both polarities and faint scans give the same edges as
+      range stretched to 0..255 (so both polarities and faint scans give the same edges as
       crisp black on white); edge pixels in raster order (by row, then column).
     * ``skeleton``: ``skimage.morphology.skeletonize`` of the thresholded shape; skeleton
       pixels in raster order.
@@ -711,10 +713,13 @@ def points_from_image(
 
         # Canny's non-maximum suppression is not symmetric under inversion: run it with the
         # shape bright, so both polarities give the same edges. Its thresholds are absolute:
-        # stretch the grey range to 0..1 so faint scans give the edges of crisp ones.
-        lo, hi = float(grey.min()), float(grey.max())
-        g = (grey.astype(np.float64) - lo) / (hi - lo)
-        pts = _pixels_xy(canny(1.0 - g if fg_dark else g, sigma=1.0))
+        # stretch the grey range to 0..255 so faint scans give the edges of crisp ones.
+        # (uint8 rather than float keeps the peak memory of a 4096 x 4096 image lower.)
+        lo, hi = int(grey.min()), int(grey.max())
+        if (lo, hi) != (0, 255):
+            lut = np.rint((np.arange(256) - lo).clip(0, hi - lo) * (255.0 / (hi - lo)))
+            grey = lut.astype(np.uint8)[grey]
+        pts = _pixels_xy(canny(255 - grey if fg_dark else grey, sigma=1.0))
         if len(pts) == 0:
             raise _no_foreground("no edges found")
         return _reduce_raster(pts, target_points, limits)
