@@ -202,9 +202,11 @@ def detect_format(filename: str | None, content_type: str | None, data: bytes) -
 
     Magic bytes win (``\\x93NUMPY``, PNG/JPEG signatures, a leading ``[`` or ``{``), then the
     file name's extension, then the content type (parameters such as ``charset`` ignored,
-    ``*/*+json`` counts as JSON, other ``text/*`` as text). Failing all of these, data that
-    decodes as text without NUL bytes is treated as text. Raises :class:`IngestError` if the
-    format cannot be recognised.
+    ``*/*+json`` counts as JSON, other ``text/*`` as text). Failing all of these, data with a
+    UTF BOM or without control bytes (other than tab, newlines, form feed) in its first 4 KiB
+    is treated as text. GIF, TIFF and WebP signatures are reported as "image" so that
+    :func:`points_from_image` can say that only PNG and JPEG are decoded. Raises
+    :class:`IngestError` for an empty file, a zip/npz archive, or an unrecognised format.
     """
     if not data:
         raise IngestError("empty file")
