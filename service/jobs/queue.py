@@ -172,6 +172,8 @@ def complete(
     claim: Claim,
     document: dict[str, Any],
     subjects: list[dict[str, Any]],
+    *,
+    progress: tuple[str, int, int] | None = None,
 ) -> str:
     """Store the result and mark the job succeeded, atomically.
 
@@ -193,6 +195,13 @@ def complete(
                 finished_at=now,
             )
             return "cancelled" if cancelled else "lost"
+        final: dict[str, Any] = {}
+        if progress is not None:
+            final = {
+                "progress_stage": progress[0][:100],
+                "progress_done": progress[1],
+                "progress_total": progress[2],
+            }
         held = _update(
             session,
             claim,
@@ -200,6 +209,7 @@ def complete(
             lease_owner=None,
             lease_expires_at=None,
             finished_at=now,
+            **final,
         )
         if not held:
             return "lost"

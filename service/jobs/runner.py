@@ -24,7 +24,7 @@ from service.models import Job, Shape
 
 logger = logging.getLogger("regtree.runner")
 
-HEAVY_SUBJECT_KEYS = ("warped", "correspondence", "transform")
+HEAVY_SUBJECT_KEYS = ("warped", "correspondence", "probability", "transform", "direct")
 
 
 class JobInterrupted(BaseException):
@@ -105,6 +105,12 @@ class JobControl:
                 logger.warning("lease lost", extra={"job_id": self.claim.job_id})
                 return
 
+    @property
+    def latest(self) -> tuple[str, int, int] | None:
+        """The last progress reported by the library."""
+        with self._lock:
+            return self._latest
+
     # -- the library's progress callback --------------------------------------------------
 
     def check(self) -> None:
@@ -152,28 +158,51 @@ def _index_to_id(value: Any, shape_ids: list[int]) -> int | None:
     return shape_ids[index] if 0 <= index < len(shape_ids) else None
 
 
+def _with_shape_ids(raw: dict[str, Any], shape_ids: list[int], fallback: int) -> dict[str, Any]:
+    subject = dict(raw)
+    position = int(subject.get("index", fallback))
+    subject["position"] = position
+    subject["shape_id"] = shape_ids[position]
+    subject["parent_shape_id"] = _index_to_id(subject.get("parent"), shape_ids)
+    path = subject.get("path")
+    if isinstance(path, list):
+        subject["path_shape_ids"] = [_index_to_id(p, shape_ids) for p in path]
+    attempts = subject.get("attempts")
+    if isinstance(attempts, list):
+        subject["attempts"] = [
+            {**a, "member_shape_id": _index_to_id(a.get("member"), shape_ids)}
+            if isinstance(a, dict)
+            else a
+            for a in attempts
+        ]
+    return subject
+
+
 def to_api_document(
     job_id: int, doc: dict[str, Any], shape_ids: list[int]
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Map the library's positions onto shape ids.
 
     Returns the result document (subjects without heavy arrays) and the full subjects.
-    Every subject keeps the library's keys and gains ``shape_id``, ``position``,
-    ``parent_shape_id`` and ``path_shape_ids``.
+    Every subject keeps the library's keys (``index`` and ``parent`` are positions in the
+    job's input) and gains ``shape_id``, ``position``, ``parent_shape_id`` and
+    ``path_shape_ids``; with ``compare_direct``, the direct registration of a subject is
+    under ``direct`` (full) and ``direct_error`` (light).
     """
+    direct: dict[int, dict[str, Any]] = {}
+    for k, raw in enumerate(doc.get("direct") or []):
+        if isinstance(raw, dict):
+            entry = _with_shape_ids(raw, shape_ids, k)
+            direct[entry["shape_id"]] = entry
     subjects: list[dict[str, Any]] = []
-    for raw in doc.get("subjects", []):
-        subject = dict(raw)
-        position = int(subject.get("index", len(subjects)))
-        subject["position"] = position
-        subject["shape_id"] = shape_ids[position]
-        subject["parent_shape_id"] = _index_to_id(subject.get("parent"), shape_ids)
-        path = subject.get("path")
-        if isinstance(path, list):
-            subject["path_shape_ids"] = [_index_to_id(p, shape_ids) for p in path]
+    for k, raw in enumerate(doc.get("subjects", [])):
+        subject = _with_shape_ids(raw, shape_ids, k)
+        if subject["shape_id"] in direct:
+            subject["direct"] = direct[subject["shape_id"]]
+            subject["direct_error"] = direct[subject["shape_id"]].get("error")
         subjects.append(subject)
     light = [{k: v for k, v in s.items() if k not in HEAVY_SUBJECT_KEYS} for s in subjects]
-    document = {k: v for k, v in doc.items() if k not in ("subjects",)}
+    document = {k: v for k, v in doc.items() if k not in ("subjects", "direct")}
     document.update(
         job_id=job_id,
         root_shape_id=_index_to_id(doc.get("root"), shape_ids),
@@ -271,7 +300,7 @@ def run_claimed(
             )
             control.check()
             document, subjects = to_api_document(claim.job_id, _json_safe(doc), shape_ids)
-            outcome = queue.complete(db, claim, document, subjects)
+            outcome = queue.complete(db, claim, document, subjects, progress=control.latest)
         except Cancelled:
             outcome = "cancelled" if queue.finish_cancelled(db, claim) else "lost"
         except LeaseLost:

@@ -1,0 +1,105 @@
+"""The ``regtree`` command line: serve, worker, migrate, demo."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Sequence
+
+
+def _single_threaded_blas() -> None:
+    # Before numpy is imported: parallelism comes from processes, not BLAS threads.
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="regtree",
+        description="Register shape collections through a dynamic tree (Du et al. 2016). "
+        "Settings come from REGTREE_* environment variables.",
+    )
+    parser.add_argument(
+        "--database-url", help="overrides REGTREE_DATABASE_URL (default sqlite:///./var/...)"
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    serve = sub.add_parser("serve", help="run the API and embedded workers (migrates first)")
+    serve.add_argument("--host", default="127.0.0.1")
+    serve.add_argument("--port", type=int, default=8000)
+    serve.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="embedded worker processes "
+        "(default REGTREE_EMBEDDED_WORKERS); 0 = run `regtree worker` separately",
+    )
+    serve.add_argument("--no-migrate", action="store_true", help="do not apply migrations")
+
+    worker = sub.add_parser("worker", help="run a worker process")
+    worker.add_argument("--burst", action="store_true", help="exit when the queue is empty")
+
+    mig = sub.add_parser("migrate", help="apply or revert database migrations")
+    mig.add_argument(
+        "action", nargs="?", default="upgrade", choices=["upgrade", "downgrade", "current"]
+    )
+    mig.add_argument("revision", nargs="?", help="target revision (upgrade: head; downgrade: -1)")
+
+    demo = sub.add_parser("demo", help="register the bundled demo collection end to end")
+    demo.add_argument("--workers", type=int, default=1)
+    demo.add_argument(
+        "--method", default="dynamic_tree", choices=["dynamic_tree", "static_tree", "direct"]
+    )
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.command in ("serve", "worker", "demo"):
+        _single_threaded_blas()
+
+    from service.core.config import Settings
+    from service.core.logging import configure_logging
+
+    overrides = {"database_url": args.database_url} if args.database_url else {}
+    settings = Settings(**overrides)
+    configure_logging(settings.log_level, json_lines=settings.log_json)
+
+    if args.command == "serve":
+        from service.embedded import serve
+
+        workers = settings.embedded_workers if args.workers is None else args.workers
+        serve(
+            settings,
+            host=args.host,
+            port=args.port,
+            workers=workers,
+            migrate_db=not args.no_migrate,
+        )
+        return 0
+    if args.command == "worker":
+        from service.worker import Worker
+
+        worker = Worker(settings)
+        worker.install_signal_handlers()
+        worker.run(burst=args.burst)
+        return 0
+    if args.command == "migrate":
+        from service import migrate
+
+        if args.action == "upgrade":
+            migrate.upgrade(settings, args.revision or "head")
+        elif args.action == "downgrade":
+            migrate.downgrade(settings, args.revision or "-1")
+        print(migrate.current_revision(settings) or "base")
+        return 0
+    if args.command == "demo":
+        from service.demo_run import run_demo
+
+        return run_demo(settings, workers=args.workers, method=args.method)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

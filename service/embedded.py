@@ -1,0 +1,116 @@
+"""One machine, one command: the API server plus worker processes (``regtree serve``)."""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import signal
+import socket
+import threading
+import time
+from multiprocessing.process import BaseProcess
+
+import uvicorn
+
+from service import migrate
+from service.core.config import Settings
+from service.main import create_app
+from service.worker import run_worker_process
+
+logger = logging.getLogger("regtree.serve")
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as sock:
+        sock.bind((host, 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def start_workers(settings: Settings, count: int) -> list[BaseProcess]:
+    """Start ``count`` worker processes (spawned, so they share no state with the server)."""
+    context = multiprocessing.get_context("spawn")
+    processes: list[BaseProcess] = []
+    for i in range(count):
+        process = context.Process(
+            target=run_worker_process,
+            args=(settings, os.getpid()),
+            name=f"regtree-worker-{i}",
+            daemon=False,  # a worker may start its own process pool
+        )
+        process.start()
+        processes.append(process)
+    logger.info("workers started", extra={"pids": [p.pid for p in processes]})
+    return processes
+
+
+def stop_workers(processes: list[BaseProcess], *, timeout: float = 15.0) -> None:
+    """SIGTERM (jobs in progress go back to the queue), then SIGKILL after ``timeout``."""
+    for process in processes:
+        if process.is_alive() and process.pid is not None:
+            os.kill(process.pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    for process in processes:
+        process.join(max(0.0, deadline - time.monotonic()))
+        if process.is_alive():
+            logger.warning("worker did not stop; killing", extra={"pid": process.pid})
+            process.kill()
+            process.join(5)
+
+
+def make_server(settings: Settings, host: str, port: int) -> uvicorn.Server:
+    config = uvicorn.Config(
+        create_app(settings),
+        host=host,
+        port=port,
+        log_config=None,
+        access_log=False,
+        proxy_headers=True,
+        timeout_graceful_shutdown=10,
+    )
+    return uvicorn.Server(config)
+
+
+def serve(settings: Settings, *, host: str, port: int, workers: int, migrate_db: bool) -> None:
+    """Apply migrations, start workers, run the API in this process until a signal."""
+    if migrate_db:
+        migrate.upgrade(settings)
+    processes = start_workers(settings, workers)
+    try:
+        make_server(settings, host, port).run()
+    finally:
+        stop_workers(processes)
+
+
+class BackgroundStack:
+    """The same server and workers as :func:`serve`, with the server in a thread (demo)."""
+
+    def __init__(self, settings: Settings, *, workers: int, host: str = "127.0.0.1") -> None:
+        self.settings = settings
+        self.host = host
+        self.port = free_port(host)
+        self.workers = workers
+        self.server = make_server(settings, host, self.port)
+        self.processes: list[BaseProcess] = []
+        self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
+
+    @property
+    def base_url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    def __enter__(self) -> BackgroundStack:
+        migrate.upgrade(self.settings)
+        self.processes = start_workers(self.settings, self.workers)
+        self.thread.start()
+        deadline = time.monotonic() + 30
+        while not self.server.started:
+            if time.monotonic() > deadline or not self.thread.is_alive():
+                raise RuntimeError("the embedded API server did not start")
+            time.sleep(0.05)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.server.should_exit = True
+        self.thread.join(15)
+        stop_workers(self.processes)

@@ -1,0 +1,110 @@
+"""The worker loop: claim a job, run it, repeat.
+
+Run it with ``regtree worker`` (any number, on any machine that reaches the database), or let
+``regtree serve`` start embedded ones. SIGTERM or SIGINT stops the loop; a job in progress is
+given back to the queue at its next progress report (its attempt is not counted). A worker
+killed outright (SIGKILL, power loss) stops heartbeating; once its lease expires another
+worker claims the job again, up to ``max_attempts`` times.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import random
+import signal
+import socket
+import threading
+import uuid
+from types import FrameType
+
+from service.core.config import Settings
+from service.core.logging import configure_logging
+from service.db import Database
+from service.jobs import queue
+from service.jobs.runner import run_claimed
+
+logger = logging.getLogger("regtree.worker")
+
+
+def make_worker_id() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
+
+
+class Worker:
+    """Claims and runs jobs until :attr:`shutdown` is set."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        db: Database | None = None,
+        *,
+        worker_id: str | None = None,
+        parent_pid: int | None = None,
+    ) -> None:
+        self.settings = settings
+        self.db = db or Database(
+            settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms
+        )
+        self.worker_id = worker_id or make_worker_id()
+        self.parent_pid = parent_pid
+        self.shutdown = threading.Event()
+
+    def _parent_gone(self) -> bool:
+        return self.parent_pid is not None and os.getppid() != self.parent_pid
+
+    def _watch_parent(self) -> None:
+        # An embedded worker must not outlive `regtree serve`, even if that was SIGKILLed.
+        while not self.shutdown.wait(1.0):
+            if self._parent_gone():
+                logger.warning("parent process gone; stopping", extra={"worker": self.worker_id})
+                self.shutdown.set()
+
+    def run_once(self) -> str | None:
+        """Claim and run one job; its outcome, or None if the queue was empty."""
+        claim = queue.claim(
+            self.db, self.worker_id, lease_seconds=self.settings.worker_lease_seconds
+        )
+        if claim is None:
+            return None
+        return run_claimed(self.db, self.settings, claim, self.shutdown)
+
+    def run(self, *, burst: bool = False) -> None:
+        """Loop until shut down; with ``burst``, stop as soon as the queue is empty."""
+        logger.info("worker started", extra={"worker": self.worker_id})
+        if self.parent_pid is not None:
+            threading.Thread(target=self._watch_parent, daemon=True).start()
+        poll = self.settings.worker_poll_seconds
+        while not self.shutdown.is_set():
+            try:
+                outcome = self.run_once()
+            except Exception:
+                logger.exception("worker loop error", extra={"worker": self.worker_id})
+                outcome = None
+            if outcome is None:
+                if burst:
+                    break
+                # Jitter so that many idle workers do not poll in lock-step.
+                self.shutdown.wait(poll * random.uniform(0.5, 1.0))
+        logger.info("worker stopped", extra={"worker": self.worker_id})
+
+    def install_signal_handlers(self) -> None:
+        def handle(signum: int, _frame: FrameType | None) -> None:
+            logger.info("signal received; finishing", extra={"signal": signum})
+            self.shutdown.set()
+
+        signal.signal(signal.SIGTERM, handle)
+        signal.signal(signal.SIGINT, handle)
+
+
+def run_worker_process(settings: Settings, parent_pid: int | None = None) -> None:
+    """Entry point of a worker process (``regtree worker`` and the embedded workers)."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    configure_logging(settings.log_level, json_lines=settings.log_json)
+    worker = Worker(settings, parent_pid=parent_pid)
+    worker.install_signal_handlers()
+    try:
+        worker.run()
+    finally:
+        worker.db.dispose()
