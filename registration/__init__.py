@@ -5,4 +5,54 @@ registration via building tree dynamically": affine ICP with bidirectional dista
 (eqs. 2-9) as the similarity, CPD non-rigid registration (Myronenko & Song 2010), the
 registration error of eq. 10, the dynamic tree of section 3.3, and the baselines it is
 compared against (direct CPD and the static tree).
+
+Typical use::
+
+    from registration import build_dynamic_tree
+    result = build_dynamic_tree(shapes, root=0, compare_direct=True)
+    result.summary()["layer_ge_3"]      # mean and 95th percentile of e, as in the paper
+    result.transform_for(5).apply(pts)  # root-model points mapped onto subject 5
 """
+
+from ._cpd import CPDResult, NonrigidTransform, cpd_nonrigid
+from ._error import registration_error
+from ._executor import Executor, LocalProcessExecutor, SerialExecutor, default_executor
+from ._icp import AffineICPResult, affine_icp, bidirectional_distance, fit_affine
+from ._points import Normalization, as_points, normalise, resample
+from ._result import Attempt, CollectionResult, SubjectResult, error_statistics
+from ._similarity import ProgressCallback, Similarity, similarity_matrix
+from ._transform import AffineTransform, ChainTransform, jacobian_determinants
+from ._tree import CPDOptions, build_dynamic_tree, build_static_tree, register_direct
+
+__all__ = [
+    "AffineICPResult",
+    "AffineTransform",
+    "Attempt",
+    "CPDOptions",
+    "CPDResult",
+    "ChainTransform",
+    "CollectionResult",
+    "Executor",
+    "LocalProcessExecutor",
+    "NonrigidTransform",
+    "Normalization",
+    "ProgressCallback",
+    "SerialExecutor",
+    "Similarity",
+    "SubjectResult",
+    "affine_icp",
+    "as_points",
+    "bidirectional_distance",
+    "build_dynamic_tree",
+    "build_static_tree",
+    "cpd_nonrigid",
+    "default_executor",
+    "error_statistics",
+    "fit_affine",
+    "jacobian_determinants",
+    "normalise",
+    "register_direct",
+    "registration_error",
+    "resample",
+    "similarity_matrix",
+]

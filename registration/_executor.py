@@ -1,0 +1,126 @@
+"""Executors: where the heavy, independent tasks of a collection run.
+
+The algorithms only ever call :meth:`Executor.map_unordered` with a picklable top-level
+function and a list of picklable items, and consume ``(position, result)`` pairs as they
+complete. A local process pool is the default; a distributed engine (for example Dask's
+``Client.map`` with ``as_completed``) plugs in by implementing the same one method.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from typing import Protocol, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+__all__ = ["Executor", "LocalProcessExecutor", "SerialExecutor", "default_executor"]
+
+
+class Executor(Protocol):
+    """Runs independent tasks; results come back as they complete."""
+
+    def map_unordered(
+        self, fn: Callable[[T], R], items: Sequence[T]
+    ) -> Iterator[tuple[int, R]]:
+        """Yield ``(position in items, fn(item))`` for every item, in completion order.
+
+        If the consumer stops early (for example because a progress callback raised to
+        cancel the run), tasks not yet started must not run.
+        """
+        ...
+
+
+class SerialExecutor:
+    """Runs every task in the calling process, in order."""
+
+    def map_unordered(
+        self, fn: Callable[[T], R], items: Sequence[T]
+    ) -> Iterator[tuple[int, R]]:
+        for i, item in enumerate(items):
+            yield i, fn(item)
+
+    def __repr__(self) -> str:
+        return "SerialExecutor()"
+
+
+class LocalProcessExecutor:
+    """A pool of local worker processes (``concurrent.futures``, spawn-safe).
+
+    Parameters
+    ----------
+    max_workers : int, optional
+        Number of processes; defaults to the CPUs available to this process.
+    max_pending : int, optional
+        Tasks submitted ahead of completion (bounded so a cancelled run stops quickly);
+        defaults to ``4 * max_workers``.
+
+    Notes
+    -----
+    The pool is created on first use and reused until :meth:`close` (or the end of a
+    ``with`` block), so a collection's stages share one set of warm processes.
+    """
+
+    def __init__(self, max_workers: int | None = None, *, max_pending: int | None = None):
+        n = max_workers if max_workers is not None else _available_cpus()
+        if n < 1:
+            raise ValueError(f"max_workers must be at least 1; got {n}")
+        self.max_workers = n
+        self.max_pending = max_pending if max_pending is not None else 4 * n
+        self._pool: ProcessPoolExecutor | None = None
+
+    def _ensure_pool(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            ctx = multiprocessing.get_context("forkserver")
+            self._pool = ProcessPoolExecutor(max_workers=self.max_workers, mp_context=ctx)
+        return self._pool
+
+    def map_unordered(
+        self, fn: Callable[[T], R], items: Sequence[T]
+    ) -> Iterator[tuple[int, R]]:
+        pool = self._ensure_pool()
+        pending: dict[Future[R], int] = {}
+        next_item = 0
+        try:
+            while next_item < len(items) or pending:
+                while next_item < len(items) and len(pending) < self.max_pending:
+                    pending[pool.submit(fn, items[next_item])] = next_item
+                    next_item += 1
+                done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+                for fut in done:
+                    pos = pending.pop(fut)
+                    yield pos, fut.result()
+        finally:
+            for fut in pending:
+                fut.cancel()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self) -> LocalProcessExecutor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"LocalProcessExecutor(max_workers={self.max_workers})"
+
+
+def _available_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def default_executor(n_tasks: int, *, min_parallel_tasks: int = 64) -> Executor:
+    """Serial for small jobs (a pool's start-up would dominate), else a local pool."""
+    if n_tasks < min_parallel_tasks or _available_cpus() < 2:
+        return SerialExecutor()
+    return LocalProcessExecutor()

@@ -1,0 +1,222 @@
+"""Results of registering a root model to every shape of a collection."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ._transform import ChainTransform
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+__all__ = ["Attempt", "CollectionResult", "SubjectResult", "error_statistics"]
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """One registration tried while building a tree: member -> subject."""
+
+    member: int
+    layer: int
+    similarity: float
+    error: float
+    min_jacobian: float
+    accepted: bool
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "member": self.member,
+            "layer": self.layer,
+            "similarity": self.similarity,
+            "error": self.error,
+            "min_jacobian": self.min_jacobian,
+            "accepted": self.accepted,
+            "reason": self.reason,
+        }
+
+
+@dataclass
+class SubjectResult:
+    """Where one subject ended up, and the registration of the root model onto it.
+
+    Attributes
+    ----------
+    index : int
+        Position of the subject in the input list.
+    name : str
+    parent : int or None
+        Tree parent (the root for direct CPD); None when unattached.
+    layer : int or None
+        Tree layer, the root being layer 1; None when unattached.
+    path : list of int
+        Shape indices from the root to this subject (empty when unattached).
+    similarity : float or None
+        D (eq. 9) from the parent to this subject, on normalised shapes.
+    error : float or None
+        e (eq. 10) between the warped root model and the subject, on normalised shapes.
+    warped : ndarray, shape (N, 2), or None
+        The root model warped onto the subject, in the subject's user coordinates.
+    correspondence : ndarray of int, shape (N,), or None
+        For each root-model point, the index of its most probable subject point.
+    probability : ndarray, shape (N,), or None
+        The posterior probability of that correspondence.
+    transform : ChainTransform or None
+    reason : str
+        Why it is attached or not (for unattached subjects, the last rejection).
+    attempts : list of Attempt
+    """
+
+    index: int
+    name: str
+    parent: int | None = None
+    layer: int | None = None
+    path: list[int] = field(default_factory=list)
+    similarity: float | None = None
+    error: float | None = None
+    warped: FloatArray | None = None
+    correspondence: IntArray | None = None
+    probability: FloatArray | None = None
+    transform: ChainTransform | None = None
+    reason: str = ""
+    attempts: list[Attempt] = field(default_factory=list)
+
+    @property
+    def attached(self) -> bool:
+        return self.parent is not None
+
+    def to_dict(self, *, include_points: bool = True) -> dict[str, Any]:
+        d: dict[str, Any] = {
+            "index": self.index,
+            "name": self.name,
+            "parent": self.parent,
+            "layer": self.layer,
+            "path": list(self.path),
+            "similarity": self.similarity,
+            "error": self.error,
+            "attached": self.attached,
+            "reason": self.reason,
+            "attempts": [a.to_dict() for a in self.attempts],
+        }
+        if include_points:
+            d["warped"] = None if self.warped is None else self.warped.tolist()
+            d["correspondence"] = (
+                None if self.correspondence is None else self.correspondence.tolist()
+            )
+            d["probability"] = None if self.probability is None else self.probability.tolist()
+            d["transform"] = None if self.transform is None else self.transform.to_dict()
+        return d
+
+
+def error_statistics(errors: list[float]) -> dict[str, Any]:
+    """Count, mean and 95th percentile (linear interpolation) of a list of e values."""
+    if not errors:
+        return {"count": 0, "mean": None, "p95": None}
+    arr = np.asarray(errors, dtype=np.float64)
+    return {"count": len(errors), "mean": float(arr.mean()), "p95": float(np.percentile(arr, 95))}
+
+
+@dataclass
+class CollectionResult:
+    """The registration of a root model to every other shape of a collection.
+
+    Attributes
+    ----------
+    method : str
+        ``"dynamic_tree"``, ``"static_tree"`` or ``"direct"``.
+    root : int
+    names : list of str
+    subjects : list of SubjectResult
+        One per non-root shape, in input order.
+    thresholds : dict
+        ``similarity`` and ``error`` thresholds used, and how they were chosen.
+    options : dict
+        CPD and ICP options, and whether an affine pre-alignment was used.
+    direct : list of SubjectResult or None
+        Direct CPD from the root on the same subjects, when requested for comparison.
+    similarity_pairs : int
+        ICP runs done for the similarity.
+    """
+
+    method: str
+    root: int
+    names: list[str]
+    subjects: list[SubjectResult]
+    thresholds: dict[str, Any]
+    options: dict[str, Any]
+    direct: list[SubjectResult] | None = None
+    similarity_pairs: int = 0
+
+    def subject(self, index: int) -> SubjectResult:
+        for s in self.subjects:
+            if s.index == index:
+                return s
+        raise KeyError(f"no subject with index {index}")
+
+    def transform_for(self, index: int) -> ChainTransform:
+        """The root-to-subject transform; ValueError if the subject is unattached."""
+        s = self.subject(index)
+        if s.transform is None:
+            raise ValueError(f"subject {index} ({s.name}) is not attached: {s.reason}")
+        return s.transform
+
+    def summary(self) -> dict[str, Any]:
+        """The paper's statistics: mean and 95th percentile of e at layer >= 3 (the
+        subjects where a tree differs from direct CPD), on all attached subjects, per
+        layer; and direct CPD's on the same subjects when it was computed."""
+        attached = [s for s in self.subjects if s.attached]
+        deep = [s for s in attached if s.layer is not None and s.layer >= 3]
+        layers: dict[int, list[SubjectResult]] = {}
+        for s in attached:
+            assert s.layer is not None
+            layers.setdefault(s.layer, []).append(s)
+        out: dict[str, Any] = {
+            "subjects": len(self.subjects),
+            "attached": len(attached),
+            "unattached": len(self.subjects) - len(attached),
+            "depth": max(layers) if layers else 1,
+            "layer_ge_3": error_statistics([s.error for s in deep if s.error is not None]),
+            "all": error_statistics([s.error for s in attached if s.error is not None]),
+            "per_layer": {
+                str(k): error_statistics([s.error for s in v if s.error is not None])
+                for k, v in sorted(layers.items())
+            },
+        }
+        if self.direct is not None:
+            by_index = {s.index: s for s in self.direct}
+
+            def direct_errors(group: list[SubjectResult]) -> list[float]:
+                return [
+                    e
+                    for s in group
+                    if (e := by_index[s.index].error) is not None and s.index in by_index
+                ]
+
+            out["direct"] = {
+                "layer_ge_3": error_statistics(direct_errors(deep)),
+                "all": error_statistics(direct_errors(attached)),
+                "per_layer": {
+                    str(k): error_statistics(direct_errors(v)) for k, v in sorted(layers.items())
+                },
+            }
+        return out
+
+    def to_dict(self, *, include_points: bool = True) -> dict[str, Any]:
+        """A JSON-serialisable document of the whole result."""
+        return {
+            "method": self.method,
+            "root": self.root,
+            "names": list(self.names),
+            "thresholds": dict(self.thresholds),
+            "options": dict(self.options),
+            "similarity_pairs": self.similarity_pairs,
+            "subjects": [s.to_dict(include_points=include_points) for s in self.subjects],
+            "direct": None
+            if self.direct is None
+            else [s.to_dict(include_points=include_points) for s in self.direct],
+            "summary": self.summary(),
+        }

@@ -1,0 +1,189 @@
+"""Similarity of the shapes of a collection: D of eq. 9 for the pairs that matter."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ._executor import Executor, default_executor
+from ._icp import affine_icp
+from ._points import normalise
+
+FloatArray = NDArray[np.float64]
+ProgressCallback = Callable[[str, int, int], None]
+
+__all__ = ["ProgressCallback", "Similarity", "shape_descriptor", "similarity_matrix"]
+
+_PAIRS_PER_TASK = 12
+
+
+@dataclass
+class Similarity:
+    """Directed affine-ICP distances between shapes of a collection.
+
+    ``D[i, j]`` is ``D(X_i, Y=X_j)`` of eq. 9: shape ``i`` is the model moved by the
+    affine map onto shape ``j``, on size-normalised shapes. It is not symmetric. Pairs not
+    computed hold NaN; the diagonal is 0.
+
+    Attributes
+    ----------
+    D : ndarray, shape (n, n)
+    A : ndarray, shape (n, n, 2, 2)
+        Linear part of the affine map of each computed pair.
+    t : ndarray, shape (n, n, 2)
+    computed : int
+        Number of ICP runs done so far.
+    """
+
+    D: FloatArray
+    A: FloatArray
+    t: FloatArray
+    computed: int = 0
+    _shapes: list[FloatArray] = field(default_factory=list, repr=False)
+
+    @classmethod
+    def empty(cls, normalised_shapes: Sequence[FloatArray]) -> Similarity:
+        n = len(normalised_shapes)
+        D = np.full((n, n), np.nan)
+        np.fill_diagonal(D, 0.0)
+        A = np.zeros((n, n, 2, 2))
+        A[:] = np.eye(2)
+        return cls(D=D, A=A, t=np.zeros((n, n, 2)), _shapes=list(normalised_shapes))
+
+    def ensure(
+        self,
+        pairs: Iterable[tuple[int, int]],
+        *,
+        executor: Executor | None = None,
+        progress: ProgressCallback | None = None,
+        stage: str = "similarity",
+    ) -> None:
+        """Compute D for the given (model, subject) pairs that are not yet known."""
+        todo = sorted({(i, j) for i, j in pairs if i != j and np.isnan(self.D[i, j])})
+        if not todo:
+            return
+        tasks = [
+            _PairTask(
+                pairs=todo[k : k + _PAIRS_PER_TASK],
+                shapes={
+                    idx: self._shapes[idx]
+                    for pair in todo[k : k + _PAIRS_PER_TASK]
+                    for idx in pair
+                },
+            )
+            for k in range(0, len(todo), _PAIRS_PER_TASK)
+        ]
+        ex = executor if executor is not None else default_executor(len(todo))
+        done = 0
+        if progress is not None:
+            progress(stage, 0, len(todo))
+        for _, rows in ex.map_unordered(_icp_task, tasks):
+            for i, j, d, a, t in rows:
+                self.D[i, j] = d
+                self.A[i, j] = a
+                self.t[i, j] = t
+            done += len(rows)
+            self.computed += len(rows)
+            if progress is not None:
+                progress(stage, done, len(todo))
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "D": [[None if np.isnan(v) else float(v) for v in row] for row in self.D],
+            "computed": self.computed,
+        }
+
+
+@dataclass(frozen=True)
+class _PairTask:
+    pairs: list[tuple[int, int]]
+    shapes: dict[int, FloatArray]
+
+
+def _icp_task(task: _PairTask) -> list[tuple[int, int, float, FloatArray, FloatArray]]:
+    out = []
+    for i, j in task.pairs:
+        res = affine_icp(task.shapes[i], task.shapes[j])
+        out.append((i, j, res.distance, res.A, res.t))
+    return out
+
+
+def shape_descriptor(normalised: FloatArray, *, bins: int = 16) -> FloatArray:
+    """A cheap pose-invariant descriptor: the histogram of distances to the centroid
+    (after whitening, so it is affine-invariant up to sampling) on a size-normalised shape.
+    Used to choose candidate pairs before running ICP on large collections.
+    """
+    c = normalised - normalised.mean(axis=0)
+    cov = c.T @ c / len(c)
+    evals, evecs = np.linalg.eigh(cov)
+    w = c @ evecs / np.sqrt(np.maximum(evals, 1e-12))
+    r = np.sqrt((w**2).sum(axis=1))
+    hist, _ = np.histogram(r, bins=bins, range=(0.0, 3.0))
+    return hist / max(len(r), 1)
+
+
+def candidate_pairs(normalised: Sequence[FloatArray], k: int) -> list[tuple[int, int]]:
+    """Both directions of the pairs joining each shape to its `k` nearest by descriptor."""
+    desc = np.stack([shape_descriptor(p) for p in normalised])
+    d2 = ((desc[:, None, :] - desc[None, :, :]) ** 2).sum(axis=2)
+    np.fill_diagonal(d2, np.inf)
+    kk = min(k, len(normalised) - 1)
+    near = np.argsort(d2, axis=1, kind="stable")[:, :kk]
+    pairs = set()
+    for i, row in enumerate(near):
+        for j in row:
+            pairs.add((i, int(j)))
+            pairs.add((int(j), i))
+    return sorted(pairs)
+
+
+def similarity_matrix(
+    shapes: Sequence[ArrayLike],
+    *,
+    candidates: int | None = None,
+    pairs: Iterable[tuple[int, int]] | None = None,
+    executor: Executor | None = None,
+    progress: ProgressCallback | None = None,
+) -> Similarity:
+    """Affine-ICP distance D (eq. 9) between the shapes of a collection.
+
+    Parameters
+    ----------
+    shapes : sequence of array_like, shape (n_i, 2)
+        Shapes in any coordinates; each is size-normalised first.
+    candidates : int, optional
+        Only compute pairs joining each shape to its `candidates` nearest shapes by a
+        cheap descriptor (both directions). Default: all ordered pairs.
+    pairs : iterable of (int, int), optional
+        Explicit (model, subject) pairs to compute; overrides `candidates`.
+    executor : Executor, optional
+        Where ICP runs; default: serial for small collections, else a local process pool.
+    progress : callable(stage, done, total), optional
+        Called as pairs complete; an exception it raises stops the computation and
+        propagates.
+
+    Returns
+    -------
+    Similarity
+    """
+    normed = [normalise(s, name=f"shapes[{k}]")[0] for k, s in enumerate(shapes)]
+    n = len(normed)
+    if n < 2:
+        raise ValueError(f"need at least 2 shapes; got {n}")
+    if pairs is not None:
+        todo = list(pairs)
+        for i, j in todo:
+            if not (0 <= i < n and 0 <= j < n):
+                raise ValueError(f"pair ({i}, {j}) is out of range for {n} shapes")
+    elif candidates is not None:
+        if candidates < 1:
+            raise ValueError(f"candidates must be at least 1; got {candidates}")
+        todo = candidate_pairs(normed, candidates)
+    else:
+        todo = [(i, j) for i in range(n) for j in range(n) if i != j]
+    sim = Similarity.empty(normed)
+    sim.ensure(todo, executor=executor, progress=progress)
+    return sim

@@ -1,0 +1,146 @@
+"""Transforms that map the root model onto a subject, composable along a tree path."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ._points import Normalization
+
+FloatArray = NDArray[np.float64]
+
+__all__ = ["AffineTransform", "ChainTransform", "PointTransform", "jacobian_determinants"]
+
+
+class PointTransform(Protocol):
+    """Anything that maps (n, 2) points to (n, 2) points and serialises to JSON."""
+
+    def apply(self, points: ArrayLike) -> FloatArray: ...
+
+    def to_dict(self) -> dict[str, Any]: ...
+
+
+@dataclass(frozen=True)
+class AffineTransform:
+    """``x -> A x + t``."""
+
+    A: FloatArray
+    t: FloatArray
+
+    def apply(self, points: ArrayLike) -> FloatArray:
+        p = np.asarray(points, dtype=np.float64)
+        return p @ self.A.T + self.t
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"type": "affine", "A": self.A.tolist(), "t": self.t.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> AffineTransform:
+        return cls(A=np.asarray(d["A"], dtype=np.float64), t=np.asarray(d["t"], dtype=np.float64))
+
+
+def _step_from_dict(d: dict[str, Any]) -> PointTransform:
+    kind = d.get("type")
+    if kind == "affine":
+        return AffineTransform.from_dict(d)
+    if kind == "nonrigid":
+        from ._cpd import NonrigidTransform
+
+        return NonrigidTransform.from_dict(d)
+    raise ValueError(f"unknown transform step type {kind!r}")
+
+
+def _step_to_dict(step: PointTransform) -> dict[str, Any]:
+    d = dict(step.to_dict())
+    d.setdefault("type", "nonrigid")
+    return d
+
+
+@dataclass(frozen=True)
+class ChainTransform:
+    """The map from the root model onto a subject along its tree path.
+
+    ``apply`` takes points in the root model's user coordinates, normalises them with the
+    root's normalisation, applies every step (in size-normalised coordinates: for each
+    tree edge an affine pre-alignment then a CPD non-rigid warp), and returns them in the
+    subject's user coordinates.
+
+    Attributes
+    ----------
+    source : Normalization
+        The root model's normalisation.
+    target : Normalization
+        The subject's normalisation.
+    steps : tuple of PointTransform
+    path : tuple of int
+        Shape indices from the root to the subject.
+    """
+
+    source: Normalization
+    target: Normalization
+    steps: tuple[PointTransform, ...]
+    path: tuple[int, ...]
+
+    def apply_normalised(self, points: ArrayLike) -> FloatArray:
+        """Apply the steps to points already in normalised coordinates."""
+        p = np.asarray(points, dtype=np.float64)
+        for step in self.steps:
+            p = step.apply(p)
+        return p
+
+    def apply(self, points: ArrayLike) -> FloatArray:
+        """Map points from the root model's user coordinates onto the subject's."""
+        p = np.asarray(points, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 2:
+            raise ValueError(f"points must have shape (n, 2); got {p.shape}")
+        if not np.isfinite(p).all():
+            raise ValueError("points must be finite")
+        return self.target.invert(self.apply_normalised(self.source.apply(p)))
+
+    def extended(
+        self, steps: tuple[PointTransform, ...], target: Normalization, node: int
+    ) -> ChainTransform:
+        return ChainTransform(
+            source=self.source, target=target, steps=self.steps + steps, path=(*self.path, node)
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "source": self.source.to_dict(),
+            "target": self.target.to_dict(),
+            "path": list(self.path),
+            "steps": [_step_to_dict(s) for s in self.steps],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ChainTransform:
+        try:
+            return cls(
+                source=Normalization.from_dict(d["source"]),
+                target=Normalization.from_dict(d["target"]),
+                steps=tuple(_step_from_dict(s) for s in d["steps"]),
+                path=tuple(int(k) for k in d["path"]),
+            )
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"not a serialised ChainTransform: {exc}") from None
+
+
+def jacobian_determinants(
+    transform: PointTransform, points: ArrayLike, *, h: float = 1e-4
+) -> FloatArray:
+    """Determinant of the Jacobian of `transform` at each point (central differences).
+
+    A non-positive value means the map folds (or collapses) the plane there.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    ex = np.array([h, 0.0])
+    ey = np.array([0.0, h])
+    stacked = np.concatenate([p + ex, p - ex, p + ey, p - ey])
+    out = transform.apply(stacked)
+    n = p.shape[0]
+    dx = (out[:n] - out[n : 2 * n]) / (2 * h)
+    dy = (out[2 * n : 3 * n] - out[3 * n :]) / (2 * h)
+    return dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0]

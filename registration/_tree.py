@@ -1,0 +1,640 @@
+"""The dynamic tree of Du et al. 2016 (section 3.3) and the baselines it is compared with.
+
+All three methods register the root model to every other shape of a collection:
+
+- :func:`build_dynamic_tree`: layer by layer, each waiting subject that is similar
+  (affine-ICP distance D below the similarity threshold) to a tree member not yet tried
+  for it is registered from that member: the root model *as already warped onto the
+  member* is pre-aligned by affine ICP and warped by CPD onto the subject. The subject is
+  accepted when e (eq. 10) is below the error threshold and the CPD displacement field
+  does not fold the model; otherwise it waits for a later layer. Growth stops when every
+  subject is attached or a layer adds nothing; what is left is reported unattached.
+- :func:`build_static_tree`: the heuristic tree of Du et al. 2015: the same layered
+  growth over the similarity graph, each subject attached to its most similar member of
+  the previous layer, without any rejection; then CPD along the tree's edges.
+- :func:`register_direct`: CPD from the root to every subject.
+
+Direction of D: ``D[m, s]`` is computed with the member ``m`` as the moving model and the
+subject ``s`` fixed, matching the direction of the registration that follows.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ._cpd import cpd_nonrigid
+from ._error import registration_error
+from ._executor import Executor, default_executor
+from ._icp import affine_icp
+from ._points import Normalization, normalise
+from ._result import Attempt, CollectionResult, SubjectResult
+from ._similarity import ProgressCallback, Similarity, candidate_pairs
+from ._transform import AffineTransform, ChainTransform, PointTransform, jacobian_determinants
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+__all__ = [
+    "CPDOptions",
+    "build_dynamic_tree",
+    "build_static_tree",
+    "register_direct",
+]
+
+# Automatic thresholds (see `_auto_similarity_threshold` and `_auto_error_threshold`).
+SIMILARITY_FACTOR = 3.0
+ERROR_FACTOR = 2.5
+MAX_EXHAUSTIVE_SHAPES = 64
+DEFAULT_CANDIDATES = 12
+
+
+@dataclass(frozen=True)
+class CPDOptions:
+    """Options of the CPD non-rigid registration used on every tree edge.
+
+    Defaults follow the reference MATLAB implementation of Myronenko & Song (2010).
+    """
+
+    beta: float = 2.0
+    lmbda: float = 3.0
+    w: float = 0.1
+    max_iter: int = 150
+    tol: float = 1e-5
+
+    def __post_init__(self) -> None:
+        if not (self.beta > 0 and self.lmbda > 0):
+            raise ValueError(f"beta and lmbda must be positive; got {self.beta}, {self.lmbda}")
+        if not 0 <= self.w < 1:
+            raise ValueError(f"w must be in [0, 1); got {self.w}")
+        if self.max_iter < 1:
+            raise ValueError(f"max_iter must be at least 1; got {self.max_iter}")
+        if not self.tol > 0:
+            raise ValueError(f"tol must be positive; got {self.tol}")
+
+
+# ----------------------------------------------------------------------------- tasks
+
+
+@dataclass(frozen=True)
+class _RegTask:
+    subject: int
+    member: int
+    layer: int
+    similarity: float
+    q: FloatArray  # root model warped onto the member, normalised coordinates
+    y: FloatArray  # subject, normalised coordinates
+    A0: FloatArray
+    t0: FloatArray
+    cpd: CPDOptions
+    prealign: bool
+
+
+@dataclass(frozen=True)
+class _RegOutcome:
+    subject: int
+    member: int
+    layer: int
+    similarity: float
+    warped: FloatArray  # normalised coordinates of the subject
+    error: float
+    min_jacobian: float
+    correspondence: IntArray
+    probability: FloatArray
+    steps: tuple[PointTransform, ...]
+
+
+def _register_task(task: _RegTask) -> _RegOutcome:
+    """Pre-align the member's warped model to the subject by affine ICP, then CPD."""
+    steps: list[PointTransform] = []
+    q = task.q
+    if task.prealign:
+        icp = affine_icp(q, task.y, init=(task.A0, task.t0))
+        affine = AffineTransform(A=icp.A, t=icp.t)
+        steps.append(affine)
+        q = affine.apply(q)
+    o = task.cpd
+    res = cpd_nonrigid(q, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter, tol=o.tol)
+    steps.append(res.transform)
+    e = registration_error(res.warped, task.y)
+    jac = jacobian_determinants(res.transform, q)
+    return _RegOutcome(
+        subject=task.subject,
+        member=task.member,
+        layer=task.layer,
+        similarity=task.similarity,
+        warped=np.asarray(res.warped, dtype=np.float64),
+        error=e,
+        min_jacobian=float(jac.min()),
+        correspondence=np.asarray(res.correspondence, dtype=np.intp),
+        probability=np.asarray(res.probability, dtype=np.float64),
+        steps=tuple(steps),
+    )
+
+
+# ----------------------------------------------------------------------------- setup
+
+
+@dataclass
+class _Collection:
+    normed: list[FloatArray]
+    norms: list[Normalization]
+    names: list[str]
+    root: int
+
+    @classmethod
+    def prepare(
+        cls, shapes: Sequence[ArrayLike], root: int, names: Sequence[str] | None
+    ) -> _Collection:
+        if len(shapes) < 2:
+            raise ValueError(f"need at least 2 shapes (a root and a subject); got {len(shapes)}")
+        if not 0 <= root < len(shapes):
+            raise ValueError(
+                f"root must be an index into shapes (0..{len(shapes) - 1}); got {root}"
+            )
+        if names is not None and len(names) != len(shapes):
+            raise ValueError(f"names has {len(names)} entries for {len(shapes)} shapes")
+        normed, norms = [], []
+        for k, s in enumerate(shapes):
+            p, nm = normalise(s, name=f"shapes[{k}]")
+            normed.append(p)
+            norms.append(nm)
+        label = list(names) if names is not None else [f"shape-{k}" for k in range(len(shapes))]
+        return cls(normed=normed, norms=norms, names=label, root=root)
+
+    @property
+    def n(self) -> int:
+        return len(self.normed)
+
+    def root_chain(self) -> ChainTransform:
+        r = self.root
+        return ChainTransform(source=self.norms[r], target=self.norms[r], steps=(), path=(r,))
+
+
+@dataclass
+class _Node:
+    q: FloatArray  # root model warped onto this member (normalised coords of the member)
+    chain: ChainTransform
+    layer: int
+
+
+def _subject_from_outcome(
+    coll: _Collection, out: _RegOutcome, parent_chain: ChainTransform
+) -> tuple[SubjectResult, _Node]:
+    s = out.subject
+    chain = parent_chain.extended(out.steps, coll.norms[s], s)
+    res = SubjectResult(
+        index=s,
+        name=coll.names[s],
+        parent=out.member,
+        layer=out.layer,
+        path=list(chain.path),
+        similarity=out.similarity,
+        error=out.error,
+        warped=coll.norms[s].invert(out.warped),
+        correspondence=out.correspondence,
+        probability=out.probability,
+        transform=chain,
+    )
+    return res, _Node(q=out.warped, chain=chain, layer=out.layer)
+
+
+def _resolve_executor(executor: Executor | None, n_tasks: int) -> Executor:
+    return executor if executor is not None else default_executor(n_tasks)
+
+
+def _run_tasks(
+    tasks: list[_RegTask],
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+    stage: str,
+) -> list[_RegOutcome]:
+    if not tasks:
+        return []
+    ex = _resolve_executor(executor, 8 * len(tasks))
+    results: list[_RegOutcome | None] = [None] * len(tasks)
+    if progress is not None:
+        progress(stage, 0, len(tasks))
+    done = 0
+    for pos, out in ex.map_unordered(_register_task, tasks):
+        results[pos] = out
+        done += 1
+        if progress is not None:
+            progress(stage, done, len(tasks))
+    return [r for r in results if r is not None]
+
+
+def _options_dict(cpd: CPDOptions, prealign: bool, max_candidates: int) -> dict[str, Any]:
+    return {"cpd": asdict(cpd), "affine_prealign": prealign, "max_candidates": max_candidates}
+
+
+# ----------------------------------------------------------------------------- thresholds
+
+
+def _nearest_similarity(sim: Similarity, subjects: Sequence[int]) -> dict[int, float]:
+    """For each subject, the smallest computed D from any other shape to it."""
+    out = {}
+    for s in subjects:
+        col = np.delete(sim.D[:, s], s)
+        col = col[np.isfinite(col)]
+        out[s] = float(col.min()) if col.size else math.inf
+    return out
+
+
+def _auto_similarity_threshold(sim: Similarity, subjects: Sequence[int]) -> float:
+    """``SIMILARITY_FACTOR`` times the median over subjects of the D to their nearest shape.
+
+    A subject whose nearest shape is much further than is typical for the collection
+    gets no similar member and is reported unattached rather than forced in.
+    """
+    nn = [v for v in _nearest_similarity(sim, subjects).values() if math.isfinite(v)]
+    if not nn:
+        return math.inf
+    return SIMILARITY_FACTOR * float(np.median(nn))
+
+
+def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:
+    """``ERROR_FACTOR`` times the median e of the first layer's registrations from the root.
+
+    The root's most similar subjects mostly register well, so their median e measures
+    what "registered" means for this collection (point density, noise); failures sit far
+    above it.
+    """
+    errs = [o.error for o in outcomes if math.isfinite(o.error)]
+    if not errs:
+        return math.inf
+    return ERROR_FACTOR * float(np.median(errs))
+
+
+def _prepare_similarity(
+    coll: _Collection,
+    similarity_threshold: float | None,
+    candidates: int | None,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+) -> tuple[Similarity, set[tuple[int, int]] | None]:
+    """Build the similarity store; compute up front what the automatic threshold needs.
+
+    Returns the store and the allowed pairs (None: any pair, computed lazily).
+    """
+    sim = Similarity.empty(coll.normed)
+    allowed: set[tuple[int, int]] | None = None
+    if candidates is None and coll.n > MAX_EXHAUSTIVE_SHAPES:
+        candidates = DEFAULT_CANDIDATES
+    if candidates is not None:
+        allowed = set(candidate_pairs(coll.normed, candidates))
+        # the root may always be tried: direct registration is the paper's first layer
+        allowed |= {(coll.root, s) for s in range(coll.n) if s != coll.root}
+    if similarity_threshold is None:
+        if allowed is None:
+            pairs = [(i, j) for i in range(coll.n) for j in range(coll.n) if i != j]
+        else:
+            pairs = sorted(allowed)
+        sim.ensure(pairs, executor=executor, progress=progress)
+    return sim, allowed
+
+
+def _check_threshold(name: str, value: float | None) -> None:
+    if value is not None and not (value > 0 and math.isfinite(value)):
+        raise ValueError(f"{name} must be a positive finite number or None; got {value}")
+
+
+# ----------------------------------------------------------------------------- methods
+
+
+def build_dynamic_tree(
+    shapes: Sequence[ArrayLike],
+    root: int = 0,
+    *,
+    similarity_threshold: float | None = None,
+    error_threshold: float | None = None,
+    cpd: CPDOptions | None = None,
+    max_candidates: int = 3,
+    candidates: int | None = None,
+    prealign: bool = True,
+    fold_check: bool = True,
+    compare_direct: bool = False,
+    names: Sequence[str] | None = None,
+    executor: Executor | None = None,
+    progress: ProgressCallback | None = None,
+) -> CollectionResult:
+    """Register the root model to every shape through a dynamic tree (Du et al. 2016).
+
+    Parameters
+    ----------
+    shapes : sequence of array_like, shape (n_i, 2)
+        The collection, in the user's coordinates; each shape is size-normalised first.
+    root : int
+        Index of the model shape.
+    similarity_threshold : float, optional
+        A subject is similar to a member when ``D[member, subject]`` (eq. 9, normalised
+        shapes) is at most this. Default: automatic, ``3 x`` the median over subjects of
+        D to their nearest shape.
+    error_threshold : float, optional
+        A registration is accepted when e (eq. 10, normalised shapes) is below this.
+        Default: automatic, ``2.5 x`` the median e of the second layer's registrations.
+    cpd : CPDOptions, optional
+    max_candidates : int
+        When several members are similar to a waiting subject, the `max_candidates`
+        most similar (smallest D) members not yet tried for it are tried in one layer
+        and the accepted registration with the smallest e is kept.
+    candidates : int, optional
+        Only pairs joining each shape to its `candidates` nearest by a cheap descriptor
+        are considered (and the root to every subject). Default: all pairs for up to 64
+        shapes, 12 nearest beyond.
+    prealign : bool
+        Affine-ICP pre-alignment before each CPD (initialised from the similarity's map).
+    fold_check : bool
+        Also reject registrations whose displacement field folds the model (Jacobian
+        determinant <= 0 at a model point): e can be small while correspondences are wrong.
+    compare_direct : bool
+        Also run direct CPD from the root on every subject, for comparison.
+    names : sequence of str, optional
+    executor : Executor, optional
+        Where ICP and CPD run; default: serial for small jobs, else a local process pool.
+    progress : callable(stage, done, total), optional
+        Called as work completes; an exception it raises stops the run and propagates.
+
+    Returns
+    -------
+    CollectionResult
+
+    Raises
+    ------
+    ValueError
+        On invalid shapes, root, names or thresholds.
+    """
+    _check_threshold("similarity_threshold", similarity_threshold)
+    _check_threshold("error_threshold", error_threshold)
+    if max_candidates < 1:
+        raise ValueError(f"max_candidates must be at least 1; got {max_candidates}")
+    cpd = cpd if cpd is not None else CPDOptions()
+    coll = _Collection.prepare(shapes, root, names)
+    sim, allowed = _prepare_similarity(coll, similarity_threshold, candidates, executor, progress)
+    subjects_idx = [k for k in range(coll.n) if k != root]
+    tau_sim = (
+        similarity_threshold
+        if similarity_threshold is not None
+        else _auto_similarity_threshold(sim, subjects_idx)
+    )
+    tau_err = error_threshold
+
+    nodes: dict[int, _Node] = {root: _Node(q=coll.normed[root], chain=coll.root_chain(), layer=1)}
+    results: dict[int, SubjectResult] = {
+        s: SubjectResult(index=s, name=coll.names[s]) for s in subjects_idx
+    }
+    waiting = set(subjects_idx)
+    tried: set[tuple[int, int]] = set()
+    frontier = [root]
+    layer = 1
+    while waiting and frontier:
+        layer += 1
+        pairs = [(m, s) for m in frontier for s in sorted(waiting)]
+        if allowed is not None:
+            pairs = [p for p in pairs if p in allowed]
+        sim.ensure(pairs, executor=executor, progress=progress, stage=f"similarity layer {layer}")
+        tasks: list[_RegTask] = []
+        for s in sorted(waiting):
+            cands = sorted(
+                (float(sim.D[m, s]), m)
+                for m in nodes
+                if (m, s) not in tried and np.isfinite(sim.D[m, s]) and sim.D[m, s] <= tau_sim
+            )[:max_candidates]
+            for d, m in cands:
+                tried.add((m, s))
+                tasks.append(
+                    _RegTask(
+                        subject=s, member=m, layer=layer, similarity=d, q=nodes[m].q,
+                        y=coll.normed[s], A0=sim.A[m, s], t0=sim.t[m, s], cpd=cpd,
+                        prealign=prealign,
+                    )
+                )
+        if not tasks:
+            break
+        outcomes = _run_tasks(tasks, executor, progress, f"layer {layer}")
+        if tau_err is None:
+            tau_err = _auto_error_threshold(outcomes)
+        best: dict[int, _RegOutcome] = {}
+        for out in outcomes:
+            folded = fold_check and not out.min_jacobian > 0
+            ok = out.error < tau_err and not folded
+            reason = (
+                "accepted candidate" if ok
+                else "folded (Jacobian determinant <= 0)" if folded
+                else f"e={out.error:.4g} >= error threshold {tau_err:.4g}"
+            )
+            results[out.subject].attempts.append(
+                Attempt(member=out.member, layer=layer, similarity=out.similarity,
+                        error=out.error, min_jacobian=out.min_jacobian, accepted=False,
+                        reason=reason)
+            )
+            if ok and (out.subject not in best or out.error < best[out.subject].error):
+                best[out.subject] = out
+        new_frontier = []
+        for s, out in sorted(best.items()):
+            res, node = _subject_from_outcome(coll, out, nodes[out.member].chain)
+            res.attempts = [
+                Attempt(**{**asdict(a), "accepted": a.member == out.member and a.layer == layer})
+                for a in results[s].attempts
+            ]
+            res.reason = f"registered from {coll.names[out.member]} (layer {out.layer - 1})"
+            results[s] = res
+            nodes[s] = node
+            waiting.discard(s)
+            new_frontier.append(s)
+        frontier = new_frontier
+    for s in waiting:
+        r = results[s]
+        r.reason = (
+            f"rejected: {r.attempts[-1].reason}" if r.attempts
+            else "no similar member (no D at or below the similarity threshold)"
+        )
+    out_subjects = [results[s] for s in subjects_idx]
+    direct = (
+        _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None
+    )
+    return CollectionResult(
+        method="dynamic_tree",
+        root=root,
+        names=coll.names,
+        subjects=out_subjects,
+        thresholds={
+            "similarity": tau_sim,
+            "similarity_rule": "explicit" if similarity_threshold is not None
+            else f"auto: {SIMILARITY_FACTOR} x median nearest-shape D",
+            "error": tau_err,
+            "error_rule": "explicit" if error_threshold is not None
+            else f"auto: {ERROR_FACTOR} x median e of layer-2 registrations",
+            "fold_check": fold_check,
+        },
+        options=_options_dict(cpd, prealign, max_candidates),
+        direct=direct,
+        similarity_pairs=sim.computed,
+    )
+
+
+def build_static_tree(
+    shapes: Sequence[ArrayLike],
+    root: int = 0,
+    *,
+    similarity_threshold: float | None = None,
+    error_threshold: float | None = None,
+    cpd: CPDOptions | None = None,
+    candidates: int | None = None,
+    prealign: bool = True,
+    compare_direct: bool = False,
+    names: Sequence[str] | None = None,
+    executor: Executor | None = None,
+    progress: ProgressCallback | None = None,
+) -> CollectionResult:
+    """The static (heuristic) tree of Du et al. 2015: built once, no rejection.
+
+    The tree grows layer by layer over the similarity graph (``D <= similarity
+    threshold``, automatic as in :func:`build_dynamic_tree`); each subject joins the
+    most similar member of the previous layer. Then CPD runs along its edges, each edge
+    starting from the root model as warped onto the parent. `error_threshold` is accepted
+    for a uniform interface and ignored: no registration is rejected. Subjects the
+    similarity graph does not reach from the root are reported unattached.
+
+    Parameters and return value are as for :func:`build_dynamic_tree`.
+    """
+    _check_threshold("similarity_threshold", similarity_threshold)
+    del error_threshold
+    cpd = cpd if cpd is not None else CPDOptions()
+    coll = _Collection.prepare(shapes, root, names)
+    sim, allowed = _prepare_similarity(coll, similarity_threshold, candidates, executor, progress)
+    subjects_idx = [k for k in range(coll.n) if k != root]
+    tau_sim = (
+        similarity_threshold
+        if similarity_threshold is not None
+        else _auto_similarity_threshold(sim, subjects_idx)
+    )
+    # 1. the tree, from the similarity alone
+    parent: dict[int, int] = {}
+    layers: list[list[int]] = [[root]]
+    waiting = set(subjects_idx)
+    while waiting and layers[-1]:
+        frontier = layers[-1]
+        pairs = [(m, s) for m in frontier for s in sorted(waiting)]
+        if allowed is not None:
+            pairs = [p for p in pairs if p in allowed]
+        sim.ensure(pairs, executor=executor, progress=progress,
+                   stage=f"similarity layer {len(layers) + 1}")
+        new = []
+        for s in sorted(waiting):
+            cands = [(float(sim.D[m, s]), m) for m in frontier
+                     if np.isfinite(sim.D[m, s]) and sim.D[m, s] <= tau_sim]
+            if cands:
+                parent[s] = min(cands)[1]
+                new.append(s)
+        waiting -= set(new)
+        layers.append(new)
+    # 2. CPD along the edges, a layer at a time
+    nodes: dict[int, _Node] = {root: _Node(q=coll.normed[root], chain=coll.root_chain(), layer=1)}
+    results: dict[int, SubjectResult] = {
+        s: SubjectResult(index=s, name=coll.names[s]) for s in subjects_idx
+    }
+    for depth, members in enumerate(layers[1:], start=2):
+        tasks = [
+            _RegTask(subject=s, member=parent[s], layer=depth,
+                     similarity=float(sim.D[parent[s], s]), q=nodes[parent[s]].q,
+                     y=coll.normed[s], A0=sim.A[parent[s], s], t0=sim.t[parent[s], s],
+                     cpd=cpd, prealign=prealign)
+            for s in members
+        ]
+        for out in _run_tasks(tasks, executor, progress, f"layer {depth}"):
+            res, node = _subject_from_outcome(coll, out, nodes[out.member].chain)
+            res.reason = f"static edge from {coll.names[out.member]}"
+            results[out.subject] = res
+            nodes[out.subject] = node
+    for s in waiting:
+        results[s].reason = "not reached: no similar shape on a path from the root"
+    direct = (
+        _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None
+    )
+    return CollectionResult(
+        method="static_tree",
+        root=root,
+        names=coll.names,
+        subjects=[results[s] for s in subjects_idx],
+        thresholds={
+            "similarity": tau_sim,
+            "similarity_rule": "explicit" if similarity_threshold is not None
+            else f"auto: {SIMILARITY_FACTOR} x median nearest-shape D",
+            "error": None,
+            "error_rule": "none: the static tree does not reject",
+        },
+        options=_options_dict(cpd, prealign, 1),
+        direct=direct,
+        similarity_pairs=sim.computed,
+    )
+
+
+def _direct_results(
+    coll: _Collection,
+    sim: Similarity,
+    cpd: CPDOptions,
+    prealign: bool,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+) -> list[SubjectResult]:
+    r = coll.root
+    subjects_idx = [k for k in range(coll.n) if k != r]
+    if prealign:
+        sim.ensure([(r, s) for s in subjects_idx], executor=executor, progress=progress,
+                   stage="similarity direct")
+    tasks = [
+        _RegTask(subject=s, member=r, layer=2, similarity=float(sim.D[r, s]),
+                 q=coll.normed[r], y=coll.normed[s], A0=sim.A[r, s], t0=sim.t[r, s],
+                 cpd=cpd, prealign=prealign)
+        for s in subjects_idx
+    ]
+    chain = coll.root_chain()
+    out_by_subject = {}
+    for out in _run_tasks(tasks, executor, progress, "direct"):
+        res, _ = _subject_from_outcome(coll, out, chain)
+        res.reason = "direct CPD from the root"
+        out_by_subject[out.subject] = res
+    return [out_by_subject[s] for s in subjects_idx]
+
+
+def register_direct(
+    shapes: Sequence[ArrayLike],
+    root: int = 0,
+    *,
+    similarity_threshold: float | None = None,
+    error_threshold: float | None = None,
+    cpd: CPDOptions | None = None,
+    prealign: bool = True,
+    compare_direct: bool = False,
+    names: Sequence[str] | None = None,
+    executor: Executor | None = None,
+    progress: ProgressCallback | None = None,
+) -> CollectionResult:
+    """Direct CPD from the root model to every subject (the paper's baseline).
+
+    With `prealign` (default) each registration starts from the best affine-ICP map of
+    the root onto the subject; the paper's plain CPD corresponds to ``prealign=False``.
+    Thresholds and `compare_direct` are accepted for a uniform interface and ignored.
+    Every subject is at layer 2 with the root as parent.
+    """
+    del similarity_threshold, error_threshold, compare_direct
+    cpd = cpd if cpd is not None else CPDOptions()
+    coll = _Collection.prepare(shapes, root, names)
+    sim = Similarity.empty(coll.normed)
+    subjects = _direct_results(coll, sim, cpd, prealign, executor, progress)
+    return CollectionResult(
+        method="direct",
+        root=root,
+        names=coll.names,
+        subjects=subjects,
+        thresholds={"similarity": None, "error": None, "error_rule": "none"},
+        options=_options_dict(cpd, prealign, 1),
+        direct=None,
+        similarity_pairs=sim.computed,
+    )

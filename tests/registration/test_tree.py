@@ -1,0 +1,170 @@
+"""The dynamic tree, the static tree and direct CPD on a generated chained family."""
+
+import json
+
+import numpy as np
+import pytest
+
+from registration import (
+    ChainTransform,
+    CPDOptions,
+    LocalProcessExecutor,
+    SerialExecutor,
+    build_dynamic_tree,
+    build_static_tree,
+    register_direct,
+)
+from registration.synthetic import chained_family, correspondence_error
+
+FAST_CPD = CPDOptions(max_iter=60)
+
+
+@pytest.fixture(scope="module")
+def family():
+    return chained_family(n_chains=2, chain_length=5, n_points=90, step=0.4, seed=1)
+
+
+@pytest.fixture(scope="module")
+def dynamic(family):
+    return build_dynamic_tree(
+        family.shapes, 0, names=family.names, cpd=FAST_CPD, compare_direct=True,
+        executor=SerialExecutor(),
+    )
+
+
+def _gt_error(family, subject) -> float:
+    k = subject.index
+    return correspondence_error(subject.warped, family.shapes[k], family.gt_index[0],
+                                family.gt_index[k])
+
+
+def test_dynamic_tree_result_contract(dynamic, family):
+    doc = dynamic.to_dict()
+    json.dumps(doc)  # JSON-serialisable
+    assert [s["index"] for s in doc["subjects"]] == list(range(1, len(family.shapes)))
+    for s in doc["subjects"]:
+        assert set(s) >= {"index", "parent", "layer", "error", "path", "warped", "transform"}
+        if s["parent"] is None:
+            assert s["layer"] is None and s["error"] is None
+        else:
+            assert s["layer"] >= 2 and s["path"][0] == 0 and s["path"][-1] == s["index"]
+            assert s["path"][-2] == s["parent"]
+            assert s["error"] < dynamic.thresholds["error"]
+    assert doc["summary"]["direct"]["all"]["count"] == doc["summary"]["attached"]
+
+
+def test_dynamic_tree_attaches_far_shapes_and_beats_direct_cpd(dynamic, family):
+    attached = [s for s in dynamic.subjects if s.attached]
+    deep = [s for s in attached if s.layer >= 3]
+    assert len(attached) >= len(dynamic.subjects) - 2
+    assert deep, "far shapes should be reached through intermediate shapes"
+    direct = {s.index: s for s in dynamic.direct}
+    tree_err = np.mean([_gt_error(family, s) for s in deep])
+    direct_err = np.mean([_gt_error(family, direct[s.index]) for s in deep])
+    # ground-truth correspondence error on the subjects the tree reached through others
+    assert tree_err < 0.6 * direct_err
+
+
+def test_transform_reproduces_warped_model_and_maps_new_points(dynamic, family):
+    s = next(s for s in dynamic.subjects if s.attached and s.layer >= 3)
+    chain = dynamic.transform_for(s.index)
+    np.testing.assert_allclose(chain.apply(family.shapes[0]), s.warped, atol=1e-6 * 500)
+    # round trip through JSON
+    again = ChainTransform.from_dict(json.loads(json.dumps(chain.to_dict())))
+    np.testing.assert_allclose(again.apply(family.shapes[0]), s.warped, atol=1e-6 * 500)
+    # a point halfway between two neighbouring model points lands near its neighbours' images
+    root = family.shapes[0][family.gt_index[0]]
+    mid = 0.5 * (root[:-1] + root[1:])
+    warped_root = chain.apply(root)
+    gap = np.linalg.norm(chain.apply(mid) - 0.5 * (warped_root[:-1] + warped_root[1:]), axis=1)
+    step = np.linalg.norm(np.diff(warped_root, axis=0), axis=1)
+    assert np.median(gap / np.maximum(step, 1e-12)) < 0.25
+
+
+def test_same_input_same_result(family):
+    a = build_dynamic_tree(family.shapes[:6], 0, cpd=FAST_CPD, executor=SerialExecutor())
+    b = build_dynamic_tree(family.shapes[:6], 0, cpd=FAST_CPD, executor=SerialExecutor())
+    assert json.dumps(a.to_dict()) == json.dumps(b.to_dict())
+
+
+def test_process_pool_gives_the_serial_result(family):
+    shapes = family.shapes[:5]
+    serial = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+    with LocalProcessExecutor(2) as ex:
+        pooled = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=ex)
+    assert json.dumps(serial.to_dict()) == json.dumps(pooled.to_dict())
+
+
+def test_explicit_tiny_thresholds_leave_subjects_unattached_not_forced(family):
+    res = build_dynamic_tree(family.shapes[:5], 0, similarity_threshold=1e-9,
+                             error_threshold=1e-9, cpd=FAST_CPD, executor=SerialExecutor())
+    assert all(not s.attached for s in res.subjects)
+    assert all(s.reason for s in res.subjects)
+    assert res.summary()["unattached"] == 4
+    with pytest.raises(ValueError, match="not attached"):
+        res.transform_for(1)
+
+
+def test_error_threshold_rejects_and_retries_from_later_members(family):
+    res = build_dynamic_tree(family.shapes, 0, similarity_threshold=1.0, error_threshold=1e-9,
+                             cpd=FAST_CPD, max_candidates=1, executor=SerialExecutor())
+    assert not any(s.attached for s in res.subjects)
+    assert all(a.reason.startswith("e=") or "folded" in a.reason
+               for s in res.subjects for a in s.attempts)
+
+
+def test_static_tree_never_rejects(family):
+    res = build_static_tree(family.shapes, 0, similarity_threshold=1.0, cpd=FAST_CPD,
+                            executor=SerialExecutor())
+    assert all(s.attached for s in res.subjects)
+    assert res.thresholds["error"] is None
+
+
+def test_direct_registers_everything_from_the_root(family):
+    res = register_direct(family.shapes[:4], 0, cpd=FAST_CPD, executor=SerialExecutor())
+    assert [(s.parent, s.layer) for s in res.subjects] == [(0, 2)] * 3
+    json.dumps(res.to_dict())
+
+
+def test_progress_exception_cancels_the_run(family):
+    class Cancelled(Exception):
+        pass
+
+    calls = []
+
+    def progress(stage, done, total):
+        calls.append((stage, done, total))
+        if stage.startswith("layer"):
+            raise Cancelled
+
+    with pytest.raises(Cancelled):
+        build_dynamic_tree(family.shapes[:5], 0, cpd=FAST_CPD, progress=progress,
+                           executor=SerialExecutor())
+    assert calls[0][0] == "similarity"
+
+
+@pytest.mark.parametrize(
+    ("args", "kwargs", "message"),
+    [
+        ((), {"root": 9}, "root must be an index"),
+        ((), {"similarity_threshold": -1.0}, "similarity_threshold must be a positive"),
+        ((), {"error_threshold": float("nan")}, "error_threshold must be a positive"),
+        ((), {"max_candidates": 0}, "max_candidates"),
+        ((), {"names": ["a"]}, "names has 1 entries"),
+    ],
+)
+def test_bad_inputs_raise(family, args, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        build_dynamic_tree(family.shapes[:3], *args, **kwargs)
+
+
+def test_bad_shapes_raise():
+    with pytest.raises(ValueError, match="need at least 2 shapes"):
+        build_dynamic_tree([np.zeros((5, 2))])
+    good = chained_family(n_chains=1, chain_length=1, n_points=20).shapes[0]
+    with pytest.raises(ValueError, match=r"shapes\[1\] has a non-finite"):
+        build_dynamic_tree([good, np.full((5, 2), np.nan)])
+    with pytest.raises(ValueError, match=r"shapes\[1\] must have at least 3 points"):
+        register_direct([good, [[0, 0], [1, 1]]])
+    with pytest.raises(ValueError, match=r"shapes\[1\] has zero size"):
+        build_static_tree([good, np.ones((5, 2))])
