@@ -1,0 +1,232 @@
+"""Fixtures that run the real service: ``regtree serve`` / ``regtree worker`` subprocesses.
+
+Each server gets a free port and its own SQLite file; settings go through REGTREE_*
+environment variables exactly as an operator would set them. Leases are short so that
+crash recovery is testable in seconds.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+FAST_ENV = {
+    "REGTREE_WORKER_LEASE_SECONDS": "2",
+    "REGTREE_WORKER_HEARTBEAT_SECONDS": "0.3",
+    "REGTREE_WORKER_POLL_SECONDS": "0.2",
+    "REGTREE_PROGRESS_MIN_INTERVAL_SECONDS": "0.1",
+    "REGTREE_EXECUTOR": "serial",
+    "REGTREE_LOG_LEVEL": "WARNING",
+    "REGTREE_MAX_BODY_BYTES": str(4 * 1024 * 1024),
+}
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def _stop(process: subprocess.Popen[bytes], timeout: float = 20.0) -> None:
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(5)
+
+
+class Service:
+    """A ``regtree serve`` subprocess plus any ``regtree worker`` subprocesses."""
+
+    def __init__(self, workdir: Path, *, workers: int = 1, env: dict[str, str] | None = None):
+        self.workdir = workdir
+        self.db_path = workdir / "regtree.sqlite"
+        self.env = {
+            **os.environ,
+            **FAST_ENV,
+            "REGTREE_DATABASE_URL": f"sqlite:///{self.db_path}",
+            "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])),
+            **(env or {}),
+        }
+        self.workers = workers
+        self.server: subprocess.Popen[bytes] | None = None
+        self.worker_processes: list[subprocess.Popen[bytes]] = []
+        self.port = 0
+        self._logs: list[Path] = []
+
+    def _spawn(self, *args: str) -> subprocess.Popen[bytes]:
+        log = self.workdir / f"log-{len(self._logs)}-{args[0]}.jsonl"
+        self._logs.append(log)
+        return subprocess.Popen(
+            [sys.executable, "-m", "service.cli", *args],
+            cwd=self.workdir,
+            env=self.env,
+            stdout=log.open("wb"),
+            stderr=subprocess.STDOUT,
+        )
+
+    @property
+    def base_url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def start(self, timeout: float = 60.0) -> Service:
+        self.port = free_port()
+        self.server = self._spawn(
+            "serve", "--host", "127.0.0.1", "--port", str(self.port), "--workers", str(self.workers)
+        )
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.server.poll() is not None:
+                raise RuntimeError(f"server exited with {self.server.returncode}:\n{self.logs()}")
+            try:
+                if httpx.get(f"{self.base_url}/healthz", timeout=1).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.1)
+        raise RuntimeError(f"server did not become healthy:\n{self.logs()}")
+
+    def stop(self) -> None:
+        if self.server is not None:
+            _stop(self.server)
+            self.server = None
+        for process in self.worker_processes:
+            _stop(process)
+        self.worker_processes.clear()
+
+    def start_worker(self) -> subprocess.Popen[bytes]:
+        process = self._spawn("worker")
+        self.worker_processes.append(process)
+        return process
+
+    def client(self, **kwargs: Any) -> httpx.Client:
+        return httpx.Client(base_url=self.base_url, timeout=30, **kwargs)
+
+    def logs(self) -> str:
+        return "\n".join(p.read_text(errors="replace")[-5000:] for p in self._logs if p.exists())
+
+
+@pytest.fixture
+def make_service(tmp_path: Path) -> Iterator[Callable[..., Service]]:
+    services: list[Service] = []
+
+    def make(**kwargs: Any) -> Service:
+        workdir = tmp_path / f"svc{len(services)}"
+        workdir.mkdir()
+        service = Service(workdir, **kwargs)
+        services.append(service)
+        return service
+
+    yield make
+    for service in services:
+        service.stop()
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
+    """A server with one embedded worker, shared by a test module."""
+    svc = Service(tmp_path_factory.mktemp("service"), workers=1).start()
+    yield svc
+    svc.stop()
+
+
+@pytest.fixture
+def client(service: Service) -> Iterator[httpx.Client]:
+    with service.client() as c:
+        yield c
+
+
+# --- data --------------------------------------------------------------------------------
+
+
+def family(
+    n_chains: int = 2, chain_length: int = 3, n_points: int = 60, seed: int = 1
+) -> list[tuple[str, np.ndarray]]:
+    from registration.synthetic import chained_family
+
+    fam = chained_family(n_chains=n_chains, chain_length=chain_length, n_points=n_points, seed=seed)
+    return list(zip(fam.names, fam.shapes, strict=True))
+
+
+def circle(n: int = 60, r: float = 1.0) -> np.ndarray:
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.c_[r * np.cos(t), 0.7 * r * np.sin(t)]
+
+
+def npy_bytes(points: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, points)
+    return buffer.getvalue()
+
+
+def assert_problem(response: httpx.Response, status: int) -> dict[str, Any]:
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"].startswith("application/problem+json"), response.text
+    body: dict[str, Any] = response.json()
+    assert body["status"] == status
+    for key in ("type", "title", "detail", "instance"):
+        assert key in body
+    return body
+
+
+def create_collection(client: httpx.Client, name: str = "c") -> int:
+    response = client.post("/v1/collections", json={"name": name})
+    assert response.status_code == 201, response.text
+    return int(response.json()["id"])
+
+
+def upload_family(
+    client: httpx.Client, collection_id: int, shapes: list[tuple[str, np.ndarray]]
+) -> list[int]:
+    body = {"shapes": [{"name": n, "points": p.tolist()} for n, p in shapes]}
+    response = client.post(f"/v1/collections/{collection_id}/shapes", json=body)
+    assert response.status_code == 201, response.text
+    return [int(item["id"]) for item in response.json()["items"]]
+
+
+def submit_job(
+    client: httpx.Client, collection_id: int, model_id: int, **options: Any
+) -> dict[str, Any]:
+    response = client.post(
+        "/v1/jobs", json={"collection_id": collection_id, "model_shape_id": model_id, **options}
+    )
+    assert response.status_code == 202, response.text
+    assert response.headers["location"] == f"/v1/jobs/{response.json()['id']}"
+    job: dict[str, Any] = response.json()
+    return job
+
+
+def wait_job(
+    client: httpx.Client,
+    job_id: int,
+    *,
+    until: Callable[[dict[str, Any]], bool] | None = None,
+    timeout: float = 90.0,
+) -> dict[str, Any]:
+    """Poll a job until ``until(job)`` (default: a final status)."""
+    until = until or (lambda j: j["status"] in ("succeeded", "failed", "cancelled"))
+    deadline = time.monotonic() + timeout
+    while True:
+        job: dict[str, Any] = client.get(f"/v1/jobs/{job_id}").json()
+        if until(job):
+            return job
+        if time.monotonic() > deadline:
+            raise AssertionError(f"job {job_id} did not get there in {timeout}s: {job}")
+        time.sleep(0.1)
