@@ -1,0 +1,39 @@
+# regtree: the API server with embedded workers, SQLite in a volume.
+#   docker build -t regtree .
+#   docker run -p 8000:8000 -v regtree-data:/app/var regtree
+# Settings are REGTREE_* environment variables (service/core/config.py), e.g.
+#   -e REGTREE_API_KEY=... -e REGTREE_EMBEDDED_WORKERS=2
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
+
+WORKDIR /app
+
+# Same install as the README: pip install of the project (here non-editable).
+COPY pyproject.toml README.md alembic.ini ./
+COPY registration ./registration
+COPY service ./service
+COPY migrations ./migrations
+RUN pip install . \
+    && useradd --create-home --uid 10001 regtree \
+    && mkdir -p /app/var \
+    && chown regtree /app/var
+
+USER regtree
+# The migrations folder is not part of the installed package: point the CLI at it.
+ENV REGTREE_DATABASE_URL=sqlite:////app/var/regtree.sqlite \
+    REGTREE_MIGRATIONS_DIR=/app/migrations \
+    OMP_NUM_THREADS=1 \
+    OPENBLAS_NUM_THREADS=1 \
+    MKL_NUM_THREADS=1
+VOLUME ["/app/var"]
+EXPOSE 8000
+
+HEALTHCHECK --interval=30s --timeout=5s --start-period=20s \
+    CMD python -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=3)"
+
+# Applies migrations, starts REGTREE_EMBEDDED_WORKERS worker processes, serves the API.
+CMD ["regtree", "serve", "--host", "0.0.0.0", "--port", "8000"]
