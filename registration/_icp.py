@@ -27,9 +27,12 @@ FloatArray = NDArray[np.float64]
 
 __all__ = [
     "AffineICPResult",
+    "PreparedShape",
     "affine_icp",
     "bidirectional_distance",
     "fit_affine",
+    "pairwise_affine_icp",
+    "prepare_shape",
 ]
 
 _MIN_ABS_DET = 1e-8
@@ -171,75 +174,149 @@ def _principal_frame(p: FloatArray) -> tuple[FloatArray, FloatArray]:
     return mean, whiten
 
 
-def _initial_poses(
-    model: FloatArray, subject: FloatArray, n_rotations: int, allow_reflection: bool
-) -> tuple[FloatArray, FloatArray]:
-    """Starting maps ``A0 = W_Y^{-1} R W_X`` (R: rotations, optionally reflections).
-
-    Whitening both shapes makes any affine map between them an orthogonal map between the
-    whitened shapes, so rotations (and reflections) in the whitened frame cover all
-    poses; the principal-axes sign flips are the rotations by 0 and 180 degrees and the
-    two reflections.
-    """
-    mx, wx = _principal_frame(model)
-    my, wy = _principal_frame(subject)
-    wy_inv = np.linalg.inv(wy)
-    angles = np.arange(n_rotations) * (2.0 * np.pi / n_rotations)
-    cos, sin = np.cos(angles), np.sin(angles)
-    rots = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
-    if allow_reflection:
-        flip = np.diag([1.0, -1.0])
-        rots = np.concatenate([rots, rots @ flip], axis=0)
-    A0 = wy_inv[None] @ rots @ wx[None]
-    t0 = my[None, :] - np.einsum("sij,j->si", A0, mx)
-    return A0, t0
-
-
 def _coarse(p: FloatArray, n: int) -> FloatArray:
-    if p.shape[0] <= n:
-        return p
+    """Exactly `n` points at evenly spaced indices (repeating points of smaller sets), so
+    that subsamples of different shapes stack into one batch."""
     idx = np.floor(np.arange(n) * (p.shape[0] / n)).astype(np.intp)
     return p[idx]
 
 
 def _batch_distances(
-    x: FloatArray, y: FloatArray, y2: FloatArray, A: FloatArray, t: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Transformed model (S, n, 2) and squared distances (S, n, m) for S maps at once."""
-    tx = np.matmul(x[None], A.transpose(0, 2, 1)) + t[:, None, :]
-    d2 = np.matmul(tx, -2.0 * y.T)
+    x: NDArray[np.floating], y: NDArray[np.floating], A: NDArray[np.floating],
+    t: NDArray[np.floating],
+) -> NDArray[np.floating]:
+    """Squared distances (B, n, m) between ``A_b x_b + t_b`` and ``y_b`` for B problems."""
+    tx = np.matmul(x, A.transpose(0, 2, 1)) + t[:, None, :]
+    d2 = np.matmul(tx, -2.0 * y.transpose(0, 2, 1))
     d2 += (tx * tx).sum(axis=2)[:, :, None]
-    d2 += y2[None, None, :]
+    d2 += (y * y).sum(axis=2)[:, None, :]
     np.maximum(d2, 0.0, out=d2)
-    return tx, d2
+    return d2
 
 
 def _batch_icp(
-    x: FloatArray, y: FloatArray, A: FloatArray, t: FloatArray, iterations: int
+    x: FloatArray, y: FloatArray, A: FloatArray, t: FloatArray, iterations: int,
+    tol: float = 0.0,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Run affine ICP for S starts at once on small sets by dense distances.
+    """Affine ICP for B problems at once by dense distances (small point sets).
 
-    Returns the final A (S, 2, 2), t (S, 2) and eq. 9 distance (S,) of every start.
+    x : (B, n, 2) or (n, 2); y : (B, m, 2) or (m, 2); A : (B, 2, 2); t : (B, 2).
+    Returns the final A, t and eq. 9 distance (B,) of every problem. Problems whose D
+    stops decreasing by more than `tol` (relative) are frozen; the loop ends early when
+    all are.
     """
-    y2 = (y * y).sum(axis=1)
-    n_starts = A.shape[0]
-    x_b = np.broadcast_to(x, (n_starts, *x.shape))
-    y_b = np.broadcast_to(y, (n_starts, *y.shape))
-    for _ in range(iterations):
-        _, d2 = _batch_distances(x, y, y2, A, t)
-        c = d2.argmin(axis=2)  # (S, n): subject index for each model point (eq. 3)
-        d = d2.argmin(axis=1)  # (S, m): model index for each subject point
-        r = np.concatenate([x_b, x[d]], axis=1)
-        s = np.concatenate([y[c], y_b], axis=1)
+    n_b = A.shape[0]
+    xb = np.broadcast_to(x, (n_b, *x.shape[-2:])) if x.ndim == 2 else x
+    yb = np.broadcast_to(y, (n_b, *y.shape[-2:])) if y.ndim == 2 else y
+    active = np.ones(n_b, dtype=bool)
+    prev = np.full(n_b, np.inf)
+    dist = prev
+    A_prev, t_prev = A, t
+    x32, y32 = xb.astype(np.float32), yb.astype(np.float32)
+    for _ in range(iterations + 1):
+        # nearest neighbours in float32 (half the memory traffic); D itself in float64
+        d2 = _batch_distances(x32, y32, A.astype(np.float32), t.astype(np.float32))
+        c = d2.argmin(axis=2)  # (B, n): subject index for each model point (eq. 3)
+        d = d2.argmin(axis=1)  # (B, m): model index for each subject point
+        tx = np.matmul(xb, A.transpose(0, 2, 1)) + t[:, None, :]
+        fwd = ((tx - np.take_along_axis(yb, c[:, :, None], axis=1)) ** 2).sum(axis=2)
+        bwd = ((np.take_along_axis(tx, d[:, :, None], axis=1) - yb) ** 2).sum(axis=2)
+        dist = fwd.mean(axis=1) + bwd.mean(axis=1)
+        worse = dist > prev  # the last step raised eq. 9: undo it and freeze
+        if worse.any():
+            A = np.where(worse[:, None, None], A_prev, A)
+            t = np.where(worse[:, None], t_prev, t)
+            dist = np.where(worse, prev, dist)
+        active &= ~worse & (prev - dist > tol * dist)
+        if not active.any() or _ == iterations:
+            break
+        r = np.concatenate([xb, np.take_along_axis(xb, d[:, :, None], axis=1)], axis=1)
+        s = np.concatenate([np.take_along_axis(yb, c[:, :, None], axis=1), yb], axis=1)
         A_new, t_new = _fit_affine_batch(r, s)
-        good = np.asarray(np.isfinite(A_new).all(axis=(1, 2)))
+        good = np.asarray(np.isfinite(A_new).all(axis=(1, 2))) & active
         det = np.linalg.det(np.where(good[:, None, None], A_new, np.eye(2)))
         good &= np.abs(det) > _MIN_ABS_DET
+        A_prev, t_prev, prev = A, t, dist
         A = np.where(good[:, None, None], A_new, A)
         t = np.where(good[:, None], t_new, t)
-    _, d2 = _batch_distances(x, y, y2, A, t)
-    dist = d2.min(axis=2).mean(axis=1) + d2.min(axis=1).mean(axis=1)
+        active &= good
     return A, t, dist
+
+
+def pairwise_affine_icp(
+    shapes: dict[int, PreparedShape],
+    pairs: list[tuple[int, int]],
+    *,
+    n_rotations: int = 8,
+    allow_reflection: bool = True,
+    coarse_iterations: int = 12,
+    refine_iterations: int = 40,
+    tol: float = 1e-4,
+) -> list[tuple[int, int, float, FloatArray, FloatArray]]:
+    """Affine ICP for many (model, subject) pairs at once; returns ``(i, j, D, A, t)``.
+
+    All pairs go through the same vectorised stages: every start of every pair on the
+    coarse subsamples, the best few starts per pair continued, then a refinement on the
+    medium subsamples, and D (eq. 9) evaluated on the full point sets. When both (i, j)
+    and (j, i) are asked for, the second starts from the inverse of the first's map
+    instead of a multi-start search.
+    """
+    if not pairs:
+        return []
+    forward = [p for p in pairs if (p[1], p[0]) not in pairs or p[0] < p[1]]
+    reverse = [p for p in pairs if p not in set(forward)]
+    angles = np.arange(n_rotations) * (2.0 * np.pi / n_rotations)
+    cos, sin = np.cos(angles), np.sin(angles)
+    rots = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
+    if allow_reflection:
+        rots = np.concatenate([rots, rots @ np.diag([1.0, -1.0])], axis=0)
+    n_s = rots.shape[0]
+    # stage 1: every start of every forward pair
+    A_l, t_l, xs, ys = [], [], [], []
+    for i, j in forward:
+        x, y = shapes[i], shapes[j]
+        A_s = np.linalg.inv(y.whiten)[None] @ rots @ x.whiten[None]
+        A_l.append(A_s)
+        t_l.append(y.mean[None, :] - np.einsum("sij,j->si", A_s, x.mean))
+        xs.append(np.broadcast_to(x.coarse, (n_s, *x.coarse.shape)))
+        ys.append(np.broadcast_to(y.coarse, (n_s, *y.coarse.shape)))
+    xc, yc = np.concatenate(xs), np.concatenate(ys)
+    first = max(1, coarse_iterations // 4)
+    A_b, t_b, d_b = _batch_icp(xc, yc, np.concatenate(A_l), np.concatenate(t_l), first)
+    # stage 2: the best starts of each pair
+    keep = np.argsort(d_b.reshape(len(forward), n_s), axis=1, kind="stable")[:, :_KEEP_STARTS]
+    sel = (keep + n_s * np.arange(len(forward))[:, None]).ravel()
+    A_b, t_b, d_b = _batch_icp(xc[sel], yc[sel], A_b[sel], t_b[sel],
+                               max(1, coarse_iterations - first))
+    # stage 3: refine the surviving starts on medium subsamples, keep each pair's best
+    n_keep = keep.shape[1]
+    A_f, t_f, d_f = _batch_icp(
+        np.stack([shapes[i].medium for i, _ in forward for _ in range(n_keep)]),
+        np.stack([shapes[j].medium for _, j in forward for _ in range(n_keep)]),
+        A_b, t_b, refine_iterations, tol,
+    )
+    pick = d_f.reshape(len(forward), n_keep).argmin(axis=1) + n_keep * np.arange(len(forward))
+    A_f, t_f = A_f[pick], t_f[pick]
+    found = {p: (A_f[k], t_f[k]) for k, p in enumerate(forward)}
+    if reverse:
+        A_r = np.stack([np.linalg.inv(found[(j, i)][0]) for i, j in reverse])
+        t_r = -np.einsum("sij,sj->si", A_r, np.stack([found[(j, i)][1] for i, j in reverse]))
+        A_r, t_r = _batch_icp(
+            np.stack([shapes[i].medium for i, _ in reverse]),
+            np.stack([shapes[j].medium for _, j in reverse]),
+            A_r, t_r, refine_iterations, tol,
+        )[:2]
+        found.update({p: (A_r[k], t_r[k]) for k, p in enumerate(reverse)})
+    # stage 4: D of eq. 9 on the full point sets
+    out = []
+    for i, j in pairs:
+        A, t = found[(i, j)]
+        A, t = np.array(A), np.array(t)
+        tx = shapes[i].points @ A.T + t
+        fwd_d, _ = shapes[j].tree.query(tx)
+        bwd_d, _ = cKDTree(tx).query(shapes[j].points)
+        out.append((i, j, float(np.mean(fwd_d**2) + np.mean(bwd_d**2)), A, t))
+    return out
 
 
 def _refine(
@@ -284,6 +361,39 @@ def _refine(
     return A, t, dist, iterations, converged
 
 
+@dataclass(frozen=True)
+class PreparedShape:
+    """A shape with what affine ICP reuses across pairs: principal frame, subsamples and
+    a KD-tree. Build once per shape with :func:`prepare_shape` when registering a shape
+    against many others (the similarity of a collection)."""
+
+    points: FloatArray
+    coarse: FloatArray
+    medium: FloatArray
+    tree: cKDTree
+    medium_tree: cKDTree
+    mean: FloatArray
+    whiten: FloatArray
+
+
+def prepare_shape(
+    points: ArrayLike, *, coarse_points: int = 48, medium_points: int = 192, name: str = "points"
+) -> PreparedShape:
+    """Precompute the parts of affine ICP that depend on one shape only."""
+    p = as_points(points, name=name)
+    if coarse_points < 3 or medium_points < 3:
+        raise ValueError(
+            f"coarse_points and medium_points must be at least 3; got {coarse_points}, "
+            f"{medium_points}"
+        )
+    mean, whiten = _principal_frame(p)
+    medium = _coarse(p, medium_points)
+    return PreparedShape(
+        points=p, coarse=_coarse(p, coarse_points), medium=medium, tree=cKDTree(p),
+        medium_tree=cKDTree(medium), mean=mean, whiten=whiten,
+    )
+
+
 def affine_icp(
     model: ArrayLike,
     subject: ArrayLike,
@@ -291,11 +401,10 @@ def affine_icp(
     init: tuple[ArrayLike, ArrayLike] | None = None,
     n_rotations: int = 8,
     allow_reflection: bool = True,
-    coarse_points: int = 64,
-    coarse_iterations: int = 20,
+    coarse_points: int = 48,
+    coarse_iterations: int = 12,
     max_iter: int = 100,
     tol: float = 1e-6,
-    subject_tree: cKDTree | None = None,
 ) -> AffineICPResult:
     """Affine ICP with bidirectional distance; returns the map and ``D(X, Y)`` (eq. 9).
 
@@ -307,8 +416,8 @@ def affine_icp(
         Y, the fixed point set.
     init : (A, t), optional
         A single starting map. When omitted, ``n_rotations`` rotations of the principal-
-        axes alignment (times two with reflections) are run on coarse subsamples and the
-        best is refined on the full sets.
+        axes alignment (times two with reflections) are run on coarse subsamples, the
+        best few continued, and the best of those refined on the full sets.
     n_rotations : int
         Rotations tried in the whitened frame (8 = every 45 degrees).
     allow_reflection : bool
@@ -317,13 +426,11 @@ def affine_icp(
     coarse_points : int
         Points per shape in the multi-start stage.
     coarse_iterations : int
-        ICP iterations of every start in the multi-start stage.
+        ICP iterations of the multi-start stage.
     max_iter : int
         Largest number of refinement iterations on the full sets.
     tol : float
         Stop when the relative decrease of D is at most `tol`.
-    subject_tree : scipy.spatial.cKDTree, optional
-        A KD-tree of `subject`, to reuse across calls.
 
     Returns
     -------
@@ -339,16 +446,16 @@ def affine_icp(
     The result never has ``|det(A)|`` below 1e-8: an update that would make the map
     singular stops the iteration at the previous map.
     """
-    x = as_points(model, name="model")
-    y = as_points(subject, name="subject")
     if n_rotations < 1:
         raise ValueError(f"n_rotations must be at least 1; got {n_rotations}")
     if max_iter < 1:
         raise ValueError(f"max_iter must be at least 1; got {max_iter}")
     if not tol > 0:
         raise ValueError(f"tol must be positive; got {tol}")
-    if coarse_points < 3:
-        raise ValueError(f"coarse_points must be at least 3; got {coarse_points}")
+    if coarse_iterations < 1:
+        raise ValueError(f"coarse_iterations must be at least 1; got {coarse_iterations}")
+    px = prepare_shape(model, coarse_points=coarse_points, name="model")
+    py = prepare_shape(subject, coarse_points=coarse_points, name="subject")
     if init is not None:
         A0 = np.asarray(init[0], dtype=np.float64)
         t0 = np.asarray(init[1], dtype=np.float64)
@@ -359,15 +466,9 @@ def affine_icp(
         if abs(np.linalg.det(A0)) <= _MIN_ABS_DET:
             raise ValueError("init A is singular: the paper requires det(A) != 0")
     else:
-        A_s, t_s = _initial_poses(x, y, n_rotations, allow_reflection)
-        xc, yc = _coarse(x, coarse_points), _coarse(y, coarse_points)
-        # every start for a few iterations, then only the most promising ones
-        first = max(1, coarse_iterations // 4)
-        A_s, t_s, d_s = _batch_icp(xc, yc, A_s, t_s, first)
-        keep = np.argsort(d_s, kind="stable")[:_KEEP_STARTS]
-        A_s, t_s, d_s = _batch_icp(xc, yc, A_s[keep], t_s[keep], coarse_iterations - first)
-        best = int(np.argmin(d_s))
-        A0, t0 = A_s[best], t_s[best]
-    tree = subject_tree if subject_tree is not None else cKDTree(y)
-    A, t, dist, iterations, converged = _refine(x, y, tree, A0, t0, max_iter, tol)
-    return AffineICPResult(A=A, t=t, distance=dist, iterations=iterations, converged=converged)
+        (_, _, _, A0, t0), = pairwise_affine_icp(
+            {0: px, 1: py}, [(0, 1)], n_rotations=n_rotations,
+            allow_reflection=allow_reflection, coarse_iterations=coarse_iterations,
+        )
+    A, t, dist, it, conv = _refine(px.points, py.points, py.tree, A0, t0, max_iter, tol)
+    return AffineICPResult(A=A, t=t, distance=dist, iterations=it, converged=conv)

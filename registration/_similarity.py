@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ._executor import Executor, default_executor
-from ._icp import affine_icp
+from ._icp import pairwise_affine_icp, prepare_shape
 from ._points import normalise
 
 FloatArray = NDArray[np.float64]
@@ -17,7 +17,9 @@ ProgressCallback = Callable[[str, int, int], None]
 
 __all__ = ["ProgressCallback", "Similarity", "shape_descriptor", "similarity_matrix"]
 
-_PAIRS_PER_TASK = 12
+_PAIRS_PER_TASK = 24
+# D only has to be compared with a threshold: a looser tolerance than affine_icp's default
+_SIMILARITY_TOL = 1e-3
 
 
 @dataclass
@@ -62,20 +64,23 @@ class Similarity:
         stage: str = "similarity",
     ) -> None:
         """Compute D for the given (model, subject) pairs that are not yet known."""
-        todo = sorted({(i, j) for i, j in pairs if i != j and np.isnan(self.D[i, j])})
+        todo = sorted(
+            {(i, j) for i, j in pairs if i != j and np.isnan(self.D[i, j])},
+            key=lambda p: (min(p), max(p), p),  # both directions of a pair side by side
+        )
         if not todo:
             return
-        tasks = [
-            _PairTask(
-                pairs=todo[k : k + _PAIRS_PER_TASK],
-                shapes={
-                    idx: self._shapes[idx]
-                    for pair in todo[k : k + _PAIRS_PER_TASK]
-                    for idx in pair
-                },
+        tasks = []
+        k = 0
+        while k < len(todo):
+            end = min(k + _PAIRS_PER_TASK, len(todo))
+            if end < len(todo) and {todo[end - 1][0], todo[end - 1][1]} == set(todo[end]):
+                end += 1  # keep (i, j) and (j, i) in the same task
+            chunk = todo[k:end]
+            tasks.append(
+                _PairTask(pairs=chunk, shapes={idx: self._shapes[idx] for p in chunk for idx in p})
             )
-            for k in range(0, len(todo), _PAIRS_PER_TASK)
-        ]
+            k = end
         ex = executor if executor is not None else default_executor(len(todo))
         done = 0
         if progress is not None:
@@ -104,11 +109,9 @@ class _PairTask:
 
 
 def _icp_task(task: _PairTask) -> list[tuple[int, int, float, FloatArray, FloatArray]]:
-    out = []
-    for i, j in task.pairs:
-        res = affine_icp(task.shapes[i], task.shapes[j])
-        out.append((i, j, res.distance, res.A, res.t))
-    return out
+    """Affine ICP for a chunk of pairs, vectorised across the chunk."""
+    prepared = {k: prepare_shape(v) for k, v in task.shapes.items()}
+    return pairwise_affine_icp(prepared, task.pairs, tol=_SIMILARITY_TOL)
 
 
 def shape_descriptor(normalised: FloatArray, *, bins: int = 16) -> FloatArray:
