@@ -44,6 +44,11 @@ FloatArray = NDArray[np.float64]
 SIGMA2_FLOOR_REL = 1e-8
 #: Relative bound on every posterior changed by the truncated E-step.
 TRUNCATION_EPS = 1e-10
+#: The truncated E-step's neighbour list is built with this multiple of the radius, so it
+#: can be reused while the centroids move by less than the difference.
+TRUNCATION_SKIN = 1.3
+#: ... and rebuilt when its radius exceeds this multiple of the current radius.
+TRUNCATION_SHRINK = 1.8
 #: Automatic low-rank: dropped kernel eigenvalues are below this fraction of the largest.
 LOW_RANK_RTOL = 1e-12
 #: Automatic low-rank switches on for more model points than this (measured crossover of a
@@ -388,6 +393,14 @@ class _EStep:
         self._buf64 = np.empty(m * self.block)
         self._buf32 = np.empty(m * self.block, dtype=np.float32) if dtype == "float32" else None
         self._tree_x: cKDTree | None = None
+        # neighbour list of the truncated E-step
+        self.max_density = 1.0
+        self.force_truncate = False
+        self._pi: NDArray[np.intp] | None = None
+        self._pj: NDArray[np.intp] | None = None
+        self._xj: FloatArray | None = None
+        self._t_build: FloatArray | None = None
+        self._r_build = 0.0
 
     @property
     def tree_x(self) -> cKDTree:
@@ -465,28 +478,64 @@ class _EStep:
         counts = self.tree_x.query_ball_point(t[sample], r, return_length=True)
         return float(np.mean(counts)) / self.n
 
-    def truncated(self, t: FloatArray, sigma2: float, r: float) -> _EStepOut:
-        m, n, x = self.m, self.n, self.x
+    def truncated(self, t: FloatArray, sigma2: float, r: float) -> _EStepOut | None:
+        """Sparse E-step over all pairs closer than ``r`` (and possibly a few more).
+
+        Candidate pairs come from a neighbour list built with a larger radius
+        ``r_build = TRUNCATION_SKIN * r`` around the centroids ``t_build`` (one
+        ``cKDTree.sparse_distance_matrix``).  The list stays valid while
+        ``r + max_m |t_m - t_build_m| <= r_build``: then every pair now closer than ``r``
+        was closer than ``r_build`` at build time (triangle inequality), so it is in the
+        list.  Extra pairs in the list are evaluated exactly, which only adds accuracy.
+        A list built for a radius more than ``TRUNCATION_SHRINK * r`` is rebuilt.
+        Returns None (caller falls back to dense) if a rebuilt list holds more than
+        ``max_density`` of all pairs.
+        """
+        m, n = self.m, self.n
+        if not self._list_valid(t, r):
+            if not self._build_list(t, TRUNCATION_SKIN * r):
+                return None
+        i, j, xj = self._pi, self._pj, self._xj
+        assert i is not None and j is not None and xj is not None
         c = _outlier_const(sigma2, self.w, m, n)
-        pairs = cKDTree(t).sparse_distance_matrix(self.tree_x, r, output_type="ndarray")
-        i = pairs["i"]
-        j = pairs["j"]
-        e = pairs["v"]
-        np.square(e, out=e)
+        ti = t[i]
+        ti -= xj
+        np.square(ti, out=ti)
+        e = ti[:, 0] + ti[:, 1]
         e *= -0.5 / sigma2
         np.exp(e, out=e)
         colsum = np.bincount(j, weights=e, minlength=n)
         den = colsum + c
         np.maximum(den, _DEN_FLOOR, out=den)
         inv = 1.0 / den
-        p = e * inv[j]
-        p1: FloatArray = np.bincount(i, weights=p, minlength=m).astype(np.float64)
+        e *= inv[j]  # e is now P on the listed pairs
+        p1: FloatArray = np.bincount(i, weights=e, minlength=m).astype(np.float64)
         px = np.empty((m, 2))
-        px[:, 0] = np.bincount(i, weights=p * x[j, 0], minlength=m)
-        px[:, 1] = np.bincount(i, weights=p * x[j, 1], minlength=m)
+        px[:, 0] = np.bincount(i, weights=e * xj[:, 0], minlength=m)
+        px[:, 1] = np.bincount(i, weights=e * xj[:, 1], minlength=m)
         pt1 = colsum * inv
         nll = -float(np.sum(np.log(den))) + n * math.log(sigma2)
         return _EStepOut(p1, pt1, px, nll, len(e))
+
+    def _list_valid(self, t: FloatArray, r: float) -> bool:
+        if self._pi is None or self._t_build is None:
+            return False
+        if self._r_build > TRUNCATION_SHRINK * r:  # list much too loose: rebuild
+            return False
+        d = t - self._t_build
+        return r + math.sqrt(float(np.max(np.einsum("ij,ij->i", d, d)))) <= self._r_build
+
+    def _build_list(self, t: FloatArray, r_build: float) -> bool:
+        pairs = cKDTree(t).sparse_distance_matrix(self.tree_x, r_build, output_type="ndarray")
+        if len(pairs) > self.max_density * self.m * self.n and not self.force_truncate:
+            self._pi = None
+            return False
+        self._pi = pairs["i"].astype(np.intp)
+        self._pj = pairs["j"].astype(np.intp)
+        self._xj = self.x[self._pj]
+        self._t_build = t.copy()
+        self._r_build = r_build
+        return True
 
 
 def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float
@@ -514,8 +563,8 @@ def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float
 # ----------------------------------------------------------------------------------------
 # M-step
 # ----------------------------------------------------------------------------------------
-def _low_rank_factor(g: FloatArray, num_eig: int | None) -> FloatArray:
-    """``U`` with ``G ~= U U^T`` (``U = Q sqrt(Lambda)``, leading eigenpairs of ``G``).
+def _low_rank_factor(g: FloatArray, num_eig: int | None) -> tuple[FloatArray, FloatArray]:
+    """``(Q, lam)`` with ``G ~= Q diag(lam) Q^T``, ``Q`` orthonormal: leading eigenpairs.
 
     With ``num_eig=None`` the rank is the number of eigenvalues above
     ``LOW_RANK_RTOL * lambda_max``; otherwise exactly ``num_eig`` (fewer if ``G`` has fewer
@@ -552,7 +601,8 @@ def _low_rank_factor(g: FloatArray, num_eig: int | None) -> FloatArray:
                 sketch = min(m, 2 * sketch)
                 continue
         keep = max(keep, 1)
-        return np.ascontiguousarray(q[:, :keep] * np.sqrt(np.maximum(lam[:keep], 0.0)))
+        lam_k = np.maximum(lam[:keep], np.finfo(np.float64).tiny)
+        return np.ascontiguousarray(q[:, :keep]), lam_k
 
 
 def _mstep_dense(g: FloatArray, y: FloatArray, est: _EStepOut, reg: float) -> FloatArray:
@@ -569,34 +619,52 @@ def _mstep_dense(g: FloatArray, y: FloatArray, est: _EStepOut, reg: float) -> Fl
     k = g * s[:, None]
     k *= s[None, :]
     k.flat[:: len(k) + 1] += reg
+    return s[:, None] * _spd_solve(k, rhs)
+
+
+def _spd_solve(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Cholesky solve of an SPD system; if rounding made it indefinite (a kernel that is
+    numerically rank-deficient next to a vanishing ``lambda sigma^2``, e.g. ``beta`` far
+    larger than the data), add a ridge of ``1e-12 * max(diag)`` and retry."""
     try:
-        v = scipy.linalg.cho_solve(scipy.linalg.cho_factor(k, check_finite=False), rhs,
-                                   check_finite=False)
-    except np.linalg.LinAlgError:  # pragma: no cover - SPD by construction
-        v = scipy.linalg.solve(k, rhs, assume_a="sym", check_finite=False)
-    return s[:, None] * v
+        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(a, check_finite=False), b,
+                                      check_finite=False)
+    except np.linalg.LinAlgError:
+        ridge = 1e-12 * float(np.max(np.abs(np.diag(a)))) + np.finfo(np.float64).tiny
+        a = a.copy()
+        a.flat[:: len(a) + 1] += ridge
+        try:
+            return scipy.linalg.cho_solve(scipy.linalg.cho_factor(a, check_finite=False), b,
+                                          check_finite=False)
+        except np.linalg.LinAlgError:
+            out: FloatArray = np.asarray(np.linalg.lstsq(a, b, rcond=None)[0], dtype=np.float64)
+            return out
 
 
-def _mstep_low_rank(u: FloatArray, y: FloatArray, est: _EStepOut, reg: float) -> FloatArray:
-    """Woodbury solve of ``(d(P1) U U^T + reg I) W = P X - d(P1) Y``, result projected.
+def _mstep_low_rank(q: FloatArray, lam: FloatArray, y: FloatArray, est: _EStepOut,
+                    reg: float) -> tuple[FloatArray, FloatArray]:
+    """Low-rank M-step (the CPD paper's fast variant) with ``G ~= Q diag(lam) Q^T``.
 
-    ``W = (F - d(P1) U (reg I + U^T d(P1) U)^-1 U^T F) / reg``; the returned ``W`` is projected
-    onto the span of ``U`` (which leaves ``U U^T W`` unchanged) so that the exact kernel
-    reproduces the low-rank displacement: ``G W = U U^T W`` up to the dropped spectrum.
+    MATLAB's ``cpd_GRBF_lowrank`` solves ``(reg lam^-1 + Q^T d(P1) Q) z = Q^T F`` with
+    ``F = P X - d(P1) Y`` (Woodbury), and moves the centroids by ``Q diag(lam) Q^T W``,
+    which only depends on ``Q^T W``.  We keep ``W = Q a`` in the span of ``Q`` (so the
+    exact kernel reproduces the displacement: ``G W = Q diag(lam) a`` up to the dropped
+    spectrum) and solve directly for the displacement coefficients ``v = diag(lam) a``:
+    ``(Q^T d(P1) Q + reg diag(1/lam)) v = Q^T F``, an SPD ``k x k`` system.
+
+    Returns
+    -------
+    w : ndarray (M, 2)
+        Kernel weights ``Q a``.
+    disp : ndarray (M, 2)
+        Displacement ``Q v`` (the new centroids are ``Y + disp``).
     """
     p1 = est.p1
     f = est.px - p1[:, None] * y
-    du = u * p1[:, None]
-    c = u.T @ du
-    c.flat[:: len(c) + 1] += reg
-    utf = u.T @ f
-    sol = scipy.linalg.cho_solve(scipy.linalg.cho_factor(c, check_finite=False), utf,
-                                 check_finite=False)
-    w = (f - du @ sol) / reg
-    # projection onto span(U): U (U^T U)^-1 U^T W
-    gram = u.T @ u
-    coef = scipy.linalg.solve(gram, u.T @ w, assume_a="pos", check_finite=False)
-    return u @ coef
+    h = q.T @ (q * p1[:, None])
+    h.flat[:: len(h) + 1] += reg / lam
+    v = _spd_solve(h, q.T @ f)
+    return q @ (v / lam[:, None]), q @ v
 
 
 # ----------------------------------------------------------------------------------------
@@ -749,11 +817,13 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
 
     g = _gauss_kernel(y, y, beta)
     use_low_rank = (m > AUTO_LOW_RANK_MIN_M) if low_rank is None else bool(low_rank)
-    u = _low_rank_factor(g, num_eig) if use_low_rank else None
+    basis = _low_rank_factor(g, num_eig) if use_low_rank else None
 
     estep = _EStep(x, m, w, dtype)
+    estep.force_truncate = bool(truncate)
     sample = np.unique(np.linspace(0, m - 1, min(m, 64)).astype(np.intp))
     max_density = AUTO_TRUNCATE_MAX_DENSITY[dtype]
+    estep.max_density = max_density
 
     wmat = np.zeros((m, 2))
     t = y.copy()
@@ -766,7 +836,8 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
         est: _EStepOut | None = None
         if truncate is not False and (w > 0 or truncate):
             r = estep.radius(t, s2)
-            if truncate or estep.density(t, r, sample) < max_density:
+            if truncate or estep._list_valid(t, r) or \
+                    estep.density(t, TRUNCATION_SKIN * r, sample) < max_density:
                 est = estep.truncated(t, s2, r)
         if est is None:
             est = estep.dense(t, s2)
@@ -777,9 +848,9 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
             0.0 if lval == l_old else math.inf)
         # ---- M-step
         reg = lmbda * s2
-        if u is not None:
-            w_new = _mstep_low_rank(u, y, est, reg)
-            t_new = y + u @ (u.T @ w_new)
+        if basis is not None:
+            w_new, disp = _mstep_low_rank(basis[0], basis[1], y, est, reg)
+            t_new = y + disp
         else:
             w_new = _mstep_dense(g, y, est, reg)
             t_new = y + g @ w_new

@@ -1,0 +1,333 @@
+"""Tests of registration._cpd (non-rigid CPD)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from registration._cpd import CPDResult, NonrigidTransform, cpd_nonrigid
+
+
+# ----------------------------------------------------------------------------------------
+# synthetic data
+# ----------------------------------------------------------------------------------------
+def fish_curve(k: int) -> np.ndarray:
+    """A lobed closed contour (~100 x 70 units), sampled unevenly in arc length."""
+    t = np.linspace(0.0, 2 * np.pi, k, endpoint=False)
+    r = 1.0 + 0.2 * np.cos(3 * t) + 0.1 * np.sin(5 * t + 0.3)
+    pts = np.column_stack([np.cos(t) * r * 50.0, np.sin(t) * r * 35.0])
+    return pts + np.array([300.0, 200.0])
+
+
+def smooth_warp(p: np.ndarray) -> np.ndarray:
+    """Known smooth field: translation, mild symmetric affine, two broad Gaussian bumps."""
+    c = np.array([300.0, 200.0])
+    z = (p - c) / 50.0
+    a = np.array([[1.06, 0.04], [0.04, 0.95]])
+    out = z @ a.T
+    out += np.exp(-np.sum((z - [0.8, 0.2]) ** 2, axis=1))[:, None] * [0.10, -0.15]
+    out += np.exp(-np.sum((z + np.array([0.7, 0.1])) ** 2, axis=1))[:, None] * [-0.08, 0.12]
+    return out * 50.0 + c + np.array([6.0, -4.0])
+
+
+def rms_radius(p: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((p - p.mean(0)) ** 2, axis=1))))
+
+
+@pytest.fixture(scope="module")
+def pair() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(0)
+    model = fish_curve(200)
+    truth = smooth_warp(model)
+    perm = rng.permutation(len(truth))
+    subject = truth[perm] + 0.05 * rng.standard_normal(truth.shape)
+    return model, subject, truth, perm
+
+
+@pytest.fixture(scope="module")
+def big_pair() -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(1)
+    model = fish_curve(600)
+    subject = smooth_warp(fish_curve(650)) + 0.05 * rng.standard_normal((650, 2))
+    return model, subject
+
+
+@pytest.fixture(scope="module")
+def dense_big(big_pair: tuple[np.ndarray, np.ndarray]) -> CPDResult:
+    model, subject = big_pair
+    return cpd_nonrigid(model, subject, tol=0.0, max_iter=80, low_rank=False, truncate=False)
+
+
+# ----------------------------------------------------------------------------------------
+# accuracy
+# ----------------------------------------------------------------------------------------
+def test_recovers_known_smooth_warp(pair: tuple[np.ndarray, ...]) -> None:
+    model, subject, truth, perm = pair
+    res = cpd_nonrigid(model, subject)
+    assert res.warped.shape == model.shape
+    err = np.linalg.norm(res.warped - truth, axis=1)
+    scale = rms_radius(truth)  # ~47 units; mean point spacing ~1.5 units
+    before = np.linalg.norm(model - truth, axis=1).mean()  # ~13% of scale
+    # Bound: CPD with the MATLAB defaults is biased even for the identity on this unevenly
+    # sampled curve (points slide ~1% of the RMS radius along it; pycpd does the same), and
+    # the warp adds ~1% more (measured 0.85 units = 1.8%).  4% is about one point spacing
+    # on average; a wrong registration (flipped, collapsed, stuck) errs by > 10%.
+    assert err.mean() < 0.04 * scale, err.mean() / scale
+    assert err.mean() < 0.2 * before
+    assert err.max() < 0.10 * scale
+    # correspondence: model point i should pick the subject row holding the true image of
+    # a point at most 3 contour neighbours away from i
+    k = len(model)
+    true_index = perm[res.correspondence]  # subject row j is the image of model perm[j]
+    gap = np.abs(true_index - np.arange(k))
+    gap = np.minimum(gap, k - gap)
+    assert np.mean(gap <= 3) > 0.95
+    assert res.correspondence.dtype.kind == "i"
+    assert np.all((res.probability >= 0) & (res.probability <= 1))
+    assert res.converged and 1 <= res.iterations <= 150
+    assert res.sigma2 > 0
+
+
+def test_matches_pycpd(pair: tuple[np.ndarray, ...]) -> None:
+    model, subject, _, _ = pair
+    opts = dict(beta=2.0, lmbda=3.0, w=0.1, tol=0.0, max_iter=40)
+    ours = cpd_nonrigid(model, subject, low_rank=False, truncate=False, **opts)
+    ref = cpd_nonrigid(model, subject, backend="pycpd", **opts)
+    assert ours.iterations == ref.iterations == 40
+    # same data, same normalisation, same EM: agreement is limited by rounding only
+    # (measured ~1e-12 of the RMS radius)
+    scale = rms_radius(subject)
+    assert np.max(np.abs(ours.warped - ref.warped)) < 1e-8 * scale
+    assert ours.sigma2 == pytest.approx(ref.sigma2, rel=1e-6)
+    np.testing.assert_allclose(ref.transform.apply(model), ref.warped, atol=1e-8 * scale)
+
+
+# ----------------------------------------------------------------------------------------
+# the transform
+# ----------------------------------------------------------------------------------------
+@pytest.mark.parametrize("low_rank", [False, True])
+def test_transform_consistent(pair: tuple[np.ndarray, ...], low_rank: bool) -> None:
+    model, subject, truth, _ = pair
+    res = cpd_nonrigid(model, subject, low_rank=low_rank)
+    tr = res.transform
+    scale = rms_radius(subject)
+    np.testing.assert_allclose(tr.apply(model), res.warped, rtol=0, atol=1e-8 * scale)
+    np.testing.assert_allclose(tr(model), res.warped, rtol=0, atol=1e-8 * scale)
+    # midpoints between consecutive model points land near the midpoints of their images
+    mid = 0.5 * (model + np.roll(model, -1, axis=0))
+    wmid = tr.apply(mid)
+    interp = 0.5 * (res.warped + np.roll(res.warped, -1, axis=0))
+    assert np.max(np.linalg.norm(wmid - interp, axis=1)) < 0.05
+    # ... and the field generalises: midpoints are as accurate as the fitted points
+    err_fit = np.linalg.norm(res.warped - truth, axis=1).mean()
+    assert np.mean(np.linalg.norm(wmid - smooth_warp(mid), axis=1)) < 1.2 * err_fit + 0.05
+    assert tr.apply(np.empty((0, 2))).shape == (0, 2)
+
+
+def test_transform_round_trip(pair: tuple[np.ndarray, ...]) -> None:
+    model, subject, _, _ = pair
+    res = cpd_nonrigid(model, subject, max_iter=20)
+    d = json.loads(json.dumps(res.transform.to_dict()))
+    back = NonrigidTransform.from_dict(d)
+    pts = np.random.default_rng(3).uniform(200, 400, size=(50, 2))
+    np.testing.assert_array_equal(back.apply(pts), res.transform.apply(pts))
+    with pytest.raises(ValueError, match="not a serialised NonrigidTransform"):
+        NonrigidTransform.from_dict({"kind": "affine"})
+    with pytest.raises(ValueError, match=r"points must have shape \(k, 2\)"):
+        back.apply(np.zeros((3, 3)))
+
+
+def test_result_is_read_only(pair: tuple[np.ndarray, ...]) -> None:
+    model, subject, _, _ = pair
+    res = cpd_nonrigid(model, subject, max_iter=5)
+    with pytest.raises(ValueError):
+        res.warped[0, 0] = 1.0
+    with pytest.raises(AttributeError):
+        res.iterations = 3  # type: ignore[misc]
+
+
+# ----------------------------------------------------------------------------------------
+# accelerations agree with the dense float64 computation
+# ----------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("opts", "rel_tol"),
+    [
+        (dict(low_rank=True, truncate=False), 1e-6),
+        (dict(low_rank=False, truncate=True), 1e-6),
+        (dict(), 1e-6),  # auto: both on for this size
+        (dict(dtype="float32", low_rank=False, truncate=False), 1e-4),
+        (dict(dtype="float32"), 1e-4),
+    ],
+)
+def test_fast_paths_match_dense(big_pair: tuple[np.ndarray, np.ndarray], dense_big: CPDResult,
+                                opts: dict, rel_tol: float) -> None:
+    model, subject = big_pair
+    res = cpd_nonrigid(model, subject, tol=0.0, max_iter=80, **opts)
+    scale = rms_radius(subject)
+    assert res.iterations == dense_big.iterations
+    assert np.max(np.abs(res.warped - dense_big.warped)) < rel_tol * scale
+    np.testing.assert_allclose(res.transform.apply(model), res.warped, rtol=0,
+                               atol=1e-8 * scale)
+
+
+def test_fixed_num_eig_is_approximate_but_close(big_pair: tuple[np.ndarray, np.ndarray],
+                                                 dense_big: CPDResult) -> None:
+    model, subject = big_pair
+    res = cpd_nonrigid(model, subject, tol=0.0, max_iter=80, low_rank=True, num_eig=10)
+    scale = rms_radius(subject)
+    assert np.max(np.abs(res.warped - dense_big.warped)) < 0.05 * scale
+
+
+# ----------------------------------------------------------------------------------------
+# robustness
+# ----------------------------------------------------------------------------------------
+def test_callback_called_and_exception_propagates(pair: tuple[np.ndarray, ...]) -> None:
+    model, subject, _, _ = pair
+    model_copy, subject_copy = model.copy(), subject.copy()
+    seen: list[tuple[int, float, float]] = []
+
+    class Stop(Exception):
+        pass
+
+    def cb(it: int, s2: float, obj: float) -> None:
+        seen.append((it, s2, obj))
+        if it == 3:
+            raise Stop
+
+    with pytest.raises(Stop):
+        cpd_nonrigid(model, subject, callback=cb)
+    assert [s[0] for s in seen] == [1, 2, 3]
+    assert all(np.isfinite(s[1]) and s[1] > 0 and np.isfinite(s[2]) for s in seen)
+    np.testing.assert_array_equal(model, model_copy)
+    np.testing.assert_array_equal(subject, subject_copy)
+    # the same call without the callback still works
+    assert cpd_nonrigid(model, subject, max_iter=3).iterations == 3
+
+
+def _assert_finite(res: CPDResult, m: int) -> None:
+    assert res.warped.shape == (m, 2)
+    assert np.isfinite(res.warped).all()
+    assert np.isfinite(res.probability).all()
+    assert np.isfinite(res.sigma2) and res.sigma2 > 0
+    assert np.isfinite(res.transform.coefficients).all()
+
+
+@pytest.mark.parametrize("w", [0.0, 0.1])
+@pytest.mark.parametrize(
+    "case", ["duplicates", "collinear", "three", "offset", "all_same", "tiny_scale"]
+)
+def test_degenerate_inputs_never_nan(case: str, w: float) -> None:
+    rng = np.random.default_rng(5)
+    base = fish_curve(40)
+    if case == "duplicates":
+        model = np.repeat(base[:10], 4, axis=0)
+        subject = smooth_warp(np.repeat(base[::4], 3, axis=0))
+    elif case == "collinear":
+        t = np.linspace(0, 1, 30)
+        model = np.column_stack([t, 2 * t])
+        subject = np.column_stack([t ** 1.1, 2 * t + 0.1])
+    elif case == "three":
+        model = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+        subject = np.array([[0.1, 0.0], [1.2, 0.1], [0.0, 0.9]])
+    elif case == "offset":
+        model = base + 1e6
+        subject = smooth_warp(base) + np.array([1e6, -1e6])
+    elif case == "all_same":
+        model = np.ones((5, 2))
+        subject = np.full((4, 2), 3.0)
+    else:  # tiny_scale
+        model = base * 1e-9
+        subject = smooth_warp(base) * 1e-9 + rng.standard_normal(base.shape) * 1e-12
+    for opts in (dict(), dict(normalize=False), dict(truncate=True, low_rank=True)):
+        res = cpd_nonrigid(model, subject, w=w, **opts)
+        _assert_finite(res, len(model))
+
+
+def test_identical_sets_hit_sigma2_floor() -> None:
+    model = fish_curve(60)
+    res = cpd_nonrigid(model, model.copy(), w=0.0, tol=0.0, max_iter=150)
+    _assert_finite(res, 60)
+    assert res.converged
+    np.testing.assert_allclose(res.warped, model, atol=1e-3 * rms_radius(model))
+
+
+def test_normalize_false_on_normalised_data_is_identity(pair: tuple[np.ndarray, ...]) -> None:
+    model, subject, _, _ = pair
+
+    def unit(p: np.ndarray) -> np.ndarray:
+        q = p - p.mean(axis=0)
+        return q / rms_radius(q)
+
+    mn, sn = unit(model), unit(subject)
+    a = cpd_nonrigid(mn, sn, normalize=False, low_rank=False, truncate=False, max_iter=40)
+    b = cpd_nonrigid(mn, sn, normalize=True, low_rank=False, truncate=False, max_iter=40)
+    assert a.iterations == b.iterations
+    np.testing.assert_allclose(a.warped, b.warped, rtol=0, atol=1e-9)
+    assert a.sigma2 == pytest.approx(b.sigma2, rel=1e-9)
+    # in caller units beta=2 on a shape 100 units across is a very local kernel: still finite
+    res = cpd_nonrigid(model, subject, normalize=False, max_iter=30)
+    _assert_finite(res, len(model))
+
+
+# ----------------------------------------------------------------------------------------
+# validation
+# ----------------------------------------------------------------------------------------
+GOOD = fish_curve(10)
+
+
+@pytest.mark.parametrize(
+    ("model", "subject", "match"),
+    [
+        (np.zeros((5, 3)), GOOD, r"model must have shape \(n, 2\); got \(5, 3\)"),
+        (GOOD, np.zeros(6), r"subject must have shape \(n, 2\); got \(6,\)"),
+        (GOOD[:2], GOOD, "model must have at least 3 points; got 2"),
+        (GOOD, GOOD[:1], "subject must have at least 3 points; got 1"),
+        (np.where(np.arange(20).reshape(10, 2) == 7, np.nan, GOOD), GOOD,
+         "model must contain only finite values; row 3"),
+        (GOOD, np.where(np.arange(20).reshape(10, 2) == 0, np.inf, GOOD),
+         "subject must contain only finite values; row 0"),
+        ([["a", "b"]] * 3, GOOD, "model must be a numeric array"),
+    ],
+)
+def test_bad_points(model: object, subject: object, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        cpd_nonrigid(model, subject)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("opts", "match"),
+    [
+        (dict(beta=0.0), "beta must be > 0; got 0.0"),
+        (dict(beta=float("nan")), "beta must be finite"),
+        (dict(lmbda=-1.0), "lmbda must be > 0; got -1.0"),
+        (dict(w=1.0), r"w must satisfy 0 <= w < 1; got 1.0"),
+        (dict(w=-0.1), r"w must satisfy 0 <= w < 1"),
+        (dict(tol=-1e-3), "tol must be >= 0"),
+        (dict(max_iter=0), "max_iter must be an integer >= 1; got 0"),
+        (dict(max_iter=2.5), "max_iter must be an integer >= 1; got 2.5"),
+        (dict(sigma2=0.0), "sigma2 must be > 0 or None"),
+        (dict(num_eig=0), r"num_eig must be None or an integer in \[1, 10\]"),
+        (dict(num_eig=11), r"num_eig must be None or an integer in \[1, 10\]"),
+        (dict(dtype="float16"), "dtype must be 'float64' or 'float32'; got 'float16'"),
+        (dict(backend="matlab"), "backend must be 'native' or 'pycpd'"),
+        (dict(low_rank="yes"), "low_rank must be True, False or None"),
+        (dict(truncate=1), "truncate must be True, False or None"),
+        (dict(callback=3), "callback must be callable or None"),
+        (dict(beta="2"), "beta must be a real number"),
+    ],
+)
+def test_bad_parameters(opts: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        cpd_nonrigid(GOOD, GOOD, **opts)
+
+
+def test_pycpd_backend_transform_and_callback(pair: tuple[np.ndarray, ...]) -> None:
+    model, subject, truth, _ = pair
+    its: list[int] = []
+    res = cpd_nonrigid(model, subject, backend="pycpd", tol=0.0, max_iter=30,
+                       callback=lambda i, s, o: its.append(i))
+    assert its == list(range(1, 31))
+    assert res.iterations == 30
+    assert np.linalg.norm(res.warped - truth, axis=1).mean() < 1.0
