@@ -1,0 +1,103 @@
+"""Reading the result document (``GET /v1/jobs/{id}/result``) defensively."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+Doc = Mapping[str, Any]
+
+
+def subjects(doc: Doc) -> list[Mapping[str, Any]]:
+    items = doc.get("subjects")
+    if not isinstance(items, Sequence):
+        raise ValueError("the result document has no 'subjects' list")
+    return [s for s in items if isinstance(s, Mapping)]
+
+
+def is_attached(subject: Mapping[str, Any]) -> bool:
+    return bool(subject.get("attached", subject.get("layer") is not None))
+
+
+def root_id(doc: Doc) -> int:
+    if "root_shape_id" not in doc:
+        raise ValueError("the result document has no 'root_shape_id'")
+    return int(doc["root_shape_id"])
+
+
+def shape_names(doc: Doc) -> dict[int, str]:
+    """Shape id -> name, from ``names``/``shape_ids`` and the subjects."""
+    names: dict[int, str] = {}
+    ids, labels = doc.get("shape_ids"), doc.get("names")
+    if isinstance(ids, Sequence) and isinstance(labels, Sequence) and len(ids) == len(labels):
+        names.update({int(i): str(n) for i, n in zip(ids, labels, strict=True)})
+    for s in subjects(doc):
+        if "shape_id" in s and s.get("name") is not None:
+            names[int(s["shape_id"])] = str(s["name"])
+    return names
+
+
+def parent_of(subject: Mapping[str, Any]) -> int | None:
+    parent = subject.get("parent_shape_id")
+    if parent is not None:
+        return int(parent)
+    path = subject.get("path_shape_ids") or []
+    return int(path[-2]) if len(path) >= 2 else None
+
+
+def find_subject(doc: Doc, shape_id: int) -> Mapping[str, Any]:
+    """The subject entry for ``shape_id`` in a (full) result document."""
+    for s in subjects(doc):
+        if int(s.get("shape_id", -1)) == shape_id:
+            return s
+    raise KeyError(f"shape {shape_id} is not a subject of this result")
+
+
+def _stats(values: list[float]) -> dict[str, Any]:
+    if not values:
+        return {"count": 0, "mean": None, "p95": None}
+    arr = np.asarray(values, dtype=np.float64)
+    return {"count": len(values), "mean": float(arr.mean()), "p95": float(np.percentile(arr, 95))}
+
+
+def layer_statistics(doc: Doc) -> tuple[dict[int, dict[str, Any]], dict[int, dict[str, Any]]]:
+    """Per tree layer: e statistics of the tree, and of direct CPD on the same subjects.
+
+    Taken from ``summary.per_layer`` / ``summary.direct.per_layer`` when present, else computed
+    from the subjects (``error``, ``direct_error`` or ``direct.error``). The direct dict is
+    empty when the job did not compare with direct CPD.
+    """
+    summary = doc.get("summary") or {}
+    per_layer = summary.get("per_layer")
+    direct_summary = summary.get("direct") or {}
+    direct_layer = direct_summary.get("per_layer")
+    if isinstance(per_layer, Mapping):
+        tree = {int(k): dict(v) for k, v in per_layer.items()}
+        direct = (
+            {int(k): dict(v) for k, v in direct_layer.items()}
+            if isinstance(direct_layer, Mapping)
+            else {}
+        )
+        return tree, direct
+    tree_values: dict[int, list[float]] = {}
+    direct_values: dict[int, list[float]] = {}
+    any_direct = False
+    for s in subjects(doc):
+        if not is_attached(s) or s.get("layer") is None:
+            continue
+        layer = int(s["layer"])
+        tree_values.setdefault(layer, [])
+        direct_values.setdefault(layer, [])
+        if s.get("error") is not None:
+            tree_values[layer].append(float(s["error"]))
+        d = s.get("direct_error")
+        if d is None and isinstance(s.get("direct"), Mapping):
+            d = s["direct"].get("error")
+        if d is not None:
+            any_direct = True
+            direct_values[layer].append(float(d))
+    tree = {k: _stats(v) for k, v in sorted(tree_values.items())}
+    direct = {k: _stats(v) for k, v in sorted(direct_values.items())} if any_direct else {}
+    return tree, direct

@@ -1,0 +1,355 @@
+"""The registration tree: shapes by layer, edges coloured by e, unattached shapes apart."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from matplotlib import colormaps
+from matplotlib.cm import ScalarMappable
+from matplotlib.collections import LineCollection
+from matplotlib.colors import ListedColormap, LogNorm, Normalize
+
+from service.plots import _doc
+from service.plots._common import Rendered, check_format, figure, save, shorten
+
+# plasma without its palest yellows, which vanish on white
+EDGE_CMAP = ListedColormap(colormaps["plasma"](np.linspace(0.0, 0.85, 256)), name="regtree_e")
+NODE_COLOUR = "#333333"
+ROOT_COLOUR = "#1f4e79"
+UNATTACHED_COLOUR = "#888888"
+NAME_LIMIT = 40  # characters of a name drawn; longer names end in "…"
+
+_LEFT_PX, _RIGHT_PX, _TOP_PX, _BOTTOM_PX = 64, 120, 56, 24
+
+
+@dataclass
+class _Node:
+    shape_id: int
+    name: str
+    layer: int
+    parent: int | None
+    error: float | None
+    children: list[int] = field(default_factory=list)
+    x: float = 0.0
+
+
+def _build(doc: Mapping[str, Any]) -> tuple[dict[int, _Node], list[tuple[int, str]], list[str]]:
+    names = _doc.shape_names(doc)
+    root = _doc.root_id(doc)
+    nodes: dict[int, _Node] = {root: _Node(root, names.get(root, f"shape {root}"), 1, None, None)}
+    unattached: list[tuple[int, str]] = []
+    warnings: list[str] = []
+    attached = []
+    for s in _doc.subjects(doc):
+        sid = int(s["shape_id"])
+        name = str(s.get("name", names.get(sid, f"shape {sid}")))
+        if sid == root:
+            continue
+        if _doc.is_attached(s) and s.get("layer") is not None:
+            err = s.get("error")
+            node = _Node(sid, name, int(s["layer"]), _doc.parent_of(s), None)
+            node.error = None if err is None else float(err)
+            nodes[sid] = node
+            attached.append(node)
+        else:
+            unattached.append((sid, name))
+    for node in attached:
+        if node.parent not in nodes or node.parent == node.shape_id:
+            warnings.append(f"shape {node.shape_id}: parent {node.parent} unknown; drawn on root")
+            node.parent = root
+        nodes[node.parent].children.append(node.shape_id)
+    return nodes, unattached, warnings
+
+
+def _layout(nodes: dict[int, _Node], root: int) -> int:
+    """Tidy layered layout: leaves on consecutive slots in depth-first order, each parent
+    centred over its children, so rows never cross. Returns the number of slots."""
+    next_slot = 0
+    seen: set[int] = set()
+    stack: list[tuple[int, bool]] = [(root, False)]
+    while stack:
+        sid, done = stack.pop()
+        node = nodes[sid]
+        if done:
+            kids = [nodes[c] for c in node.children if c in seen]
+            node.x = (kids[0].x + kids[-1].x) / 2 if kids else node.x
+            continue
+        if sid in seen:
+            continue
+        seen.add(sid)
+        kids_todo = [c for c in node.children if c not in seen]
+        node.children = kids_todo
+        if not kids_todo:
+            node.x = float(next_slot)
+            next_slot += 1
+            continue
+        stack.append((sid, True))
+        stack.extend((c, False) for c in reversed(kids_todo))
+    # nodes unreachable from the root (cycles in a broken document): a slot each
+    for node in nodes.values():
+        if node.shape_id not in seen:
+            node.x = float(next_slot)
+            next_slot += 1
+    return max(next_slot, 1)
+
+
+def _edge_norm(errors: list[float]) -> tuple[Normalize, str]:
+    positive = [e for e in errors if e > 0]
+    if positive and len(positive) == len(errors) and max(positive) / min(positive) > 50:
+        return LogNorm(vmin=min(positive), vmax=max(positive)), "log"
+    hi = max(errors) if errors else 1.0
+    return Normalize(vmin=0.0, vmax=hi if hi > 0 else 1.0), "linear"
+
+
+def _text_px(chars: int, fontsize: float, dpi: float) -> float:
+    return 0.62 * fontsize * dpi / 72.0 * chars
+
+
+def render_tree(
+    result: Mapping[str, Any],
+    *,
+    fmt: str = "svg",
+    width: int | None = None,
+    height: int | None = None,
+    dpi: float = 100.0,
+    title: str | None = None,
+) -> Rendered:
+    """Draw a job's registration tree.
+
+    Parameters
+    ----------
+    result : mapping
+        The result document (``GET /v1/jobs/{id}/result``; ``full`` not needed).
+    fmt : "svg" or "png"
+    width, height : int, optional
+        Pixels; by default sized to the widest layer and the number of layers.
+    dpi : float
+        Pixels per inch (font sizes are in points, so a higher dpi means smaller text).
+    title : str, optional
+        Defaults to the job, method and how many subjects were attached.
+
+    The root (the model) is on top; each row is a layer (the root is layer 1); an edge goes
+    from the member a shape was registered from to the shape, coloured by that shape's
+    registration error e (colour bar on the right; logarithmic when e spans more than 50x).
+    Shapes no member could register are in a separate box labelled "unattached" below.
+
+    In SVG the tree is the group ``<g id="tree">`` and the box ``<g id="unattached">``; each
+    name is a ``<text>`` in a group ``node-<shape_id>`` (``unattached-<shape_id>``).
+    ``meta`` holds ``nodes`` (shape_id, name, layer, parent_shape_id, error, x), ``unattached``
+    (shape_id, name), ``depth``, ``norm`` ("log" or "linear"), ``e_range``, ``label_rotation``
+    and ``warnings``.
+    """
+    fmt_ = check_format(fmt)
+    nodes, unattached, warnings = _build(result)
+    root = _doc.root_id(result)
+    slots = _layout(nodes, root)
+    depth = max(n.layer for n in nodes.values())
+    layers = sorted({n.layer for n in nodes.values()})
+    layer_index = {layer: i for i, layer in enumerate(layers)}
+
+    label_len = (
+        max(len(shorten(n.name, NAME_LIMIT)) for n in nodes.values() if n.parent)
+        if len(nodes) > 1
+        else len(shorten(nodes[root].name, NAME_LIMIT))
+    )
+    auto_slot = float(min(120, max(34, 7.5 * label_len + 14)))
+    fig_w = width or int(min(4000, max(640, _LEFT_PX + _RIGHT_PX + slots * auto_slot)))
+    axes_w = max(fig_w - _LEFT_PX - _RIGHT_PX, 40)
+    slot_px = axes_w / slots
+
+    # labels: horizontal if they fit their slot, else vertical, shrinking down to 4 pt
+    fontsize, rotation = 9.0, 0
+    while fontsize > 4 and _text_px(label_len, fontsize, dpi) > 0.92 * slot_px:
+        if rotation == 0 and 1.4 * fontsize * dpi / 72 < 0.9 * slot_px:
+            rotation = 90
+            break
+        fontsize -= 0.5
+    label_px = (_text_px(label_len, fontsize, dpi) if rotation else 1.4 * fontsize * dpi / 72) + 10
+
+    u_len = max((len(shorten(n, NAME_LIMIT)) for _, n in unattached), default=0)
+    u_fontsize = min(9.0, fontsize + 1)
+    u_slot = max(34.0, _text_px(u_len, u_fontsize, dpi) + 16)
+    per_row = max(1, int(axes_w // u_slot))
+    u_rows = math.ceil(len(unattached) / per_row) if unattached else 0
+    u_box = 34 + 30 * u_rows if unattached else 0
+
+    layer_gap = max(64.0, label_px + 42)
+    tree_px = (len(layers) - 1) * layer_gap + label_px + 36
+    fig_h = height or int(min(6000, max(320, _TOP_PX + tree_px + u_box + _BOTTOM_PX + 20)))
+
+    errors = [n.error for n in nodes.values() if n.parent is not None and n.error is not None]
+    norm, norm_kind = _edge_norm(errors)
+
+    with figure(fig_w, fig_h, dpi) as fig:
+        avail = fig_h - _TOP_PX - _BOTTOM_PX
+        u_h = min(u_box, 0.45 * avail) if unattached else 0
+        tree_h = avail - u_h - (16 if unattached else 0)
+        ax = fig.add_axes(
+            (
+                _LEFT_PX / fig_w,
+                (_BOTTOM_PX + u_h + (16 if unattached else 0)) / fig_h,
+                axes_w / fig_w,
+                tree_h / fig_h,
+            )
+        )
+        ax.set_gid("tree")
+        # rows: layer i at y = -i; room below the last row for its labels
+        bottom_pad = label_px / max(layer_gap, 1.0) if len(layers) > 1 else 1.0
+        ax.set_xlim(-0.5, slots - 0.5)
+        top_pad = (1.6 * fontsize * dpi / 72 + 14) / max(layer_gap, 1.0)
+        ax.set_ylim(-(len(layers) - 1) - bottom_pad - 0.1, top_pad)
+        for spine in ax.spines.values():
+            spine.set_visible(False)
+        ax.set_xticks([])
+        ax.set_yticks(
+            [-layer_index[layer] for layer in layers],
+            [f"layer {layer}" for layer in layers],
+        )
+        ax.tick_params(axis="y", length=0, labelsize=8, labelcolor="#555555")
+        for i in range(len(layers)):
+            ax.axhline(-i, color="#eeeeee", lw=0.8, zorder=0)
+
+        segments, colours = [], []
+        for node in nodes.values():
+            if node.parent is None:
+                continue
+            parent = nodes[node.parent]
+            segments.append(
+                [(parent.x, -layer_index[parent.layer]), (node.x, -layer_index[node.layer])]
+            )
+            colours.append(node.error)
+        if segments:
+            lc = LineCollection(
+                segments,
+                cmap=EDGE_CMAP,
+                norm=norm,
+                linewidths=2.2,
+                zorder=1,
+                colors=None,
+            )
+            lc.set_array(np.asarray([c if c is not None else np.nan for c in colours]))
+            lc.set_gid("edges")
+            ax.add_collection(lc)
+
+        xs = np.asarray([n.x for n in nodes.values()])
+        ys = np.asarray([-layer_index[n.layer] for n in nodes.values()])
+        is_root = np.asarray([n.parent is None for n in nodes.values()])
+        marker_s = float(np.clip(0.25 * slot_px, 12, 60))
+        ax.scatter(
+            xs[~is_root], ys[~is_root], s=marker_s, facecolor="white",
+            edgecolor=NODE_COLOUR, linewidths=1.2, zorder=2,
+        )  # fmt: skip
+        ax.scatter(
+            xs[is_root], ys[is_root], s=marker_s * 1.8, marker="s", color=ROOT_COLOUR, zorder=2
+        )
+        # text offset below a node, in points
+        offset = math.sqrt(marker_s) / 2 + 3
+        for node in nodes.values():
+            is_model = node.parent is None
+            label = shorten(node.name, NAME_LIMIT)
+            if is_model:
+                # the model sits on top: its name goes above it, clear of the edges
+                where: dict[str, Any] = {
+                    "xytext": (0, offset * 1.3),
+                    "ha": "center",
+                    "va": "bottom",
+                }
+                label += " (model)"
+            elif rotation:
+                # vertical names beside the node, clear of an edge going straight down
+                where = {"xytext": (2, -offset), "ha": "left", "va": "top"}
+            else:
+                where = {"xytext": (0, -offset), "ha": "center", "va": "top"}
+            text = ax.annotate(
+                label,
+                (node.x, -layer_index[node.layer]),
+                textcoords="offset points",
+                rotation=0 if is_model else rotation,
+                fontsize=fontsize,
+                color=ROOT_COLOUR if is_model else "#111111",
+                fontweight="bold" if is_model else "normal",
+                annotation_clip=False,
+                bbox={"boxstyle": "square,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.85},
+                zorder=3,
+                **where,
+            )
+            text.set_gid(f"node-{node.shape_id}")
+
+        if segments:
+            cax = fig.add_axes(
+                (
+                    (fig_w - _RIGHT_PX + 28) / fig_w,
+                    (_BOTTOM_PX + u_h + 16) / fig_h if unattached else _BOTTOM_PX / fig_h,
+                    14 / fig_w,
+                    max(tree_h * 0.8, 20) / fig_h,
+                )
+            )
+            cb = fig.colorbar(ScalarMappable(norm=norm, cmap=EDGE_CMAP), cax=cax)
+            cb.set_label("e of the child (eq. 10)", fontsize=8)
+            cb.ax.tick_params(labelsize=7)
+            cax.set_gid("colorbar")
+
+        if unattached:
+            uax = fig.add_axes((_LEFT_PX / fig_w, _BOTTOM_PX / fig_h, axes_w / fig_w, u_h / fig_h))
+            uax.set_gid("unattached")
+            uax.set_xlim(-0.5, per_row - 0.5)
+            uax.set_ylim(-u_rows + 0.2, 0.9)
+            uax.set_xticks([])
+            uax.set_yticks([])
+            for spine in uax.spines.values():
+                spine.set_linestyle((0, (4, 3)))
+                spine.set_color(UNATTACHED_COLOUR)
+            uax.set_title(
+                f"unattached ({len(unattached)}): no member registered them within the thresholds",
+                loc="left",
+                fontsize=9,
+                color="#555555",
+            )
+            for i, (sid, name) in enumerate(unattached):
+                row, col = divmod(i, per_row)
+                uax.scatter([col], [-row + 0.45], s=22, facecolor="white",
+                            edgecolor=UNATTACHED_COLOUR, linewidths=1.0)  # fmt: skip
+                t = uax.text(
+                    col, -row + 0.2, shorten(name, NAME_LIMIT), ha="center", va="top",
+                    fontsize=u_fontsize, color="#444444", clip_on=False,
+                )  # fmt: skip
+                t.set_gid(f"unattached-{sid}")
+
+        n_subjects = len(nodes) - 1 + len(unattached)
+        fig.suptitle(
+            title
+            or (
+                f"job {result.get('job_id', '?')}: {result.get('method', 'tree')} — "
+                f"{len(nodes) - 1} of {n_subjects} subjects attached, depth {depth}"
+            ),
+            x=_LEFT_PX / fig_w,
+            y=1 - 14 / fig_h,
+            ha="left",
+            va="top",
+            fontsize=11,
+        )
+        meta = {
+            "nodes": [
+                {
+                    "shape_id": n.shape_id,
+                    "name": n.name,
+                    "layer": n.layer,
+                    "parent_shape_id": n.parent,
+                    "error": n.error,
+                    "x": n.x,
+                }
+                for n in nodes.values()
+            ],
+            "unattached": [{"shape_id": sid, "name": name} for sid, name in unattached],
+            "depth": depth,
+            "norm": norm_kind,
+            "e_range": [norm.vmin, norm.vmax] if segments else None,
+            "label_rotation": rotation,
+            "label_fontsize": fontsize,
+            "warnings": warnings,
+        }
+        return save(fig, fmt_, meta)
