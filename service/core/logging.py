@@ -44,5 +44,7 @@ def configure_logging(level: str = "INFO", *, json_lines: bool = True) -> None:
         logger = logging.getLogger(name)
         logger.handlers[:] = []
         logger.propagate = True
+    # Alembic announces every plugin it loads at INFO.
+    logging.getLogger("alembic.runtime.plugins").setLevel(logging.WARNING)
     # Request lines are logged by our own middleware, with timings and request ids.
     logging.getLogger("uvicorn.access").disabled = True

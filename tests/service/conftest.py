@@ -119,6 +119,16 @@ class Service:
     def client(self, **kwargs: Any) -> httpx.Client:
         return httpx.Client(base_url=self.base_url, timeout=30, **kwargs)
 
+    def unhandled_errors(self) -> list[str]:
+        """Log lines of requests that ended in an unexpected exception (a 500)."""
+        return [
+            line
+            for p in self._logs
+            if p.exists()
+            for line in p.read_text(errors="replace").splitlines()
+            if '"unhandled error"' in line
+        ]
+
     def logs(self) -> str:
         return "\n".join(p.read_text(errors="replace")[-5000:] for p in self._logs if p.exists())
 
@@ -137,6 +147,8 @@ def make_service(tmp_path: Path) -> Iterator[Callable[..., Service]]:
     yield make
     for service in services:
         service.stop()
+    for service in services:
+        assert not service.unhandled_errors(), service.unhandled_errors()
 
 
 @pytest.fixture(scope="module")
@@ -145,6 +157,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     svc = Service(tmp_path_factory.mktemp("service"), workers=1).start()
     yield svc
     svc.stop()
+    assert not svc.unhandled_errors(), svc.unhandled_errors()
 
 
 @pytest.fixture

@@ -112,6 +112,15 @@ def test_upload_every_format(client: httpx.Client) -> None:
     assert_problem(client.get(f"{url}/{first['id']}"), 404)
 
 
+def test_deleting_a_collection_deletes_its_shapes(client: httpx.Client) -> None:
+    cid = create_collection(client, "doomed")
+    url = f"/v1/collections/{cid}/shapes"
+    shape = client.post(url, json={"name": "s", "points": circle(10).tolist()}).json()
+    assert client.delete(f"/v1/collections/{cid}").status_code == 204
+    assert_problem(client.get(f"{url}/{shape['id']}"), 404)
+    assert_problem(client.get(url), 404)
+
+
 def test_batch_is_all_or_nothing(client: httpx.Client) -> None:
     cid = create_collection(client, "atomic")
     url = f"/v1/collections/{cid}/shapes"
