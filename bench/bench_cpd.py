@@ -27,6 +27,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -104,9 +105,9 @@ def make_pair(shape: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, np.
 Runner = Callable[[np.ndarray, np.ndarray, bool], tuple[np.ndarray, int]]
 
 
-def ours(**kw: object) -> Runner:
+def ours(**kw: Any) -> Runner:
     def run(model: np.ndarray, subject: np.ndarray, fixed: bool) -> tuple[np.ndarray, int]:
-        opts: dict = dict(beta=BETA, lmbda=LMBDA, w=W, **kw)
+        opts: dict[str, Any] = dict(beta=BETA, lmbda=LMBDA, w=W, **kw)
         if fixed:
             opts.update(tol=0.0, max_iter=150)
         r = cpd_nonrigid(model, subject, **opts)
@@ -117,19 +118,19 @@ def ours(**kw: object) -> Runner:
 def run_pycpd(model: np.ndarray, subject: np.ndarray, fixed: bool) -> tuple[np.ndarray, int]:
     # pycpd does not normalise: our wrapper normalises around it exactly like MATLAB.
     # Default stopping = pycpd's own rule (|sigma2 - sigma2_old| <= 1e-3, 100 iterations).
-    opts: dict = dict(tol=0.0, max_iter=150) if fixed else dict(tol=1e-3, max_iter=100)
+    opts: dict[str, Any] = dict(tol=0.0, max_iter=150) if fixed else dict(tol=1e-3, max_iter=100)
     r = cpd_nonrigid(model, subject, beta=BETA, lmbda=LMBDA, w=W, backend="pycpd", **opts)
     return np.asarray(r.warped), r.iterations
 
 
-def rustcpd_runner(**kw: object) -> Runner | str:
+def rustcpd_runner(**kw: Any) -> Runner | str:
     try:
         import rustcpd
     except Exception as exc:
         return f"not available: {type(exc).__name__}: {exc}"
 
     def run(model: np.ndarray, subject: np.ndarray, fixed: bool) -> tuple[np.ndarray, int]:
-        opts: dict = dict(tolerance=0.0, max_iterations=150) if fixed else {}
+        opts: dict[str, Any] = dict(tolerance=0.0, max_iterations=150) if fixed else {}
         r = rustcpd.register_deformable(subject, model, alpha=LMBDA, beta=BETA,
                                         normalize=True, outlier_weight=W, **kw, **opts)
         return np.asarray(r.points), int(r.iterations)
@@ -210,11 +211,12 @@ def main() -> None:
                 its += it
                 errs.append(float(np.mean(np.linalg.norm(warped - truth, axis=1))) / scale)
             npair = len(pairs)
-            rows[name] = (tot / its * 1e3, tot / npair * 1e3, its / npair, 100 * np.mean(errs))
+            rows[name] = (tot / its * 1e3, tot / npair * 1e3, its / npair,
+                          100 * float(np.mean(errs)))
         ref = rows.get("pycpd 2.0.0")
-        for name, (msit, total, its, err) in rows.items():
+        for name, (msit, total, mean_its, err) in rows.items():
             ratio = f"{ref[0] / msit:10.1f}x" if ref else "n/a"
-            print(f"{name:40s} {msit:9.2f} {total:10.1f} {its:7.1f} {err:9.3f} {ratio:>11s}")
+            print(f"{name:40s} {msit:9.2f} {total:10.1f} {mean_its:7.1f} {err:9.3f} {ratio:>11s}")
 
 
 if __name__ == "__main__":

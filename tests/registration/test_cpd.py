@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import numpy as np
 import pytest
@@ -92,7 +93,7 @@ def test_recovers_known_smooth_warp(pair: tuple[np.ndarray, ...]) -> None:
 
 def test_matches_pycpd(pair: tuple[np.ndarray, ...]) -> None:
     model, subject, _, _ = pair
-    opts = dict(beta=2.0, lmbda=3.0, w=0.1, tol=0.0, max_iter=40)
+    opts: dict[str, Any] = dict(beta=2.0, lmbda=3.0, w=0.1, tol=0.0, max_iter=40)
     ours = cpd_nonrigid(model, subject, low_rank=False, truncate=False, **opts)
     ref = cpd_nonrigid(model, subject, backend="pycpd", **opts)
     assert ours.iterations == ref.iterations == 40
@@ -162,7 +163,7 @@ def test_result_is_read_only(pair: tuple[np.ndarray, ...]) -> None:
     ],
 )
 def test_fast_paths_match_dense(big_pair: tuple[np.ndarray, np.ndarray], dense_big: CPDResult,
-                                opts: dict, rel_tol: float) -> None:
+                                opts: dict[str, Any], rel_tol: float) -> None:
     model, subject = big_pair
     res = cpd_nonrigid(model, subject, tol=0.0, max_iter=80, **opts)
     scale = rms_radius(subject)
@@ -240,7 +241,9 @@ def test_degenerate_inputs_never_nan(case: str, w: float) -> None:
     else:  # tiny_scale
         model = base * 1e-9
         subject = smooth_warp(base) * 1e-9 + rng.standard_normal(base.shape) * 1e-12
-    for opts in (dict(), dict(normalize=False), dict(truncate=True, low_rank=True)):
+    all_opts: list[dict[str, Any]] = [
+        {}, {"normalize": False}, {"truncate": True, "low_rank": True}]
+    for opts in all_opts:
         res = cpd_nonrigid(model, subject, w=w, **opts)
         _assert_finite(res, len(model))
 
@@ -318,7 +321,7 @@ def test_bad_points(model: object, subject: object, match: str) -> None:
         (dict(beta="2"), "beta must be a real number"),
     ],
 )
-def test_bad_parameters(opts: dict, match: str) -> None:
+def test_bad_parameters(opts: dict[str, Any], match: str) -> None:
     with pytest.raises(ValueError, match=match):
         cpd_nonrigid(GOOD, GOOD, **opts)
 
