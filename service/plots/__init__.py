@@ -12,8 +12,18 @@ lock, so they are safe in a web server's thread pool.
 * :func:`render_summary` — e per layer (mean and 95th percentile), tree against direct CPD.
 """
 
-from service.plots._common import Rendered
+from service.plots._common import MEDIA_TYPES, Rendered
 from service.plots._doc import find_subject, layer_statistics
+from service.plots.subject import render_subject
+from service.plots.summary import render_summary
 from service.plots.tree import render_tree
 
-__all__ = ["Rendered", "find_subject", "layer_statistics", "render_tree"]
+__all__ = [
+    "MEDIA_TYPES",
+    "Rendered",
+    "find_subject",
+    "layer_statistics",
+    "render_subject",
+    "render_summary",
+    "render_tree",
+]
