@@ -158,6 +158,18 @@ def axes_box_pixels(fig: Figure, ax: Axes) -> list[float]:
     return [float(bbox.x0), float(height - bbox.y1), float(bbox.x1), float(height - bbox.y0)]
 
 
+METHOD_LABELS = {
+    "dynamic_tree": "dynamic tree",
+    "static_tree": "static tree",
+    "direct": "direct CPD",
+}
+
+
+def method_label(result: Mapping[str, Any]) -> str:
+    method = str(result.get("method") or "tree")
+    return METHOD_LABELS.get(method, method.replace("_", " "))
+
+
 def shorten(text: str, limit: int = 40) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "…"
 

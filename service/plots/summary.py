@@ -10,7 +10,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
 from service.plots import _doc
-from service.plots._common import Rendered, check_format, figure, fmt_e, save
+from service.plots._common import Rendered, check_format, figure, fmt_e, method_label, save
 
 TREE_COLOUR = "#1f77b4"
 DIRECT_COLOUR = "#ff7f0e"
@@ -50,6 +50,7 @@ def render_summary(
     ``bars`` (number drawn), ``log``, ``unattached``.
     """
     fmt_ = check_format(fmt)
+    label = method_label(result)
     tree, direct = _doc.layer_statistics(result)
     layers = sorted(tree)
     summary = result.get("summary") or {}
@@ -101,7 +102,7 @@ def render_summary(
             ax.text(0.5, 0.5, "no attached subject", ha="center", va="center",
                     transform=ax.transAxes)  # fmt: skip
 
-        handles: list[Any] = [Patch(color=TREE_COLOUR, label="tree: mean e")]
+        handles: list[Any] = [Patch(color=TREE_COLOUR, label=f"{label}: mean e")]
         if has_direct:
             handles.append(Patch(color=DIRECT_COLOUR, label="direct CPD: mean e"))
         handles.append(Line2D([], [], color=P95_COLOUR, marker="_", ms=12, label="95th percentile"))
@@ -116,7 +117,7 @@ def render_summary(
 
         overall = summary.get("all") or {}
         overall_direct = (summary.get("direct") or {}).get("all") or {}
-        subtitle = f"all attached: tree mean e = {fmt_e(overall.get('mean'))}"
+        subtitle = f"all attached: {label} mean e = {fmt_e(overall.get('mean'))}"
         if has_direct:
             subtitle += f", direct CPD mean e = {fmt_e(overall_direct.get('mean'))}"
         unattached = summary.get("unattached")

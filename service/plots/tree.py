@@ -14,10 +14,13 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import ListedColormap, LogNorm, Normalize
 
 from service.plots import _doc
-from service.plots._common import Rendered, check_format, figure, save, shorten
+from service.plots._common import Rendered, check_format, figure, method_label, save, shorten
 
 # plasma without its palest yellows, which vanish on white
-EDGE_CMAP = ListedColormap(colormaps["plasma"](np.linspace(0.0, 0.85, 256)), name="regtree_e")
+# (an edge without e is grey)
+EDGE_CMAP = ListedColormap(
+    colormaps["plasma"](np.linspace(0.0, 0.85, 256)), name="regtree_e"
+).with_extremes(bad="#bbbbbb")
 NODE_COLOUR = "#333333"
 ROOT_COLOUR = "#1f4e79"
 UNATTACHED_COLOUR = "#888888"
@@ -323,7 +326,7 @@ def render_tree(
         fig.suptitle(
             title
             or (
-                f"job {result.get('job_id', '?')}: {result.get('method', 'tree')} — "
+                f"job {result.get('job_id', '?')}: {method_label(result)} — "
                 f"{len(nodes) - 1} of {n_subjects} subjects attached, depth {depth}"
             ),
             x=_LEFT_PX / fig_w,
