@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import Protocol, TypeVar
@@ -57,6 +58,11 @@ class LocalProcessExecutor:
     max_pending : int, optional
         Tasks submitted ahead of completion (bounded so a cancelled run stops quickly);
         defaults to ``4 * max_workers``.
+    start_method : {"fork", "forkserver", "spawn"}, optional
+        How worker processes start. Default: "fork" where available while the calling
+        process runs a single thread (works in notebooks and in scripts without a
+        ``__main__`` guard), else "forkserver" (safe beside threads, but the calling
+        script must guard its entry point with ``if __name__ == "__main__":``).
 
     Notes
     -----
@@ -64,17 +70,32 @@ class LocalProcessExecutor:
     ``with`` block), so a collection's stages share one set of warm processes.
     """
 
-    def __init__(self, max_workers: int | None = None, *, max_pending: int | None = None):
+    def __init__(
+        self,
+        max_workers: int | None = None,
+        *,
+        max_pending: int | None = None,
+        start_method: str | None = None,
+    ):
         n = max_workers if max_workers is not None else _available_cpus()
         if n < 1:
             raise ValueError(f"max_workers must be at least 1; got {n}")
+        methods = multiprocessing.get_all_start_methods()
+        if start_method is not None and start_method not in methods:
+            raise ValueError(f"start_method must be one of {methods}; got {start_method!r}")
+        self.start_method = start_method
         self.max_workers = n
         self.max_pending = max_pending if max_pending is not None else 4 * n
         self._pool: ProcessPoolExecutor | None = None
 
     def _ensure_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
-            ctx = multiprocessing.get_context("forkserver")
+            method = self.start_method
+            if method is None:
+                single = threading.active_count() == 1
+                method = "fork" if single and "fork" in multiprocessing.get_all_start_methods() \
+                    else "forkserver"
+            ctx = multiprocessing.get_context(method)
             self._pool = ProcessPoolExecutor(max_workers=self.max_workers, mp_context=ctx)
         return self._pool
 
