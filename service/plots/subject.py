@@ -12,6 +12,7 @@ from matplotlib.lines import Line2D
 from numpy.typing import ArrayLike, NDArray
 
 from service.plots._common import (
+    METHOD_LABELS,
     Rendered,
     axes_box_pixels,
     check_format,
@@ -178,7 +179,8 @@ def render_subject(
         Correspondence lines drawn per panel, for an evenly spread sample of model points:
         each joins a warped model point to the subject point it corresponds to.
     method : str
-        Name of the tree registration in the panel title (e.g. "dynamic tree").
+        The job's method (``dynamic_tree``, ``static_tree``, ``direct``) or any label, for
+        the first panel's title.
 
     One panel for the tree registration (or, for an unattached subject, the subject alone
     with the reason), and beside it, with the same axes limits, direct CPD's registration when
@@ -194,7 +196,7 @@ def render_subject(
     points = _points(subject_points)
     if points is None:
         raise ValueError("subject_points is empty")
-    panels = _panels(subject, method)
+    panels = _panels(subject, METHOD_LABELS.get(method, method))
     warnings: list[str] = []
 
     everything = [points] + [p["warped"] for p in panels if p["warped"] is not None]
