@@ -155,7 +155,7 @@ def render_subject(
     *,
     fmt: str = "png",
     width: int = 1200,
-    height: int = 620,
+    height: int | None = None,
     dpi: float = 100.0,
     y_down: bool = True,
     n_lines: int = 40,
@@ -173,6 +173,8 @@ def render_subject(
     subject_points : (n, 2) array
         The subject shape's stored points (``GET /v1/collections/{c}/shapes/{shape_id}``),
         in the order the correspondences index.
+    width, height : int
+        Pixels; by default the height follows the shape's aspect ratio.
     y_down : bool
         Draw y growing downwards, as in images (default, for pixel-coordinate glyph data).
     n_lines : int
@@ -210,9 +212,12 @@ def render_subject(
     n_max = max(len(p) for p in everything)
     marker = float(np.clip(2500.0 / n_max, 2.0, 30.0))
 
+    k = len(panels)
+    panel_w = (width - 2 * _SIDE_PX - (k - 1) * _GAP_PX) / k
+    if height is None:
+        aspect = (ylim[1] - ylim[0]) / (xlim[1] - xlim[0])
+        height = int(_TOP_PX + _BOTTOM_PX + np.clip(panel_w * aspect, 240, 1200))
     with figure(width, height, dpi) as fig:
-        k = len(panels)
-        panel_w = (width - 2 * _SIDE_PX - (k - 1) * _GAP_PX) / k
         panel_h = height - _TOP_PX - _BOTTOM_PX
         axes: list[Axes] = []
         lines: list[int] = []

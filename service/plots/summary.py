@@ -126,7 +126,7 @@ def render_summary(
         subtitle += f"; unattached: {unattached}"
         fig.suptitle(
             title
-            or f"job {result.get('job_id', '?')}: e per layer, {result.get('method', 'tree')}"
+            or f"job {result.get('job_id', '?')}: e per layer, {label}"
             + (" vs direct CPD" if has_direct else ""),
             y=1 - 10 / height,
             va="top",

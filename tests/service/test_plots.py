@@ -358,3 +358,14 @@ def test_bad_arguments() -> None:
         render_summary(handmade(), width=5)
     with pytest.raises(ValueError, match="root_shape_id"):
         render_tree({"subjects": []})
+
+
+def test_subject_default_height_follows_the_shape() -> None:
+    t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    wide = np.c_[100 * np.cos(t), 40 * np.sin(t)]
+    tall = wide[:, ::-1]
+    subject = {"shape_id": 1, "name": "s", "layer": 2, "warped": wide.tolist(), "error": 0.0}
+    short_png = render_subject(subject, wide, width=600)
+    tall_png = render_subject({**subject, "warped": tall.tolist()}, tall, width=600)
+    assert short_png.height < tall_png.height
+    assert png_image(short_png).shape[:2] == (short_png.height, 600)
