@@ -383,7 +383,9 @@ class Subject:
             name=str(d.get("name", d["shape_id"])),
             attached=bool(d.get("attached", d.get("layer") is not None)),
             layer=None if d.get("layer") is None else int(d["layer"]),
-            parent_shape_id=d.get("parent_shape_id"),
+            parent_shape_id=(
+                None if d.get("parent_shape_id") is None else int(d["parent_shape_id"])
+            ),
             path_shape_ids=[int(i) for i in d.get("path_shape_ids") or []],
             similarity=d.get("similarity"),
             error=d.get("error"),
@@ -488,6 +490,17 @@ class RegtreeClient:
         self._http = httpx.Client(
             base_url=self.base_url, headers=headers, timeout=timeout, transport=transport
         )
+
+    @classmethod
+    def from_env(cls, base_url: str | None = None, **kwargs: Any) -> RegtreeClient:
+        """A client for ``base_url``, else ``$REGTREE_URL`` (default
+        ``http://127.0.0.1:8000``), with the key in ``$REGTREE_API_KEY`` if set (the variable
+        the server reads its key from)."""
+        import os
+
+        url = base_url or os.environ.get("REGTREE_URL") or "http://127.0.0.1:8000"
+        kwargs.setdefault("api_key", os.environ.get("REGTREE_API_KEY") or None)
+        return cls(url, **kwargs)
 
     # --- plumbing ----------------------------------------------------------------------
 

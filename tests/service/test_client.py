@@ -263,6 +263,21 @@ def test_retries_and_non_json_errors() -> None:
             rt.apply_transform(1, 1, [1.0, 2.0])
 
 
+def test_from_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    seen: list[httpx.Request] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        return httpx.Response(200, json={"items": [], "total": 0, "limit": 500, "offset": 0})
+
+    monkeypatch.setenv("REGTREE_URL", "http://regtree.example:9000/")
+    monkeypatch.setenv("REGTREE_API_KEY", "k3y")
+    with RegtreeClient.from_env(transport=httpx.MockTransport(handler)) as rt:
+        assert rt.list_collections() == []
+    assert str(seen[0].url).startswith("http://regtree.example:9000/v1/collections?")
+    assert seen[0].headers["x-api-key"] == "k3y"
+
+
 def test_upload_folder_refuses_an_empty_match(tmp_path: Path) -> None:
     (tmp_path / "notes.md").write_text("x")
     with RegtreeClient("http://127.0.0.1:1") as rt, pytest.raises(FileNotFoundError):
