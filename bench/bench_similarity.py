@@ -15,8 +15,13 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from registration import LocalProcessExecutor, SerialExecutor, normalise, resample
-from registration import similarity_matrix
+from registration import (
+    LocalProcessExecutor,
+    SerialExecutor,
+    normalise,
+    resample,
+    similarity_matrix,
+)
 from registration.synthetic import chained_family
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

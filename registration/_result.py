@@ -18,12 +18,17 @@ __all__ = ["Attempt", "CollectionResult", "SubjectResult", "error_statistics"]
 
 @dataclass(frozen=True)
 class Attempt:
-    """One registration tried while building a tree: member -> subject."""
+    """One registration tried while building a tree: member -> subject.
+
+    ``limit`` is the error threshold this attempt was held to (the collection's, or the
+    subject's sampling floor when that is larger and the threshold is automatic).
+    """
 
     member: int
     layer: int
     similarity: float
     error: float
+    limit: float
     min_jacobian: float
     accepted: bool
     reason: str
@@ -34,6 +39,7 @@ class Attempt:
             "layer": self.layer,
             "similarity": self.similarity,
             "error": self.error,
+            "limit": self.limit,
             "min_jacobian": self.min_jacobian,
             "accepted": self.accepted,
             "reason": self.reason,

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from ._cpd import cpd_nonrigid
 from ._error import registration_error
@@ -49,7 +50,9 @@ __all__ = [
 
 # Automatic thresholds (see `_auto_similarity_threshold` and `_auto_error_threshold`).
 SIMILARITY_FACTOR = 3.0
+CAPTURE_D = 0.01
 ERROR_FACTOR = 2.5
+SPACING_FACTOR = 0.5
 MAX_EXHAUSTIVE_SHAPES = 64
 DEFAULT_CANDIDATES = 12
 
@@ -246,29 +249,75 @@ def _nearest_similarity(sim: Similarity, subjects: Sequence[int]) -> dict[int, f
     return out
 
 
-def _auto_similarity_threshold(sim: Similarity, subjects: Sequence[int]) -> float:
-    """``SIMILARITY_FACTOR`` times the median over subjects of the D to their nearest shape.
+def _bottleneck_from_root(D: FloatArray, root: int) -> FloatArray:
+    """For every shape, the smallest possible largest D along a path of computed pairs
+    from the root (minimax path; inf where no path exists)."""
+    n = D.shape[0]
+    W = np.where(np.isfinite(D), D, np.inf)
+    best = np.full(n, np.inf)
+    best[root] = 0.0
+    done = np.zeros(n, dtype=bool)
+    for _ in range(n):
+        cand = np.where(done, np.inf, best)
+        u = int(np.argmin(cand))
+        if not np.isfinite(cand[u]):
+            break
+        done[u] = True
+        best = np.minimum(best, np.where(done, best, np.maximum(best[u], W[u])))
+    return best
 
-    A subject whose nearest shape is much further than is typical for the collection
-    gets no similar member and is reported unattached rather than forced in.
+
+def _auto_similarity_threshold(sim: Similarity, subjects: Sequence[int], root: int) -> float:
+    """``max(SIMILARITY_FACTOR x median nearest-shape D, CAPTURE_D, median bottleneck)``.
+
+    - The first term adapts to the collection: shapes count as similar when they are
+      about as close as typical nearest neighbours are.
+    - ``CAPTURE_D`` is CPD's capture range measured on data with ground truth
+      (bench/calibrate_thresholds.py): after the affine pre-alignment, 85% of pairs with
+      D < 0.01 registered with an RMS correspondence error under 5% of the shape's size,
+      against 60% for 0.01-0.02 and 22% for 0.02-0.04; such pairs are never dissimilar.
+    - The median, over subjects, of the minimax ("bottleneck") D of a path from the root
+      guarantees that at least half of the collection is reachable from the root through
+      similar shapes, so a collection whose root stands apart is not left unattached.
+
+    A subject still not reachable gets no similar member and is reported unattached.
     """
     nn = [v for v in _nearest_similarity(sim, subjects).values() if math.isfinite(v)]
     if not nn:
         return math.inf
-    return SIMILARITY_FACTOR * float(np.median(nn))
+    reach = _bottleneck_from_root(sim.D, root)[list(subjects)]
+    reach = reach[np.isfinite(reach)]
+    floor = float(np.median(reach)) if reach.size else 0.0
+    return max(SIMILARITY_FACTOR * float(np.median(nn)), CAPTURE_D, floor)
 
 
 def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:
-    """``ERROR_FACTOR`` times the median e of the first layer's registrations from the root.
+    """``ERROR_FACTOR`` times the median e of the second layer's registrations.
 
-    The root's most similar subjects mostly register well, so their median e measures
-    what "registered" means for this collection (point density, noise); failures sit far
-    above it.
+    Those are registrations of the root to the subjects most similar to it; on real
+    collections they mostly succeed, so their median e measures what "registered" means
+    for this collection (its point density, noise and genuine shape variation) and
+    failures sit far above it. Applied per subject together with a floor from the
+    subject's own sampling (:func:`_spacing_floor`).
     """
     errs = [o.error for o in outcomes if math.isfinite(o.error)]
     if not errs:
         return math.inf
     return ERROR_FACTOR * float(np.median(errs))
+
+
+def _spacing_floor(normalised: FloatArray) -> float:
+    """``SPACING_FACTOR`` times the subject's mean squared nearest-neighbour spacing h^2.
+
+    An e below it means the warped model lies on the subject as closely as the sampling
+    allows. Measured on data with ground truth (bench/calibrate_thresholds.py): every
+    registration with an RMS correspondence error under 5% of the shape's size had
+    e < 0.5 h^2. Without this floor a collection whose easiest subjects register almost
+    exactly (synthetic deformations of the same points) gets an error threshold so small
+    that even correct registrations of its harder subjects are refused.
+    """
+    d, _ = cKDTree(normalised).query(normalised, k=2)
+    return SPACING_FACTOR * float(np.mean(d[:, 1] ** 2))
 
 
 def _prepare_similarity(
@@ -380,9 +429,10 @@ def build_dynamic_tree(
     tau_sim = (
         similarity_threshold
         if similarity_threshold is not None
-        else _auto_similarity_threshold(sim, subjects_idx)
+        else _auto_similarity_threshold(sim, subjects_idx, root)
     )
     tau_err = error_threshold
+    floors = {s: _spacing_floor(coll.normed[s]) for s in subjects_idx}
 
     nodes: dict[int, _Node] = {root: _Node(q=coll.normed[root], chain=coll.root_chain(), layer=1)}
     results: dict[int, SubjectResult] = {
@@ -422,15 +472,17 @@ def build_dynamic_tree(
         best: dict[int, _RegOutcome] = {}
         for out in outcomes:
             folded = fold_check and not out.min_jacobian > 0
-            ok = out.error < tau_err and not folded
+            limit = tau_err if error_threshold is not None else max(tau_err, floors[out.subject])
+            ok = out.error < limit and not folded
             reason = (
                 "accepted candidate" if ok
                 else "folded (Jacobian determinant <= 0)" if folded
-                else f"e={out.error:.4g} >= error threshold {tau_err:.4g}"
+                else f"e={out.error:.4g} >= error threshold {limit:.4g}"
             )
             results[out.subject].attempts.append(
                 Attempt(member=out.member, layer=layer, similarity=out.similarity,
-                        error=out.error, min_jacobian=out.min_jacobian, accepted=False,
+                        error=out.error, limit=limit, min_jacobian=out.min_jacobian,
+                        accepted=False,
                         reason=reason)
             )
             if ok and (out.subject not in best or out.error < best[out.subject].error):
@@ -466,10 +518,12 @@ def build_dynamic_tree(
         thresholds={
             "similarity": tau_sim,
             "similarity_rule": "explicit" if similarity_threshold is not None
-            else f"auto: {SIMILARITY_FACTOR} x median nearest-shape D",
+            else f"auto: max({SIMILARITY_FACTOR} x median nearest-shape D, {CAPTURE_D}, "
+            "median bottleneck D from the root)",
             "error": tau_err,
             "error_rule": "explicit" if error_threshold is not None
-            else f"auto: {ERROR_FACTOR} x median e of layer-2 registrations",
+            else f"auto: max({ERROR_FACTOR} x median e of layer-2 registrations, "
+            f"{SPACING_FACTOR} x the subject's squared point spacing)",
             "fold_check": fold_check,
         },
         options=_options_dict(cpd, prealign, max_candidates),
@@ -512,7 +566,7 @@ def build_static_tree(
     tau_sim = (
         similarity_threshold
         if similarity_threshold is not None
-        else _auto_similarity_threshold(sim, subjects_idx)
+        else _auto_similarity_threshold(sim, subjects_idx, root)
     )
     # 1. the tree, from the similarity alone
     parent: dict[int, int] = {}
@@ -565,7 +619,8 @@ def build_static_tree(
         thresholds={
             "similarity": tau_sim,
             "similarity_rule": "explicit" if similarity_threshold is not None
-            else f"auto: {SIMILARITY_FACTOR} x median nearest-shape D",
+            else f"auto: max({SIMILARITY_FACTOR} x median nearest-shape D, {CAPTURE_D}, "
+            "median bottleneck D from the root)",
             "error": None,
             "error_rule": "none: the static tree does not reject",
         },
