@@ -1,4 +1,8 @@
-"""The ``regtree`` command line: serve, worker, migrate, demo."""
+"""The ``regtree`` command line.
+
+Server side: serve, worker, migrate, demo. Client side (over HTTP, see
+:mod:`service.cli_client`): upload, run, watch, results, cancel.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +10,8 @@ import argparse
 import os
 import sys
 from collections.abc import Sequence
+
+from service import cli_client
 
 
 def _single_threaded_blas() -> None:
@@ -23,6 +29,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--database-url", help="overrides REGTREE_DATABASE_URL (default sqlite:///./var/...)"
     )
+    cli_client.add_connection_options(parser, suppress=False)
     sub = parser.add_subparsers(dest="command", required=True)
 
     serve = sub.add_parser("serve", help="run the API and embedded workers (migrates first)")
@@ -51,11 +58,15 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--method", default="dynamic_tree", choices=["dynamic_tree", "static_tree", "direct"]
     )
+
+    cli_client.add_commands(sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if args.command in cli_client.COMMANDS:
+        return cli_client.main(args)
     if args.command in ("serve", "worker", "demo"):
         _single_threaded_blas()
 
