@@ -36,7 +36,7 @@ def real() -> dict[str, Any]:
     from registration.synthetic import chained_family
     from service.jobs.runner import to_api_document
 
-    fam = chained_family(n_chains=2, chain_length=3, n_points=60, seed=1)
+    fam = chained_family(n_chains=2, chain_length=3, n_points=60, step=0.25, seed=1)
     result = build_dynamic_tree(fam.shapes, root=0, names=fam.names, compare_direct=True)
     shape_ids = [101 + k for k in range(len(fam.shapes))]
     raw = json.loads(json.dumps(result.to_dict()))
