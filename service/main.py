@@ -18,7 +18,7 @@ from service.api.middleware import (
     RequestLogMiddleware,
 )
 from service.api.problems import Problem, ProblemError, install_problem_handlers
-from service.api.routes import collections, jobs, shapes
+from service.api.routes import collections, jobs, pages, pictures, shapes
 from service.core.config import Settings, get_settings
 from service.db import Database
 from service.schemas import ShapeBatchJSON, ShapeJSON
@@ -32,6 +32,8 @@ chaining registrations through similar shapes (Du et al. 2016, dynamic tree).
 2. `POST /v1/jobs` with the model shape: 202 and a `Location` to poll.
 3. When the job has `succeeded`, read `/v1/jobs/{id}/result` and, per shape,
    `/v1/jobs/{id}/result/subjects/{shape_id}`.
+4. Look at it: the results page at `/ui`, or the pictures `/v1/jobs/{id}/result/tree.svg`,
+   `summary.png` and `subjects/{shape_id}/overlay.png`.
 
 Every error is an RFC 9457 `application/problem+json` document. When the service has an API
 key, send it as `X-API-Key` or `Authorization: Bearer`; `/healthz` and the API docs are open.
@@ -41,6 +43,7 @@ TAGS = [
     {"name": "collections", "description": "Named sets of shapes."},
     {"name": "shapes", "description": "Upload and read shapes (point sets)."},
     {"name": "jobs", "description": "Registration jobs, their progress and results."},
+    {"name": "pictures", "description": "PNG/SVG pictures of a result: tree, summary, overlays."},
     {"name": "health", "description": "Liveness."},
 ]
 
@@ -80,7 +83,9 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
     v1.include_router(collections.router)
     v1.include_router(shapes.router)
     v1.include_router(jobs.router)
+    v1.include_router(pictures.router)
     app.include_router(v1)
+    app.include_router(pages.router)  # the results page at /ui
 
     @app.get("/healthz", tags=["health"], summary="Liveness and database check")
     def healthz() -> dict[str, str]:
