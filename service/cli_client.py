@@ -374,7 +374,10 @@ def _pick(kind: str, value: str, items: Sequence[Any], *, where: str = "") -> An
         known = ", ".join(repr(item.name) for item in items[:8])
         more = f", ... ({len(items)} in all)" if len(items) > 8 else ""
         hint = f"; there are: {known}{more}" if items else f"; there are no {kind}s{where} yet"
-        raise CLIError(f"no {kind} named {value!r}{where}{hint}", EXIT_FAILED)
+        what = f"named {value!r}"
+        if value.strip().isdigit():
+            what += f" or with id {int(value)}"
+        raise CLIError(f"no {kind} {what}{where}{hint}", EXIT_FAILED)
     ids = ", ".join(f"id {item.id} ({item.name!r})" for item in matches)
     raise CLIError(
         f"{value!r} is ambiguous: {len(matches)} {kind}s{where} match ({ids}); give the id",
@@ -615,13 +618,15 @@ def watch_job(
         progress.end_line()
         raise
     progress.end_line()
-    took = f"after {progress.elapsed():.1f} s of watching"
+    took = ""
+    if state.started_at is not None and state.finished_at is not None:
+        took = f" after {(state.finished_at - state.started_at).total_seconds():.1f} s"
     if state.status != "succeeded":
-        _out(f"job {job_id} {state.status} {took}", stream)
+        _out(f"job {job_id} {state.status}{took}", stream)
         reason = f": {state.error}" if state.error else ""
         return _fail(f"job {job_id} {state.status}{reason}", EXIT_FAILED)
     summary = rt.result(job_id).summary
-    line = f"job {job_id} succeeded {took}"
+    line = f"job {job_id} succeeded{took}"
     if summary:
         line += (
             f": {summary.get('attached')} of {summary.get('subjects')} subjects attached, "

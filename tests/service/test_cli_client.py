@@ -1,0 +1,329 @@
+"""``regtree upload|run|watch|results|cancel`` as subprocesses against the real service.
+
+Exit codes are the real ones: every command runs as ``python -m service.cli`` in its own
+process, talking HTTP to ``regtree serve`` subprocesses from conftest.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pty
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image, ImageDraw
+
+from service.client import RegtreeClient
+from tests.service.conftest import REPO, Service, free_port
+
+pytest.importorskip("registration._tree", reason="the registration library has not landed")
+
+CLI = [sys.executable, "-m", "service.cli"]
+
+
+def cli_env(url: str | None = None, **extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("REGTREE_")}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
+    if url is not None:
+        env["REGTREE_URL"] = url
+    env.update(extra)
+    return env
+
+
+def regtree(
+    *args: str, url: str | None = None, env: dict[str, str] | None = None, timeout: float = 60
+) -> subprocess.CompletedProcess[str]:
+    """Run ``regtree ARGS`` (REGTREE_URL=url) and return the finished process."""
+    return subprocess.run(
+        [*CLI, *args],
+        cwd=REPO,
+        env=env or cli_env(url),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def assert_error(proc: subprocess.CompletedProcess[str], code: int, *needles: str) -> str:
+    """Exit ``code``, one ``regtree: error:`` line on stderr holding every needle."""
+    assert proc.returncode == code, (proc.returncode, proc.stdout, proc.stderr)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("regtree: error:")]
+    assert len(lines) == 1, proc.stderr
+    for needle in needles:
+        assert needle in lines[0], (needle, proc.stderr)
+    return lines[0]
+
+
+def write_folder(folder: Path) -> list[str]:
+    """The chained family as .txt / .npy files plus an ellipse PNG; names in upload order."""
+    from registration.synthetic import chained_family
+
+    folder.mkdir()
+    fam = chained_family(n_chains=2, chain_length=3, n_points=60)
+    names = []
+    for k, (name, pts) in enumerate(zip(fam.names, fam.shapes, strict=True)):
+        stem = f"{k:02d}-{name}"
+        if k % 2:
+            np.save(folder / f"{stem}.npy", pts)
+        else:
+            (folder / f"{stem}.txt").write_text("\n".join(f"{x:.9f} {y:.9f}" for x, y in pts))
+        names.append(stem)
+    image = Image.new("L", (120, 90), 255)
+    ImageDraw.Draw(image).ellipse((15, 15, 105, 75), fill=0)
+    image.save(folder / "99-ellipse.png")
+    names.append("99-ellipse")
+    (folder / "notes.md").write_text("not a shape")
+    return names
+
+
+PROGRESS = re.compile(r"^\[\s*[\d.]+ s\] job (\d+) (\w+)(?: (.+?) (\d+)/(\d+) \(\d+%\))?$")
+
+
+def progress_lines(stdout: str) -> list[tuple[str, str | None, int, int]]:
+    """(status, stage, done, total) of each plain progress line."""
+    out = []
+    for line in stdout.splitlines():
+        m = PROGRESS.match(line)
+        if m:
+            done, total = int(m[4] or 0), int(m[5] or 0)
+            out.append((m[2], m[3], done, total))
+    return out
+
+
+def run_in_pty(args: list[str], env: dict[str, str], timeout: float = 30) -> tuple[int, str]:
+    master, slave = pty.openpty()
+    process = subprocess.Popen(args, cwd=REPO, env=env, stdin=slave, stdout=slave, stderr=slave)
+    os.close(slave)
+    chunks: list[bytes] = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            chunk = os.read(master, 65536)
+        except OSError:  # the child closed the terminal
+            break
+        if not chunk:
+            break
+        chunks.append(chunk)
+    os.close(master)
+    return process.wait(timeout), b"".join(chunks).decode()
+
+
+# --- the whole path ------------------------------------------------------------------------
+
+
+def test_upload_run_watch_results(service: Service, tmp_path: Path) -> None:
+    url = service.base_url
+    names = write_folder(tmp_path / "shapes")
+
+    up = regtree(
+        "upload", str(tmp_path / "shapes"), "--collection", "cli-fam", "--create",
+        "--batch-size", "3", "--target-points", "80", url=url,
+    )  # fmt: skip
+    assert up.returncode == 0, up.stderr
+    assert re.findall(r"^batch (\d+): (\d+)/(\d+) files", up.stdout, re.M) == [
+        ("1", "3", "8"),
+        ("2", "6", "8"),
+        ("3", "8", "8"),
+    ]
+    final = re.search(r"uploaded 8 shape\(s\) to collection 'cli-fam' \(id (\d+)\)", up.stdout)
+    assert final, up.stdout
+    collection_id = int(final[1])
+    with RegtreeClient(url) as rt:
+        assert [s.name for s in rt.list_shapes(collection_id)] == names
+
+    again = regtree(
+        "upload", str(tmp_path / "shapes"), "--collection", "cli-fam", "--create", url=url
+    )
+    assert_error(again, 1, "exists already", f"id {collection_id}")
+
+    # --wait, stdout not a terminal: one plain line per change, done counts going up
+    run = regtree(
+        "run", "--collection", "cli-fam", "--model", "00-root", "--wait", "--poll", "0.05", url=url
+    )
+    assert run.returncode == 0, (run.stdout, run.stderr)
+    job_id = int(re.search(r"^job (\d+) queued", run.stdout, re.M)[1])  # type: ignore[index]
+    assert "\r" not in run.stdout and "\x1b" not in run.stdout
+    lines = progress_lines(run.stdout)
+    assert lines[0][0] in ("queued", "running") and lines[-1][0] == "succeeded"
+    running = [(stage, done, total) for status, stage, done, total in lines if stage]
+    by_stage: dict[str, list[int]] = {}
+    for stage, done, _ in running:
+        by_stage.setdefault(stage, []).append(done)
+    assert all(v == sorted(v) for v in by_stage.values()), by_stage
+    assert len({d for v in by_stage.values() for d in v}) >= 3, run.stdout  # it moved
+    assert re.search(
+        rf"^job {job_id} succeeded after [\d.]+ s: \d+ of 7 subjects", run.stdout, re.M
+    )
+
+    # on a terminal: one line redrawn with a bar
+    code, screen = run_in_pty([*CLI, "watch", str(job_id)], cli_env(url))
+    assert code == 0, screen
+    assert "\r\x1b[K" in screen and re.search(r"\[#+\] 7/7", screen), screen
+    assert f"job {job_id} succeeded" in screen
+
+    out = tmp_path / "out"
+    res = regtree("results", str(job_id), "--out", str(out), url=url)
+    assert res.returncode == 0, res.stderr
+    doc = json.loads((out / "result.json").read_text())
+    assert doc["job_id"] == job_id
+    assert sorted(s["name"] for s in doc["subjects"]) == sorted(names[1:])
+    assert all("warped" in s for s in doc["subjects"] if s["attached"])  # the full document
+    svg = (out / "tree.svg").read_text()
+    assert svg.lstrip().startswith(("<?xml", "<svg"))
+    for name in names:
+        assert name in svg, name
+    for png in ["tree.png", "summary.png", *(f"subjects/{n}.png" for n in names[1:])]:
+        with Image.open(out / png) as picture:
+            picture.load()
+            assert picture.format == "PNG"
+            assert 200 <= picture.width <= 6000 and 150 <= picture.height <= 6000, png
+            assert len(np.unique(np.asarray(picture.convert("L")))) > 10, png  # not blank
+    assert not (out / "subjects" / "00-root.png").exists()
+    attached = sum(1 for s in doc["subjects"] if s["attached"])
+    table = res.stdout
+    assert re.search(
+        r"^\s*layer >= 3\s+\d+\s+[\d.e-]+\s+[\d.e-]+\s+[\d.e-]+\s+[\d.e-]+$", table, re.M
+    )
+    assert re.search(rf"^\s*all attached\s+{attached}\s", table, re.M)
+    for layer, stats in doc["summary"]["per_layer"].items():
+        count = sum(1 for s in doc["subjects"] if s["layer"] == int(layer))
+        assert re.search(rf"^\s+{layer}\s+{count}\s+", table, re.M), (layer, stats, table)
+    for path in ("result.json", "tree.svg", "tree.png", "summary.png"):
+        assert f"wrote {out / path}" in table
+    assert f"wrote {len(names) - 1} subject picture(s)" in table
+
+    svg_out = tmp_path / "svg"
+    some = regtree(
+        "results", str(job_id), "--out", str(svg_out), "--subjects", "attached", "--format", "svg",
+        url=url,
+    )  # fmt: skip
+    assert some.returncode == 0, some.stderr
+    drawn = sorted(p.stem for p in (svg_out / "subjects").iterdir())
+    assert drawn == sorted(s["name"] for s in doc["subjects"] if s["attached"])
+    assert all(p.read_text().count("<svg") == 1 for p in (svg_out / "subjects").iterdir())
+
+
+# --- failures ------------------------------------------------------------------------------
+
+
+def test_failures_exit_codes(service: Service, tmp_path: Path) -> None:
+    url = service.base_url
+    assert_error(regtree("watch", "987654", url=url), 1, "Not Found", "987654", "HTTP 404")
+    assert_error(regtree("results", "987654", "--out", str(tmp_path), url=url), 1, "HTTP 404")
+
+    # unreachable: exit 3, naming the URL
+    dead = f"http://127.0.0.1:{free_port()}"
+    assert_error(regtree("--url", dead, "watch", "1"), 3, dead)
+    assert_error(regtree("watch", "1", url=dead), 3, dead)  # from REGTREE_URL
+
+    # usage: exit 2 (argparse, and what the CLI checks before asking the service)
+    for args in (
+        ["watch", "abc"],
+        ["results", "1"],
+        ["run", "--collection", "c", "--model", "m", "--method", "nope"],
+        ["run", "--collection", "c", "--model", "m", "--similarity-threshold", "-1"],
+        ["upload", str(tmp_path), "--collection", "c", "--target-points", "0"],
+        ["frobnicate"],
+    ):
+        proc = regtree(*args, url=url)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, (args, proc.stderr)
+    assert_error(regtree("upload", str(tmp_path / "missing"), "--collection", "c", url=url), 2)
+    assert_error(regtree("upload", str(tmp_path), "--collection", "c", url=url), 2, "no shape")
+    assert_error(regtree("--url", "ftp://host", "watch", "1"), 2, "--url")
+
+    with RegtreeClient(url) as rt:
+        twins = [rt.create_collection("twin") for _ in range(2)]
+        for twin in twins:
+            rt.upload_points(twin.id, "a", np.c_[np.cos(np.arange(9)), np.sin(np.arange(9))])
+        bad = rt.create_collection("degenerate")
+        rt.upload_points(bad.id, "dot", np.zeros((6, 2)))
+        rt.upload_points(bad.id, "ring", np.c_[np.cos(np.arange(9)), np.sin(np.arange(9))])
+    assert_error(
+        regtree("run", "--collection", "twin", "--model", "a", url=url),
+        2,
+        "ambiguous",
+        f"id {twins[0].id}",
+        f"id {twins[1].id}",
+    )
+    assert_error(
+        regtree("run", "--collection", str(twins[1].id), "--model", "zz", url=url),
+        1,
+        "no shape named 'zz'",
+    )
+    assert_error(regtree("run", "--collection", "nope", "--model", "a", url=url), 1, "nope")
+    (tmp_path / "one").mkdir()
+    (tmp_path / "one" / "a.txt").write_text("0 0\n1 0\n0 1\n")
+    missing = regtree("upload", str(tmp_path / "one"), "--collection", "nope", url=url)
+    assert_error(missing, 1, "no collection named 'nope'")
+
+    # a job that fails on the worker: exit 1 with the server's error
+    run = regtree("run", "--collection", "degenerate", "--model", "dot", "--wait", url=url)
+    job_id = int(re.search(r"^job (\d+) ", run.stdout, re.M)[1])  # type: ignore[index]
+    with RegtreeClient(url) as rt:
+        error = rt.get_job(job_id).error
+    assert error, "the degenerate job should fail"
+    assert_error(run, 1, f"job {job_id} failed", error)
+    assert re.search(rf"^job {job_id} failed", run.stdout, re.M)
+    assert_error(regtree("watch", str(job_id), url=url), 1, error)
+    assert_error(regtree("results", str(job_id), "--out", str(tmp_path), url=url), 1, "HTTP 409")
+
+
+def test_interrupt_cancel_and_api_key(make_service: Callable[..., Service]) -> None:
+    svc = make_service(workers=0, env={"REGTREE_API_KEY": "k3y"}).start()  # jobs stay queued
+    url = svc.base_url
+    denied = regtree("run", "--collection", "c", "--model", "a", url=url)
+    assert_error(denied, 1, "Unauthorized", "HTTP 401", "--api-key")
+    keyed = cli_env(url, REGTREE_API_KEY="k3y")
+    with RegtreeClient(url, api_key="k3y") as rt:
+        coll = rt.create_collection("queued")
+        for k in (1.0, 2.0):
+            rt.upload_points(
+                coll.id, f"s{k:g}", np.c_[np.cos(np.arange(20)), k * np.sin(np.arange(20))]
+            )
+
+    # connection options before or after the command name; none from the environment
+    run = regtree(
+        "--api-key", "k3y", "run", "--collection", "queued", "--model", "s1", "-q", "--url", url,
+        env=cli_env(),
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    job_id = int(run.stdout.strip())
+
+    def interrupted(*extra: str) -> subprocess.CompletedProcess[str]:
+        process = subprocess.Popen(
+            [*CLI, "watch", str(job_id), "--poll", "0.1", *extra],
+            cwd=REPO,
+            env=keyed,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            # a shell's background jobs ignore SIGINT, and children inherit that
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
+        assert process.stdout is not None
+        first = process.stdout.readline()
+        assert f"job {job_id} queued" in first, first
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=30)
+        return subprocess.CompletedProcess(process.args, process.returncode, first + stdout, stderr)
+
+    left = interrupted()
+    assert_error(left, 130, "interrupted", "keeps running", f"regtree watch {job_id}")
+    with RegtreeClient(url, api_key="k3y") as rt:
+        assert rt.get_job(job_id).status == "queued"
+
+    stopped = interrupted("--cancel-on-interrupt")
+    assert_error(stopped, 130, "cancel requested")
+    with RegtreeClient(url, api_key="k3y") as rt:
+        assert rt.get_job(job_id).status == "cancelled"
+    assert_error(regtree("watch", str(job_id), env=keyed), 1, f"job {job_id} cancelled")
+    assert_error(regtree("cancel", str(job_id), env=keyed), 1, "HTTP 409")
