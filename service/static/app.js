@@ -149,7 +149,12 @@
     if (a >= 1e-3 && a < 1e4) return Number(v.toPrecision(digits)).toString();
     return v.toExponential(digits - 1);
   }
-  const fmtTime = (iso) => (iso ? new Date(iso).toLocaleString() : "–");
+  function fmtTime(iso) {
+    if (!iso) return "–";
+    const d = new Date(iso);
+    const p = (n) => String(n).padStart(2, "0");
+    return `${d.getFullYear()}-${p(d.getMonth() + 1)}-${p(d.getDate())} ${p(d.getHours())}:${p(d.getMinutes())}`;
+  }
   function fmtDuration(a, b) {
     if (!a || !b) return "–";
     const s = (new Date(b) - new Date(a)) / 1000;
@@ -374,7 +379,9 @@
       fact("model shape", r ? `${nameOf(r.root_shape_id)} (#${job.model_shape_id})` : `#${job.model_shape_id}`),
       fact("shapes", String(job.n_shapes)),
       fact("created", fmtTime(job.created_at)),
-      fact("ran for", fmtDuration(job.started_at, job.finished_at)),
+      TERMINAL.has(job.status)
+        ? fact("ran for", fmtDuration(job.started_at, job.finished_at))
+        : fact("running for", fmtDuration(job.started_at, new Date().toISOString())),
     ];
     if (r && r.summary) {
       const s = r.summary;
@@ -641,6 +648,9 @@
       ? ` Path: ${s.path_shape_ids.map(nameOf).join(" → ")}.`
       : "";
     $("ui-subject-reason").textContent = (s.reason ? `${s.reason}.` : "") + path;
+    // in the one-column layout the card is under the tree: bring it into view
+    const card = $("ui-subject").getBoundingClientRect();
+    if (card.top > window.innerHeight - 80) $("ui-subject").scrollIntoView({ block: "start" });
     loadOverlay(shapeId);
   }
 
@@ -652,7 +662,11 @@
     img.removeAttribute("data-shape-id");
     status.textContent = "drawing…";
     const box = $("ui-subject");
-    const px = Math.max(600, Math.min(1600, Math.round((box.clientWidth * (window.devicePixelRatio || 1)) / 100) * 100));
+    // as wide as the card, but not so narrow that the panels' titles run into each other
+    // (an unattached subject's title is its reason, a long one); the <img> scales down
+    const s = state.subjectsById.get(shapeId);
+    const least = s && s.attached === false ? 1100 : 700;
+    const px = Math.max(least, Math.min(1600, Math.round((box.clientWidth * (window.devicePixelRatio || 1)) / 100) * 100));
     const ydir = $("ui-ydir").value;
     const query = `?width=${px}` + (ydir ? `&y_down=${ydir}` : "");
     try {
@@ -662,7 +676,7 @@
       img.addEventListener("load", () => img.setAttribute("data-shape-id", String(shapeId)), { once: true });
       showBlob(img, "overlay", blob);
       $("ui-overlay-link").href = img.src;
-      status.textContent = "Grey: the shape. Red: the model warped onto it. Green: sampled correspondences.";
+      status.textContent = "Click the picture to open it at full size.";
     } catch (e) {
       if (token === state.overlayToken) status.textContent = `No picture: ${e.message}`;
     }

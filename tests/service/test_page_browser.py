@@ -1,0 +1,200 @@
+"""The results page in a real headless Chromium, driven by Playwright, against the real server.
+
+The service has an API key and no worker at first, so the page must ask for the key, show the
+job queued, follow it live once a worker starts, draw the tree, and open a subject's overlay
+and numbers when a tree node is clicked.
+
+Needs Debian's ``chromium`` (``/usr/bin/chromium``, or ``REGTREE_CHROMIUM``) and the
+``playwright`` Python package (its own browser download is not used); skipped without them.
+Set ``REGTREE_SCREENSHOT_DIR=docs`` to write the README's ``results-page.png`` there;
+otherwise the screenshot goes to the test's temporary directory.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.service.conftest import (
+    Service,
+    create_collection,
+    family,
+    submit_job,
+    upload_family,
+    wait_job,
+)
+
+KEY = "page-s3cret"
+CHROMIUM_FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+
+
+def chromium_path() -> str | None:
+    configured = os.environ.get("REGTREE_CHROMIUM")
+    if configured:
+        return configured if Path(configured).exists() else None
+    for name in ("chromium", "chromium-browser"):
+        found = shutil.which(name)
+        if found:
+            return found
+    return None
+
+
+@dataclass
+class Browser:
+    page: Any  # playwright.sync_api.Page
+    errors: list[str]  # uncaught page errors and console errors
+
+
+@pytest.fixture
+def browser(tmp_path: Path) -> Iterator[Browser]:
+    sync_api = pytest.importorskip(
+        "playwright.sync_api",
+        reason="playwright is not installed (pip install playwright; no browser download needed)",
+    )
+    executable = chromium_path()
+    if executable is None:
+        pytest.skip("Chromium is not installed (apt-get install -y chromium chromium-driver)")
+    with sync_api.sync_playwright() as playwright:
+        context = playwright.chromium.launch_persistent_context(
+            str(tmp_path / "chromium-profile"),
+            executable_path=executable,
+            args=CHROMIUM_FLAGS,
+            headless=True,
+            viewport={"width": 1440, "height": 1000},
+        )
+        context.set_default_timeout(30_000)
+        page = context.pages[0] if context.pages else context.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(f"page error: {e}"))
+        page.on(
+            "console",
+            lambda m: (
+                errors.append(f"console: {m.text}")
+                if m.type == "error" and "401" not in m.text  # the first, keyless calls
+                else None
+            ),
+        )
+        try:
+            yield Browser(page, errors)
+        finally:
+            context.close()
+
+
+def screenshot_path(tmp_path: Path) -> Path:
+    folder = os.environ.get("REGTREE_SCREENSHOT_DIR")
+    path = Path(folder) if folder else tmp_path
+    path.mkdir(parents=True, exist_ok=True)
+    return path / "results-page.png"
+
+
+def test_results_page_end_to_end(
+    browser: Browser, make_service: Callable[..., Service], tmp_path: Path
+) -> None:
+    from playwright.sync_api import expect
+
+    page = browser.page
+    svc = make_service(workers=0, env={"REGTREE_API_KEY": KEY}).start()
+    with svc.client(headers={"X-API-Key": KEY}) as client:
+        collection_id = create_collection(client, "glyph family")
+        shapes = family(n_chains=2, chain_length=3, n_points=60)
+        ids = upload_family(client, collection_id, shapes)
+        job_id = submit_job(client, collection_id, ids[0], compare_direct=True)["id"]
+
+        # the page itself is public; the API asks for the key, which the page then keeps
+        page.goto(f"{svc.base_url}/ui")
+        expect(page.locator("#ui-key-form")).to_be_visible()
+        page.fill("#ui-key-input", KEY)
+        page.click("#ui-key-form button[type=submit]")
+        expect(page.locator("#ui-key-form")).to_be_hidden()
+        assert page.evaluate("sessionStorage.getItem('regtree.apiKey')") == KEY
+
+        # collections, then the collection's jobs, then the job: queued, nothing runs it yet
+        page.click(f"#ui-collections a[data-collection-id='{collection_id}']")
+        expect(page.locator("#ui-jobs-title")).to_have_text("Jobs of glyph family")
+        page.click(f"#ui-jobs a[data-job-id='{job_id}']")
+        expect(page.locator("#ui-job-status [data-status]")).to_have_attribute(
+            "data-status", "queued"
+        )
+        expect(page.locator("#ui-job-progress")).to_be_visible()
+        expect(page.locator("#ui-result")).to_be_hidden()
+
+        # a worker starts: the page follows the job by polling and draws the result
+        svc.start_worker()
+        expect(page.locator("#ui-job-status [data-status]")).to_have_attribute(
+            "data-status", "succeeded", timeout=180_000
+        )
+        result = client.get(f"/v1/jobs/{job_id}/result").json()
+        assert wait_job(client, job_id)["status"] == "succeeded"
+
+    attached = [s for s in result["subjects"] if s["attached"]]
+    nodes = page.locator("#ui-tree-svg g.rt-node")
+    expect(nodes).to_have_count(len(result["subjects"]) + 1)  # subjects and the model
+    for s in result["subjects"]:
+        expect(
+            page.locator(f"#ui-tree-svg g.rt-node[data-shape-id='{s['shape_id']}']")
+        ).to_have_count(1)
+    expect(page.locator("#ui-subjects tbody tr")).to_have_count(len(result["subjects"]))
+    expect(page.locator("#ui-summary")).to_be_visible()
+
+    # click the deepest shape in the tree: its overlay and its numbers appear
+    subject = max(attached, key=lambda s: (s["layer"], s["shape_id"]))
+    sid = subject["shape_id"]
+    page.click(f"#ui-tree-svg g.rt-node[data-shape-id='{sid}']")
+    assert page.url.endswith(f"#/jobs/{job_id}/subjects/{sid}")
+    overlay = page.locator(f"#ui-overlay[data-shape-id='{sid}']")
+    expect(overlay).to_be_visible(timeout=60_000)
+    width = overlay.evaluate("img => img.naturalWidth")
+    assert 700 <= width <= 1600
+    assert overlay.evaluate("img => img.src").startswith("blob:")
+    expect(page.locator("#ui-subject-title")).to_have_text(subject["name"])
+    numbers = page.locator("#ui-subject-numbers")
+    expect(numbers.locator("[data-field=layer]")).to_have_text(str(subject["layer"]))
+    parent_name = next(
+        n for i, n in zip(result["shape_ids"], result["names"], strict=True)
+        if i == subject["parent_shape_id"]
+    )  # fmt: skip
+    expect(numbers.locator("[data-field=parent]")).to_contain_text(parent_name)
+    for field in ("similarity", "error", "direct_error"):
+        text = numbers.locator(f"[data-field={field}]").inner_text()
+        assert text and text != "–", (field, text)
+    shown_e = float(numbers.locator("[data-field=error]").inner_text())
+    assert shown_e == pytest.approx(subject["error"], rel=0.01)
+    shown_direct = float(numbers.locator("[data-field=direct_error]").inner_text().split()[0])
+    assert shown_direct == pytest.approx(subject["direct_error"], rel=0.01)
+    expect(page.locator(f"#ui-tree-svg g.rt-node.selected[data-shape-id='{sid}']")).to_have_count(1)
+    expect(page.locator(f"#ui-subjects tr.selected[data-shape-id='{sid}']")).to_have_count(1)
+
+    page.evaluate("window.scrollTo(0, 0)")
+    page.screenshot(path=str(screenshot_path(tmp_path)))
+
+    # the parent link in the numbers opens the parent; a table row opens its subject
+    numbers.locator("[data-field=parent] a").click()
+    expect(
+        page.locator(f"#ui-overlay[data-shape-id='{subject['parent_shape_id']}']")
+    ).to_be_visible(timeout=60_000)
+    other = next(s for s in result["subjects"] if s["shape_id"] not in (sid,))
+    page.click(f"#ui-subjects tr[data-shape-id='{other['shape_id']}']")
+    expect(page.locator("#ui-subject-title")).to_have_text(other["name"])
+
+    # a deep link in a reloaded tab opens the subject at once, with the key kept for the tab
+    page.goto(f"{svc.base_url}/ui#/jobs/{job_id}/subjects/{sid}")
+    page.reload()
+    expect(page.locator(f"#ui-overlay[data-shape-id='{sid}']")).to_be_visible(timeout=60_000)
+    expect(page.locator("#ui-key-form")).to_be_hidden()
+
+    assert browser.errors == []
