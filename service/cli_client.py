@@ -465,12 +465,12 @@ def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
             on_batch=on_batch,
         )
     except RegtreeError as e:
-        if e.status is None:
-            raise
+        code = EXIT_FAILED if e.status is not None else EXIT_CONNECTION
+        message = describe_error(e) if e.status is not None else f"{e}"
         raise CLIError(
-            f"{describe_error(e)}; collection {collection.name!r} (id {collection.id}) keeps "
-            f"the {len(e.stored)} shape(s) of the earlier batches",
-            EXIT_FAILED,
+            f"{message}; collection {collection.name!r} (id {collection.id}) keeps the "
+            f"{len(e.stored)} shape(s) of the earlier batches",
+            code,
         ) from e
     except KeyboardInterrupt:
         raise CLIError(
@@ -484,7 +484,7 @@ def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
         f"{collection.id}), which now holds {total}"
     )
     if shapes:
-        _out(f"next: regtree run --collection {collection.id} --model {shapes[0].id} --wait")
+        _out(f"next, e.g.: regtree run --collection {collection.id} --model {shapes[0].id} --wait")
     return EXIT_OK
 
 
@@ -541,7 +541,9 @@ def progress_text(state: JobStatus) -> str:
 
 class Progress:
     """Draws a job's progress: one redrawn line with a bar on a terminal, else one plain line
-    per change (status, stage, done or total)."""
+    per change (status, stage, done or total) and at least one every ``heartbeat`` seconds."""
+
+    heartbeat = 30.0
 
     def __init__(self, job_id: int, out: TextIO, *, tty: bool | None = None) -> None:
         self.job_id = job_id
@@ -549,6 +551,7 @@ class Progress:
         self.tty = out.isatty() if tty is None else tty
         self.started = time.monotonic()
         self._last_key: tuple[Any, ...] | None = None
+        self._last_line = self.started
         self._drawn = False
 
     def elapsed(self) -> float:
@@ -559,8 +562,10 @@ class Progress:
             self._draw_line(state)
             return
         key = (state.status, state.stage, state.done, state.total, state.cancel_requested)
-        if key != self._last_key:
+        now = time.monotonic()
+        if key != self._last_key or now - self._last_line >= self.heartbeat:
             self._last_key = key
+            self._last_line = now
             self.out.write(f"[{self.elapsed():7.1f} s] job {self.job_id} {progress_text(state)}\n")
             self.out.flush()
 
@@ -602,6 +607,8 @@ def watch_job(
     sleep: Callable[[float], None] = time.sleep,
 ) -> int:
     """Follow a job until it ends; 0 succeeded, 1 failed / cancelled, 130 on Ctrl-C."""
+    from service.client import RegtreeError
+
     stream = out or sys.stdout
     progress = Progress(job_id, stream)
     try:
@@ -625,7 +632,10 @@ def watch_job(
         _out(f"job {job_id} {state.status}{took}", stream)
         reason = f": {state.error}" if state.error else ""
         return _fail(f"job {job_id} {state.status}{reason}", EXIT_FAILED)
-    summary = rt.result(job_id).summary
+    try:
+        summary = rt.result(job_id).summary
+    except RegtreeError:  # the job succeeded: say so even if its summary cannot be read
+        summary = {}
     line = f"job {job_id} succeeded{took}"
     if summary:
         line += (

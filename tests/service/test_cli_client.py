@@ -327,3 +327,24 @@ def test_interrupt_cancel_and_api_key(make_service: Callable[..., Service]) -> N
         assert rt.get_job(job_id).status == "cancelled"
     assert_error(regtree("watch", str(job_id), env=keyed), 1, f"job {job_id} cancelled")
     assert_error(regtree("cancel", str(job_id), env=keyed), 1, "HTTP 409")
+
+
+def test_connection_options_before_or_after_the_command() -> None:
+    from service.cli import _parser
+
+    parse = _parser().parse_args
+    default = parse(["watch", "3"])
+    assert (default.url, default.api_key, default.timeout, default.job) == (None, None, 60.0, 3)
+    before = parse(["--url", "http://a:1", "--api-key", "k", "--timeout", "5", "watch", "3"])
+    after = parse(["watch", "3", "--url", "http://a:1", "--api-key", "k", "--timeout", "5"])
+    for args in (before, after):
+        assert (args.url, args.api_key, args.timeout) == ("http://a:1", "k", 5.0)
+    serve = parse(["serve", "--port", "9000"])  # the server commands are unchanged
+    assert (serve.command, serve.port, serve.workers, serve.host) == (
+        "serve",
+        9000,
+        None,
+        "127.0.0.1",
+    )
+    results = parse(["results", "#7", "--out", "d", "--subjects", "3"])
+    assert (results.job, results.subjects, results.format) == (7, 3, "png")
