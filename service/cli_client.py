@@ -303,6 +303,10 @@ def main(args: argparse.Namespace) -> int:
         return _fail(str(e), e.code)
     except KeyboardInterrupt:
         return _fail("interrupted", EXIT_INTERRUPTED)
+    except BrokenPipeError:  # e.g. `regtree results ... | head`: stop quietly
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_FAILED
     except RegtreeConnectionError as e:
         return _fail(
             f"{e} (is the service running there? set --url or REGTREE_URL)", EXIT_CONNECTION
