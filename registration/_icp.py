@@ -208,38 +208,45 @@ def _batch_icp(
     n_b = A.shape[0]
     xb = np.broadcast_to(x, (n_b, *x.shape[-2:])) if x.ndim == 2 else x
     yb = np.broadcast_to(y, (n_b, *y.shape[-2:])) if y.ndim == 2 else y
-    active = np.ones(n_b, dtype=bool)
-    prev = np.full(n_b, np.inf)
-    dist = prev
-    A_prev, t_prev = A, t
+    # nearest neighbours in float32 (half the memory traffic); D itself in float64
     x32, y32 = xb.astype(np.float32), yb.astype(np.float32)
-    for _ in range(iterations + 1):
-        # nearest neighbours in float32 (half the memory traffic); D itself in float64
-        d2 = _batch_distances(x32, y32, A.astype(np.float32), t.astype(np.float32))
-        c = d2.argmin(axis=2)  # (B, n): subject index for each model point (eq. 3)
-        d = d2.argmin(axis=1)  # (B, m): model index for each subject point
-        tx = np.matmul(xb, A.transpose(0, 2, 1)) + t[:, None, :]
-        fwd = ((tx - np.take_along_axis(yb, c[:, :, None], axis=1)) ** 2).sum(axis=2)
-        bwd = ((np.take_along_axis(tx, d[:, :, None], axis=1) - yb) ** 2).sum(axis=2)
-        dist = fwd.mean(axis=1) + bwd.mean(axis=1)
-        worse = dist > prev  # the last step raised eq. 9: undo it and freeze
+    A, t = A.copy(), t.copy()
+    A_prev, t_prev = A.copy(), t.copy()
+    dist = np.full(n_b, np.inf)
+    idx = np.arange(n_b)  # problems still iterating: only they are computed
+    for it in range(iterations + 1):
+        xs, ys = xb[idx], yb[idx]
+        d2 = _batch_distances(x32[idx], y32[idx], A[idx].astype(np.float32),
+                              t[idx].astype(np.float32))
+        c = d2.argmin(axis=2)  # subject index for each model point (eq. 3)
+        d = d2.argmin(axis=1)  # model index for each subject point
+        tx = np.matmul(xs, A[idx].transpose(0, 2, 1)) + t[idx][:, None, :]
+        fwd = ((tx - np.take_along_axis(ys, c[:, :, None], axis=1)) ** 2).sum(axis=2)
+        bwd = ((np.take_along_axis(tx, d[:, :, None], axis=1) - ys) ** 2).sum(axis=2)
+        new = fwd.mean(axis=1) + bwd.mean(axis=1)
+        old = dist[idx]
+        worse = new > old  # the last step raised eq. 9: undo it and freeze
         if worse.any():
-            A = np.where(worse[:, None, None], A_prev, A)
-            t = np.where(worse[:, None], t_prev, t)
-            dist = np.where(worse, prev, dist)
-        active &= ~worse & (prev - dist > tol * dist)
-        if not active.any() or _ == iterations:
+            back = idx[worse]
+            A[back], t[back] = A_prev[back], t_prev[back]
+            new[worse] = old[worse]
+        dist[idx] = new
+        going = ~worse & (old - new > tol * new)
+        if it == iterations or not going.any():
             break
-        r = np.concatenate([xb, np.take_along_axis(xb, d[:, :, None], axis=1)], axis=1)
-        s = np.concatenate([np.take_along_axis(yb, c[:, :, None], axis=1), yb], axis=1)
+        r = np.concatenate([xs[going], np.take_along_axis(xs[going], d[going][:, :, None],
+                                                          axis=1)], axis=1)
+        s = np.concatenate([np.take_along_axis(ys[going], c[going][:, :, None], axis=1),
+                            ys[going]], axis=1)
         A_new, t_new = _fit_affine_batch(r, s)
-        good = np.asarray(np.isfinite(A_new).all(axis=(1, 2))) & active
+        good = np.asarray(np.isfinite(A_new).all(axis=(1, 2)))
         det = np.linalg.det(np.where(good[:, None, None], A_new, np.eye(2)))
         good &= np.abs(det) > _MIN_ABS_DET
-        A_prev, t_prev, prev = A, t, dist
-        A = np.where(good[:, None, None], A_new, A)
-        t = np.where(good[:, None], t_new, t)
-        active &= good
+        idx = idx[going][good]
+        A_prev[idx], t_prev[idx] = A[idx], t[idx]
+        A[idx], t[idx] = A_new[good], t_new[good]
+        if idx.size == 0:
+            break
     return A, t, dist
 
 
@@ -256,8 +263,9 @@ def pairwise_affine_icp(
     """Affine ICP for many (model, subject) pairs at once; returns ``(i, j, D, A, t)``.
 
     All pairs go through the same vectorised stages: every start of every pair on the
-    coarse subsamples, the best few starts per pair continued, then a refinement on the
-    medium subsamples, and D (eq. 9) evaluated on the full point sets. When both (i, j)
+    coarse subsamples, the best few starts per pair continued, refined on the mid
+    subsamples, the best of them refined on the medium subsamples, and D (eq. 9)
+    evaluated on the full point sets. When both (i, j)
     and (j, i) are asked for, the second starts from the inverse of the first's map
     instead of a multi-start search.
     """
@@ -288,15 +296,19 @@ def pairwise_affine_icp(
     sel = (keep + n_s * np.arange(len(forward))[:, None]).ravel()
     A_b, t_b, d_b = _batch_icp(xc[sel], yc[sel], A_b[sel], t_b[sel],
                                max(1, coarse_iterations - first))
-    # stage 3: refine the surviving starts on medium subsamples, keep each pair's best
+    # stage 3: the surviving starts on finer subsamples, each pair's best on finer still
     n_keep = keep.shape[1]
     A_f, t_f, d_f = _batch_icp(
-        np.stack([shapes[i].medium for i, _ in forward for _ in range(n_keep)]),
-        np.stack([shapes[j].medium for _, j in forward for _ in range(n_keep)]),
+        np.stack([shapes[i].mid for i, _ in forward for _ in range(n_keep)]),
+        np.stack([shapes[j].mid for _, j in forward for _ in range(n_keep)]),
         A_b, t_b, refine_iterations, tol,
     )
     pick = d_f.reshape(len(forward), n_keep).argmin(axis=1) + n_keep * np.arange(len(forward))
-    A_f, t_f = A_f[pick], t_f[pick]
+    A_f, t_f = _batch_icp(
+        np.stack([shapes[i].medium for i, _ in forward]),
+        np.stack([shapes[j].medium for _, j in forward]),
+        A_f[pick], t_f[pick], refine_iterations, tol,
+    )[:2]
     found = {p: (A_f[k], t_f[k]) for k, p in enumerate(forward)}
     if reverse:
         A_r = np.stack([np.linalg.inv(found[(j, i)][0]) for i, j in reverse])
@@ -363,15 +375,16 @@ def _refine(
 
 @dataclass(frozen=True)
 class PreparedShape:
-    """A shape with what affine ICP reuses across pairs: principal frame, subsamples and
-    a KD-tree. Build once per shape with :func:`prepare_shape` when registering a shape
+    """A shape with what affine ICP reuses across pairs: principal frame, three
+    subsamples (coarse for the multi-start search, mid and medium for refinement) and a
+    KD-tree of all points. Build once per shape with :func:`prepare_shape` when registering a shape
     against many others (the similarity of a collection)."""
 
     points: FloatArray
     coarse: FloatArray
+    mid: FloatArray
     medium: FloatArray
     tree: cKDTree
-    medium_tree: cKDTree
     mean: FloatArray
     whiten: FloatArray
 
@@ -387,10 +400,10 @@ def prepare_shape(
             f"{medium_points}"
         )
     mean, whiten = _principal_frame(p)
-    medium = _coarse(p, medium_points)
     return PreparedShape(
-        points=p, coarse=_coarse(p, coarse_points), medium=medium, tree=cKDTree(p),
-        medium_tree=cKDTree(medium), mean=mean, whiten=whiten,
+        points=p, coarse=_coarse(p, coarse_points),
+        mid=_coarse(p, (coarse_points + medium_points) // 2),
+        medium=_coarse(p, medium_points), tree=cKDTree(p), mean=mean, whiten=whiten,
     )
 
 
