@@ -471,12 +471,30 @@
     const naturalPx = parseFloat(svg.getAttribute("width") || "0") * (/pt$/.test(svg.getAttribute("width") || "") ? 4 / 3 : 1);
     imported.removeAttribute("height");
     imported.setAttribute("width", "100%");
-    if (naturalPx > 0) imported.style.maxWidth = `${Math.round(naturalPx)}px`;
+    if (naturalPx > 0) {
+      imported.style.maxWidth = `${Math.round(naturalPx)}px`;
+      // a big tree is not shrunk past legibility: the box scrolls sideways instead
+      imported.style.minWidth = `${Math.round(0.6 * naturalPx)}px`;
+    }
     imported.setAttribute("role", "img");
     imported.setAttribute("aria-label", `registration tree of job ${state.job.id}`);
     imported.id = "ui-tree-svg";
     box.replaceChildren(imported);
     makeNodesClickable(imported);
+    $("ui-tree-hint").hidden = box.scrollWidth <= box.clientWidth + 1;
+    revealNode(state.route.subjectId ?? state.result.root_shape_id);
+  }
+
+  // scroll a wide tree sideways (only sideways: the page stays put) to centre a node
+  function revealNode(shapeId) {
+    const box = $("ui-tree");
+    const g = box.querySelector(`g.rt-node[data-shape-id="${shapeId}"]`);
+    if (!g || box.scrollWidth <= box.clientWidth) return;
+    const node = g.getBoundingClientRect();
+    const view = box.getBoundingClientRect();
+    if (node.left < view.left + 20 || node.right > view.right - 20) {
+      box.scrollLeft += node.left + node.width / 2 - (view.left + view.width / 2);
+    }
   }
 
   function makeNodesClickable(svg) {
@@ -586,6 +604,7 @@
     for (const tr of $("ui-subjects").tBodies[0].rows) {
       tr.classList.toggle("selected", Number(tr.dataset.shapeId) === state.selected);
     }
+    if (state.selected !== null) revealNode(state.selected);
     const empty = $("ui-subject-empty");
     const body = $("ui-subject-body");
     if (shapeId === null || shapeId === undefined || !state.result) {
