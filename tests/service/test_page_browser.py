@@ -5,7 +5,8 @@ job queued, follow it live once a worker starts, draw the tree, and open a subje
 and numbers when a tree node is clicked.
 
 Needs Debian's ``chromium`` (``/usr/bin/chromium``, or ``REGTREE_CHROMIUM``) and the
-``playwright`` Python package (its own browser download is not used); skipped without them.
+``playwright`` Python package (its own browser download is not used); skipped without them,
+unless ``REGTREE_REQUIRE_BROWSER=1`` (CI), where their absence fails the test.
 Set ``REGTREE_SCREENSHOT_DIR=docs`` to write the README's ``results-page.png`` there;
 otherwise the screenshot goes to the test's temporary directory.
 """
@@ -17,7 +18,7 @@ import shutil
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import pytest
 
@@ -60,15 +61,22 @@ class Browser:
     errors: list[str]  # uncaught page errors and console errors
 
 
+def missing(reason: str) -> NoReturn:
+    """Skip, or fail where the browser is required (CI sets REGTREE_REQUIRE_BROWSER=1)."""
+    if os.environ.get("REGTREE_REQUIRE_BROWSER", "") not in ("", "0"):
+        pytest.fail(f"REGTREE_REQUIRE_BROWSER is set but {reason}")
+    pytest.skip(reason)
+
+
 @pytest.fixture
 def browser(tmp_path: Path) -> Iterator[Browser]:
-    sync_api = pytest.importorskip(
-        "playwright.sync_api",
-        reason="playwright is not installed (pip install playwright; no browser download needed)",
-    )
+    try:
+        from playwright import sync_api
+    except ImportError:
+        missing("playwright is not installed (pip install playwright; no browser download)")
     executable = chromium_path()
     if executable is None:
-        pytest.skip("Chromium is not installed (apt-get install -y chromium chromium-driver)")
+        missing("Chromium is not installed (apt-get install -y chromium)")
     with sync_api.sync_playwright() as playwright:
         context = playwright.chromium.launch_persistent_context(
             str(tmp_path / "chromium-profile"),
