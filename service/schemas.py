@@ -6,9 +6,17 @@ import math
 from datetime import datetime
 from typing import Annotated, Any, Generic, Literal, TypeVar
 
+from annotated_types import Interval
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 T = TypeVar("T")
+
+#: Largest value of SQLite's INTEGER (a signed 64-bit integer).
+INT64_MAX = 2**63 - 1
+#: An integer that is bound into SQL: an id, a filter or an offset. SQLite cannot bind a
+#: Python int outside 64 bits (OverflowError, a 500), so such a value is refused up front
+#: with 422 like any other invalid parameter, and the schema says so.
+DbInt = Annotated[int, Interval(ge=-(2**63), le=INT64_MAX)]
 
 Method = Literal["dynamic_tree", "static_tree", "direct"]
 JobStatusName = Literal["queued", "running", "succeeded", "failed", "cancelled"]
@@ -171,8 +179,8 @@ class JobCreate(BaseModel):
         },
     )
 
-    collection_id: int
-    model_shape_id: int = Field(description="The model shape; it must be in the collection.")
+    collection_id: DbInt
+    model_shape_id: DbInt = Field(description="The model shape; it must be in the collection.")
     method: Method = "dynamic_tree"
     similarity_threshold: float | None = Field(
         default=None, description="Largest similarity distance D for a tree edge; null = auto."

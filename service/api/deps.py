@@ -9,6 +9,7 @@ from fastapi import Depends, Header, Query, Request
 
 from service.core.config import Settings
 from service.db import Database
+from service.schemas import INT64_MAX
 
 
 def get_settings(request: Request) -> Settings:
@@ -33,7 +34,7 @@ class Pagination:
 
 def get_pagination(
     limit: Annotated[int, Query(ge=1, le=500, description="Page size.")] = 50,
-    offset: Annotated[int, Query(ge=0, description="Items to skip.")] = 0,
+    offset: Annotated[int, Query(ge=0, le=INT64_MAX, description="Items to skip.")] = 0,
 ) -> Pagination:
     return Pagination(limit=limit, offset=offset)
 

@@ -10,7 +10,7 @@ from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep
 from service.api.problems import not_found, problem_responses
 from service.models import Collection, Shape
-from service.schemas import CollectionCreate, CollectionOut, Page
+from service.schemas import CollectionCreate, CollectionOut, DbInt, Page
 
 router = APIRouter(prefix="/collections", tags=["collections"])
 
@@ -100,7 +100,7 @@ def list_collections(db: DbDep, page: PaginationDep) -> Page[CollectionOut]:
     responses=problem_responses(404),
     summary="Read a collection",
 )
-def get_collection(collection_id: int, db: DbDep) -> CollectionOut:
+def get_collection(collection_id: DbInt, db: DbDep) -> CollectionOut:
     with db.read() as session:
         collection = get_collection_or_404(session, collection_id)
         n_shapes = _shape_counts(session, [collection_id]).get(collection_id, 0)
@@ -113,7 +113,7 @@ def get_collection(collection_id: int, db: DbDep) -> CollectionOut:
     responses=problem_responses(404),
     summary="Delete a collection, its shapes, jobs and results",
 )
-def delete_collection(collection_id: int, db: DbDep) -> Response:
+def delete_collection(collection_id: DbInt, db: DbDep) -> Response:
     with db.write() as session:
         collection = get_collection_or_404(session, collection_id)
         session.delete(collection)

@@ -15,6 +15,7 @@ from service.api.problems import ProblemError, not_found, problem_responses
 from service.jobs import queue
 from service.models import Collection, Job, JobStatus, Result, ResultSubject, Shape
 from service.schemas import (
+    DbInt,
     JobCreate,
     JobOut,
     JobStatusName,
@@ -150,7 +151,7 @@ def create_job(
 def list_jobs(
     db: DbDep,
     page: PaginationDep,
-    collection_id: Annotated[int | None, Query()] = None,
+    collection_id: Annotated[DbInt | None, Query()] = None,
     status_: Annotated[JobStatusName | None, Query(alias="status")] = None,
 ) -> Page[JobOut]:
     query = select(Job)
@@ -173,7 +174,7 @@ def list_jobs(
 @router.get(
     "/{job_id}", response_model=JobOut, responses=problem_responses(404), summary="Read a job"
 )
-def get_job(job_id: int, db: DbDep) -> JobOut:
+def get_job(job_id: DbInt, db: DbDep) -> JobOut:
     with db.read() as session:
         return job_out(_get_job(session, job_id))
 
@@ -187,7 +188,7 @@ def get_job(job_id: int, db: DbDep) -> JobOut:
     description="A queued job is cancelled at once. A running job gets `cancel_requested` and "
     "ends `cancelled` at its worker's next progress report or heartbeat. A finished job: 409.",
 )
-def cancel_job(job_id: int, db: DbDep) -> JobOut:
+def cancel_job(job_id: DbInt, db: DbDep) -> JobOut:
     with db.write() as session:
         job = _get_job(session, job_id)
         if not queue.request_cancel(session, job):
@@ -215,7 +216,7 @@ def _succeeded_job(session: Session, job_id: int) -> Job:
     summary="Read a job's result",
 )
 def get_result(
-    job_id: int,
+    job_id: DbInt,
     db: DbDep,
     full: Annotated[
         bool, Query(description="Include warped points, correspondences and transforms.")
@@ -250,7 +251,7 @@ def _subject(session: Session, job_id: int, shape_id: int) -> ResultSubject:
     responses=problem_responses(404, 409),
     summary="Read one subject of a result: tree place, transform, correspondences, error",
 )
-def get_subject(job_id: int, shape_id: int, db: DbDep) -> dict[str, Any]:
+def get_subject(job_id: DbInt, shape_id: DbInt, db: DbDep) -> dict[str, Any]:
     with db.read() as session:
         document: dict[str, Any] = _subject(session, job_id, shape_id).document
         return document
@@ -263,7 +264,7 @@ def get_subject(job_id: int, shape_id: int, db: DbDep) -> dict[str, Any]:
     summary="Map points from the model onto a subject with the stored transform",
 )
 def transform_points(
-    job_id: int, shape_id: int, body: TransformRequest, db: DbDep, settings: SettingsDep
+    job_id: DbInt, shape_id: DbInt, body: TransformRequest, db: DbDep, settings: SettingsDep
 ) -> TransformOut:
     if len(body.points) > settings.max_points_per_shape:
         raise ProblemError(

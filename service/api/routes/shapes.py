@@ -32,6 +32,7 @@ from service.api.routes.collections import get_collection_or_404
 from service.core.config import Settings
 from service.models import TERMINAL_STATUSES, Job, Shape, points_to_npy
 from service.schemas import (
+    DbInt,
     ImageMode,
     Page,
     ShapeBatchOut,
@@ -324,7 +325,7 @@ def _store(
     description=__doc__,
 )
 async def upload_shapes(
-    collection_id: int,
+    collection_id: DbInt,
     request: Request,
     response: Response,
     db: DbDep,
@@ -417,7 +418,7 @@ async def upload_shapes(
     responses=problem_responses(404),
     summary="List a collection's shapes (metadata only)",
 )
-def list_shapes(collection_id: int, db: DbDep, page: PaginationDep) -> Page[ShapeOut]:
+def list_shapes(collection_id: DbInt, db: DbDep, page: PaginationDep) -> Page[ShapeOut]:
     from sqlalchemy import func, select
     from sqlalchemy.orm import defer
 
@@ -452,7 +453,7 @@ def _get_shape(session: Any, collection_id: int, shape_id: int) -> Shape:
     responses=problem_responses(404),
     summary="Read a shape with its points",
 )
-def get_shape(collection_id: int, shape_id: int, db: DbDep) -> ShapeDetail:
+def get_shape(collection_id: DbInt, shape_id: DbInt, db: DbDep) -> ShapeDetail:
     with db.read() as session:
         shape = _get_shape(session, collection_id, shape_id)
         out = shape_out(shape)
@@ -465,7 +466,7 @@ def get_shape(collection_id: int, shape_id: int, db: DbDep) -> ShapeDetail:
     responses=problem_responses(404, 409),
     summary="Delete a shape",
 )
-def delete_shape(collection_id: int, shape_id: int, db: DbDep) -> Response:
+def delete_shape(collection_id: DbInt, shape_id: DbInt, db: DbDep) -> Response:
     from sqlalchemy import select
 
     with db.write() as session:

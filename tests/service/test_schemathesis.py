@@ -1,0 +1,483 @@
+"""Property-based fuzz of the OpenAPI schema with schemathesis, against the real server.
+
+Every operation the running server's ``/openapi.json`` describes is called with requests
+generated from the schema: its examples, schemathesis' coverage cases at the schema's edges
+(boundary values, wrong types, unexpected methods, missing and extra parameters), and random
+positive and negative data, for every media type an operation takes (the shape upload's JSON,
+multipart, CSV/TXT, NPY, PNG and JPEG bodies). Every response is checked:
+
+* never a 5xx (``not_a_server_error``), and the server log has no "unhandled error";
+* the status code is one the schema documents (``status_code_conformance``);
+* success bodies, content types and headers match the schema (``response_schema_conformance``,
+  ``content_type_conformance``, ``response_headers_conformance``);
+* every 4xx is an RFC 9457 ``application/problem+json`` document whose ``status`` is the
+  response's (:func:`problem_json_for_errors`).
+
+The server is a ``regtree serve`` subprocess (see ``conftest.Service``) over a temporary
+SQLite file seeded with a collection of shapes, a finished job and a cancelled one, so that
+path parameters (and the ids inside a job's body) hit existing resources too, not only 404s:
+schema hooks mix the known ids into what schemathesis generates, and valid files into the
+upload's bodies. DELETE operations get their own sacrificial resources so that the seeded
+ones survive for the operations that come after them. :func:`test_fuzz_reached_every_operation`
+checks afterwards that every operation was reached with something other than a refusal.
+
+The run is deterministic (fixed seed, derandomized Hypothesis, no example database) and
+bounded (``MAX_EXAMPLES`` per operation in the fuzzing phase) so that it takes about a minute
+on two cores. Set ``REGTREE_SCHEMATHESIS_EXAMPLES`` to fuzz longer locally.
+
+Known gaps in the schema, tolerated here on purpose and named where they are tolerated:
+
+1. an unparseable JSON body gets FastAPI's own 400 ("There was an error parsing the body"),
+   which no operation documents (:func:`documented_status`);
+2. FastAPI documents its automatic 422 as ``application/json`` ``HTTPValidationError`` while
+   the service answers every error as ``application/problem+json``
+   (:func:`documented_content_type`);
+3. not the service's: a schemathesis 4.32.5 bug with ``prefixItems`` in responses
+   (:func:`_homogeneous_tuples_as_items`).
+"""
+
+from __future__ import annotations
+
+import io
+import itertools
+import os
+import re
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import pytest
+
+schemathesis = pytest.importorskip("schemathesis", reason="schemathesis is not installed")
+
+from hypothesis import strategies as st  # noqa: E402
+
+from tests.service.conftest import (  # noqa: E402
+    Service,
+    assert_problem,
+    circle,
+    create_collection,
+    family,
+    npy_bytes,
+    submit_job,
+    upload_family,
+    wait_job,
+)
+
+pytest.importorskip("registration._tree", reason="the registration library has not landed")
+
+SEED = 20160701
+MAX_EXAMPLES = int(os.environ.get("REGTREE_SCHEMATHESIS_EXAMPLES", "25"))
+UPLOAD_EXAMPLES = 4 * MAX_EXAMPLES
+UPLOAD = ("POST", "/v1/collections/{collection_id}/shapes")
+
+# --- the seeded server --------------------------------------------------------------------
+
+
+@dataclass
+class Known:
+    """Ids of resources that exist on the fuzzed server."""
+
+    collection_id: int
+    shape_ids: list[int]
+    job_id: int
+    cancelled_job_id: int
+    subject_ids: list[int]
+    #: Sacrificial resources: a collection for DELETE /collections/{id}, and a collection
+    #: with shapes for DELETE /collections/{id}/shapes/{id} (which runs after it).
+    doomed_collection_id: int
+    victim_collection_id: int
+    victim_shape_ids: list[int]
+
+    def path_values(self, method: str, path: str) -> dict[str, list[int]]:
+        """Known values of each path parameter of an operation."""
+        if method == "DELETE" and path.endswith("{shape_id}"):
+            return {"collection_id": [self.victim_collection_id], "shape_id": self.victim_shape_ids}
+        if method == "DELETE":
+            return {"collection_id": [self.doomed_collection_id]}
+        return {
+            "collection_id": [self.collection_id, self.victim_collection_id],
+            "shape_id": [*self.shape_ids[:2], *self.subject_ids[-1:]],
+            "job_id": [self.job_id, self.cancelled_job_id],
+        }
+
+    def protected(self, path_parameters: dict[str, Any]) -> bool:
+        """Whether a DELETE with these path parameters would remove a resource that later
+        operations need (whatever ids the fuzz generated itself)."""
+        cid = path_parameters.get("collection_id")
+        if "shape_id" in path_parameters:
+            return cid == self.collection_id
+        return cid in (self.collection_id, self.victim_collection_id)
+
+
+@pytest.fixture(scope="module")
+def seeded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Service, Known]]:
+    svc = Service(tmp_path_factory.mktemp("schemathesis"), workers=1).start()
+    try:
+        with svc.client() as client:
+            cid = create_collection(client, "fuzz-keep")
+            ids = upload_family(client, cid, family(n_chains=2, chain_length=2, n_points=30))
+            job = wait_job(client, submit_job(client, cid, ids[0], compare_direct=True)["id"])
+            assert job["status"] == "succeeded", job
+            result = client.get(f"/v1/jobs/{job['id']}/result").json()
+            subjects = [s["shape_id"] for s in result["subjects"] if s["attached"]]
+            assert subjects, result
+            cancelled = submit_job(client, cid, ids[0], method="direct")
+            client.post(f"/v1/jobs/{cancelled['id']}/cancel")
+            wait_job(client, cancelled["id"])
+
+            doomed = create_collection(client, "fuzz-doomed")
+            victim = create_collection(client, "fuzz-victim")
+            victim_shapes = upload_family(
+                client, victim, family(n_chains=1, chain_length=3, n_points=20, seed=2)
+            )
+            known = Known(
+                collection_id=cid,
+                shape_ids=ids,
+                job_id=job["id"],
+                cancelled_job_id=cancelled["id"],
+                subject_ids=subjects,
+                doomed_collection_id=doomed,
+                victim_collection_id=victim,
+                victim_shape_ids=victim_shapes,
+            )
+        yield svc, known
+    finally:
+        svc.stop()
+    assert not svc.unhandled_errors(), svc.unhandled_errors()
+
+
+# --- the schema, with hooks that bring in the known ids -------------------------------------
+
+
+def _config(base_url: str) -> Any:
+    return schemathesis.Config.from_dict(
+        {
+            "base-url": base_url,
+            "seed": SEED,
+            "suppress-health-check": ["too_slow", "filter_too_much", "data_too_large"],
+            "generation": {
+                "mode": "all",
+                "max-examples": MAX_EXAMPLES,
+                "deterministic": True,
+                "database": "none",
+            },
+            "phases": {
+                "examples": {"enabled": True},
+                "coverage": {"enabled": True},
+                "fuzzing": {"enabled": True},
+                "stateful": {"enabled": False},
+            },
+            "request-timeout": 60,
+            # The upload takes seven media types: give each of them a fair share.
+            "operations": [
+                {
+                    "include-path": UPLOAD[1],
+                    "include-method": UPLOAD[0],
+                    "generation": {"max-examples": UPLOAD_EXAMPLES},
+                }
+            ],
+        }
+    )
+
+
+def _homogeneous_tuples_as_items(node: Any) -> Any:
+    """The same schema, with each ``prefixItems`` whose items are all one schema and whose
+    length is fixed by ``minItems == maxItems`` (pydantic's ``tuple[float, float]``) spelled as
+    ``items``: exactly the same set of instances.
+
+    KNOWN GAP 3 (schemathesis 4.32.5, not ours): when an operation's request body and its
+    response both hold such a tuple (the transform), schemathesis rewrites the request's
+    ``prefixItems`` to draft-4 ``items: [...]`` in place and the response validator, a
+    draft 2020-12 one, then rejects the schema itself ("is not of types boolean, object").
+    """
+    if isinstance(node, list):
+        return [_homogeneous_tuples_as_items(item) for item in node]
+    if not isinstance(node, dict):
+        return node
+    out = {key: _homogeneous_tuples_as_items(value) for key, value in node.items()}
+    prefix = out.get("prefixItems")
+    if (
+        isinstance(prefix, list)
+        and prefix
+        and all(item == prefix[0] for item in prefix)
+        and "items" not in out
+        and out.get("minItems") == out.get("maxItems") == len(prefix)
+    ):
+        out["items"] = out.pop("prefixItems")[0]
+    return out
+
+
+_PATH_PARAM = re.compile(r"{(\w+)}")
+
+
+def _known_path_parameters(known: Known, method: str, path: str) -> list[dict[str, int]]:
+    names = _PATH_PARAM.findall(path)
+    values = known.path_values(method, path)
+    if not names or any(not values.get(n) for n in names):
+        return []
+    combos = itertools.product(*(values[n] for n in names))
+    return [dict(zip(names, combo, strict=True)) for combo in combos]
+
+
+def _with_known_job_ids(known: Known, body: Any) -> Any:
+    if isinstance(body, dict):
+        return {**body, "collection_id": known.collection_id, "model_shape_id": known.shape_ids[0]}
+    return body
+
+
+def _image(fmt: str) -> bytes:
+    from PIL import Image, ImageDraw
+
+    image = Image.new("L", (64, 48), 255)
+    ImageDraw.Draw(image).ellipse((10, 8, 54, 40), fill=0)
+    buffer = io.BytesIO()
+    image.save(buffer, format=fmt)
+    return buffer.getvalue()
+
+
+def valid_upload_bodies() -> dict[str, list[Any]]:
+    """A valid body for every media type the upload operation takes (random bytes are almost
+    never a decodable PNG, JPEG or NPY, so without these the fuzz would only see 422s)."""
+    points = circle(24)
+    text = "\n".join(f"{x:.4f} {y:.4f}" for x, y in points).encode()
+    csv = b"x,y\n" + text.replace(b" ", b",")
+    png, jpeg, npy = _image("PNG"), _image("JPEG"), npy_bytes(points)
+    return {
+        "application/json": [{"name": "ok", "points": points.tolist()}],
+        "multipart/form-data": [
+            {"files": [npy, png, jpeg]},
+            {"files": [csv, text], "mode": "edges", "target_points": 40},
+        ],
+        "text/csv": [csv.decode()],
+        "text/plain": [text.decode()],
+        "application/octet-stream": [npy],
+        "image/png": [png],
+        "image/jpeg": [jpeg],
+    }
+
+
+@pytest.fixture(scope="module")
+def api_schema(seeded: tuple[Service, Known]) -> Any:
+    svc, known = seeded
+    with svc.client() as client:
+        document = client.get("/openapi.json").json()
+    schema = schemathesis.openapi.from_dict(
+        _homogeneous_tuples_as_items(document), config=_config(svc.base_url)
+    )
+
+    @schema.hook("before_generate_path_parameters")
+    def known_path_parameters(context: Any, strategy: st.SearchStrategy) -> st.SearchStrategy:
+        operation = context.operation
+        combos = _known_path_parameters(known, operation.method.upper(), operation.path)
+        if not combos:
+            return strategy
+        return st.one_of(st.sampled_from(combos), strategy)
+
+    @schema.hook("filter_path_parameters")
+    def keep_seeded(context: Any, path_parameters: dict[str, Any]) -> bool:
+        if context.operation.method.upper() != "DELETE":
+            return True
+        return not known.protected(path_parameters)
+
+    @schema.hook("before_generate_body")
+    def known_job_ids(context: Any, strategy: st.SearchStrategy) -> st.SearchStrategy:
+        operation = context.operation
+        if (operation.method.upper(), operation.path) != ("POST", "/v1/jobs"):
+            return strategy
+        return st.one_of(strategy.map(lambda body: _with_known_job_ids(known, body)), strategy)
+
+    uploads = valid_upload_bodies()
+
+    @schema.hook("flatmap_case")
+    def valid_uploads(context: Any, case: Any) -> st.SearchStrategy:
+        operation = context.operation
+        bodies = uploads.get(case.media_type or "", [])
+        if (operation.method.upper(), operation.path) != UPLOAD or not bodies:
+            return st.just(case)
+
+        def with_body(body: Any) -> Any:
+            if body is not None:
+                case.body = body
+                case.path_parameters = {"collection_id": known.collection_id}
+            return case
+
+        return st.sampled_from([None, *bodies]).map(with_body)
+
+    return schema
+
+
+schema = schemathesis.pytest.from_fixture("api_schema")
+
+
+# --- checks ------------------------------------------------------------------------------
+
+#: (operation label, request media type or "-", response status) -> number of responses.
+SEEN: Counter[tuple[str, str, int]] = Counter()
+
+
+def record(ctx: Any, response: Any, case: Any) -> bool | None:
+    """Not a check: counts what the fuzz reached, for :func:`test_fuzz_reached_every_operation`."""
+    SEEN[(case.operation.label, case.media_type or "-", response.status_code)] += 1
+    return None
+
+
+def _content_type(response: Any) -> str:
+    value = response.headers.get("content-type", [""])
+    return str(value[0] if isinstance(value, list) else value)
+
+
+def problem_json_for_errors(ctx: Any, response: Any, case: Any) -> bool | None:
+    """Every 4xx/5xx is an ``application/problem+json`` document with the response's status."""
+    if response.status_code < 400:
+        return None
+    content_type = _content_type(response)
+    assert content_type.startswith("application/problem+json"), (
+        f"{response.status_code} answered as {content_type!r}, not application/problem+json"
+    )
+    body = response.json()
+    assert isinstance(body, dict) and body.get("status") == response.status_code, body
+    for key in ("type", "title", "detail", "instance"):
+        assert key in body, f"problem document without {key!r}: {body}"
+    return None
+
+
+def _is_body_parse_error(response: Any) -> bool:
+    """FastAPI's own 400 for a body it cannot parse (e.g. bytes that are not UTF-8 JSON)."""
+    if response.status_code != 400:
+        return False
+    try:
+        body = response.json()
+    except ValueError:
+        return False
+    return isinstance(body, dict) and body.get("detail") == "There was an error parsing the body"
+
+
+def documented_status(ctx: Any, response: Any, case: Any) -> bool | None:
+    """``status_code_conformance``, except KNOWN GAP 1: the undocumented 400 for a body that
+    cannot be parsed (FastAPI answers it before our code runs; see the module's notes)."""
+    from schemathesis import checks
+
+    if _is_body_parse_error(response):
+        return None
+    result: bool | None = checks.status_code_conformance(ctx, response, case)
+    return result
+
+
+def documented_content_type(ctx: Any, response: Any, case: Any) -> bool | None:
+    """``content_type_conformance`` for successes. KNOWN GAP 2: FastAPI documents its automatic
+    422 as ``application/json`` (``HTTPValidationError``) while every error is answered as
+    ``application/problem+json``; errors are checked by :func:`problem_json_for_errors`."""
+    from schemathesis import checks
+
+    if response.status_code >= 400:
+        return None
+    result: bool | None = checks.content_type_conformance(ctx, response, case)
+    return result
+
+
+def _checks() -> list[Any]:
+    from schemathesis import checks
+
+    return [
+        record,
+        checks.not_a_server_error,
+        documented_status,
+        documented_content_type,
+        checks.response_headers_conformance,
+        checks.response_schema_conformance,
+        problem_json_for_errors,
+    ]
+
+
+@pytest.fixture(autouse=True)
+def _node_id_shim(request: pytest.FixtureRequest) -> None:
+    """schemathesis 4.32 renames ``request.node._nodeid`` per operation for its reports; pytest
+    9.2 keeps the node id elsewhere (``node.nodeid`` reads ``node._id``), so give it the
+    attribute it reads. Only the names of failures in the report depend on it."""
+    if not hasattr(request.node, "_nodeid"):
+        request.node._nodeid = request.node.nodeid
+
+
+@schema.parametrize()
+def test_openapi_fuzz(case: Any) -> None:
+    case.call_and_validate(checks=_checks())
+
+
+def test_fuzz_reached_every_operation(seeded: tuple[Service, Known]) -> None:
+    """The fuzz above really ran: every operation was called, most reached an existing
+    resource (a status other than 404/422), and every upload form was sent."""
+    if not SEEN:
+        pytest.skip("test_openapi_fuzz did not run in this session")
+    svc, _ = seeded
+    with svc.client() as client:
+        operations = {
+            f"{method.upper()} {path}"
+            for path, item in client.get("/openapi.json").json()["paths"].items()
+            for method in item
+        }
+    by_operation: dict[str, set[int]] = {}
+    for (label, _media, status), _n in SEEN.items():
+        by_operation.setdefault(label, set()).add(status)
+    report = "\n".join(
+        f"{label:70s} {media:26s} {status} x{n}"
+        for (label, media, status), n in sorted(SEEN.items())
+    )
+    print(report)
+    assert operations <= set(by_operation), (operations - set(by_operation), report)
+    refusals = {400, 404, 405, 415, 422}
+    missed = sorted(op for op, statuses in by_operation.items() if statuses <= refusals)
+    assert not missed, (missed, report)
+    upload = "POST /v1/collections/{collection_id}/shapes"
+    media = {m for (label, m, status) in SEEN if label == upload and status == 201}
+    assert {"application/json", "multipart/form-data", "text/csv", "text/plain"} <= media, report
+
+
+# --- regressions found by the fuzz --------------------------------------------------------
+
+TOO_BIG = 2**63  # one past SQLite's INTEGER
+
+
+@pytest.mark.parametrize(
+    ("method", "path"),
+    [
+        ("GET", "/v1/collections/{big}"),
+        ("DELETE", "/v1/collections/{big}"),
+        ("GET", "/v1/collections/{big}/shapes"),
+        ("GET", "/v1/collections/{cid}/shapes/{big}"),
+        ("DELETE", "/v1/collections/{cid}/shapes/{big}"),
+        ("GET", "/v1/collections?offset={big}"),
+        ("GET", "/v1/collections/{cid}/shapes?offset={big}"),
+        ("GET", "/v1/jobs?offset={big}"),
+        ("GET", "/v1/jobs?collection_id={big}"),
+        ("GET", "/v1/jobs/{big}"),
+        ("POST", "/v1/jobs/{big}/cancel"),
+        ("GET", "/v1/jobs/{big}/result"),
+        ("GET", "/v1/jobs/{job}/result/subjects/{big}"),
+    ],
+)
+def test_ids_past_64_bits_are_422_not_500(
+    seeded: tuple[Service, Known], method: str, path: str
+) -> None:
+    """SQLite cannot bind an int past 64 bits (OverflowError): ids and offsets are bounded."""
+    svc, known = seeded
+    url = path.format(big=TOO_BIG * 1000, cid=known.collection_id, job=known.job_id)
+    with svc.client() as client:
+        body = assert_problem(client.request(method, url), 422)
+    assert body["type"] == "/problems/validation-error"
+
+
+@pytest.mark.parametrize("field_name", ["collection_id", "model_shape_id"])
+def test_job_ids_past_64_bits_are_422_not_500(
+    seeded: tuple[Service, Known], field_name: str
+) -> None:
+    svc, known = seeded
+    body = {"collection_id": known.collection_id, "model_shape_id": known.shape_ids[0]}
+    body[field_name] = TOO_BIG
+    with svc.client() as client:
+        assert_problem(client.post("/v1/jobs", json=body), 422)
+        # The largest id SQLite holds is an ordinary unknown id.
+        body[field_name] = TOO_BIG - 1
+        assert_problem(client.post("/v1/jobs", json=body), 422)
+        assert_problem(client.get(f"/v1/jobs/{TOO_BIG - 1}"), 404)
