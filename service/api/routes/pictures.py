@@ -24,6 +24,7 @@ from service.api.problems import ProblemError, problem_responses
 from service.api.routes.jobs import _subject, _succeeded_job
 from service.models import Job, Result, Shape
 from service.plots import Rendered, render_subject, render_summary, render_tree
+from service.schemas import DbInt
 
 router = APIRouter(prefix="/jobs", tags=["pictures"])
 
@@ -102,7 +103,7 @@ def _tree(job_id: int, fmt: str, width: int | None, request: Request, db: DbDep)
     'group `<g id="node-<shape_id>">` (`unattached-<shape_id>` in the box), so a page can '
     "make the nodes clickable.",
 )
-def tree_svg(job_id: int, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
+def tree_svg(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
     return _tree(job_id, "svg", width, request, db)
 
 
@@ -112,7 +113,7 @@ def tree_svg(job_id: int, request: Request, db: DbDep, width: WidthQuery = None)
     responses=_image_responses("image/png", 404, 409),
     summary="The registration tree as PNG",
 )
-def tree_png(job_id: int, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
+def tree_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
     return _tree(job_id, "png", width, request, db)
 
 
@@ -124,7 +125,7 @@ def tree_png(job_id: int, request: Request, db: DbDep, width: WidthQuery = None)
     description="Mean (bar) and 95th percentile (whisker) of e for each layer, with direct "
     "CPD's e on the same subjects beside it when the job compared with it.",
 )
-def summary_png(job_id: int, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
+def summary_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
     with db.read() as session:
         job = _succeeded_job(session, job_id)
         etag = _etag(job, "summary", width)
@@ -146,8 +147,8 @@ def summary_png(job_id: int, request: Request, db: DbDep, width: WidthQuery = No
     "reason. 410 when the subject's shape was deleted after the job ran.",
 )
 def subject_overlay_png(
-    job_id: int,
-    shape_id: int,
+    job_id: DbInt,
+    shape_id: DbInt,
     request: Request,
     db: DbDep,
     width: WidthQuery = None,
