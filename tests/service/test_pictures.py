@@ -73,6 +73,7 @@ def test_tree_svg_names_every_subject_in_its_place(client: httpx.Client, done: d
     assert response.status_code == 200, response.text
     assert response.headers["content-type"].startswith("image/svg+xml")
     assert response.headers["cache-control"] == "private, no-cache"
+    assert response.headers["content-security-policy"].startswith("default-src 'none'")
     root = ET.fromstring(response.content)
     tree = root.find(f".//{SVG}g[@id='tree']")
     assert tree is not None

@@ -73,6 +73,9 @@ def _not_modified(etag: str) -> Response:
 def _picture(rendered: Rendered, etag: str) -> Response:
     headers = _cache_headers(etag)
     headers["X-Picture-Size"] = f"{rendered.width}x{rendered.height}"
+    # an SVG opened on its own is a document: it may style itself, nothing more
+    headers["Content-Security-Policy"] = "default-src 'none'; style-src 'unsafe-inline'"
+    headers["X-Content-Type-Options"] = "nosniff"
     return Response(content=rendered.data, media_type=rendered.media_type, headers=headers)
 
 
@@ -96,7 +99,7 @@ def _tree(job_id: int, fmt: str, width: int | None, request: Request, db: DbDep)
 @router.get(
     "/{job_id}/result/tree.svg",
     response_class=Response,
-    responses=_image_responses("image/svg+xml", 404, 409),
+    responses=_image_responses("image/svg+xml", 404, 409, 422),
     summary="The registration tree as SVG",
     description="Shapes by layer (the model on top), edges coloured by the child's error e, "
     "shapes no member could register in a box apart. Each shape's name is a `<text>` in a "
@@ -110,7 +113,7 @@ def tree_svg(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = Non
 @router.get(
     "/{job_id}/result/tree.png",
     response_class=Response,
-    responses=_image_responses("image/png", 404, 409),
+    responses=_image_responses("image/png", 404, 409, 422),
     summary="The registration tree as PNG",
 )
 def tree_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
@@ -120,7 +123,7 @@ def tree_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = Non
 @router.get(
     "/{job_id}/result/summary.png",
     response_class=Response,
-    responses=_image_responses("image/png", 404, 409),
+    responses=_image_responses("image/png", 404, 409, 422),
     summary="Error e per tree layer, tree against direct CPD",
     description="Mean (bar) and 95th percentile (whisker) of e for each layer, with direct "
     "CPD's e on the same subjects beside it when the job compared with it.",
@@ -139,7 +142,7 @@ def summary_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = 
 @router.get(
     "/{job_id}/result/subjects/{shape_id}/overlay.png",
     response_class=Response,
-    responses=_image_responses("image/png", 404, 409, 410),
+    responses=_image_responses("image/png", 404, 409, 410, 422),
     summary="A subject with the model warped onto it",
     description="The subject's points (grey), the model warped onto it through the tree (red) "
     "and a sample of correspondence lines (green); beside it, on the same axes, direct CPD's "
