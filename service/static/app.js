@@ -701,6 +701,24 @@
     }
   }
 
+  // fetched with the key like everything else, then saved through a blob: link
+  async function download(what) {
+    if (!state.job) return;
+    const id = state.job.id;
+    const path = what === "result.json" ? `/v1/jobs/${id}/result?full=true` : `/v1/jobs/${id}/result/${what}`;
+    try {
+      const blob = await api(path, { as: "blob" });
+      const url = URL.createObjectURL(blob);
+      const a = el("a", { href: url, download: `regtree-job-${id}-${what}` });
+      document.body.append(a);
+      a.click();
+      a.remove();
+      setTimeout(() => URL.revokeObjectURL(url), 60_000);
+    } catch (e) {
+      notice(`Could not download ${what}: ${e.message}`);
+    }
+  }
+
   // --- start ----------------------------------------------------------------------------------
   function stopTimers() {
     clearTimeout(state.jobTimer);
@@ -725,6 +743,12 @@
         notice(`Could not cancel: ${e.message}`);
       }
     });
+    for (const link of document.querySelectorAll("a[data-download]")) {
+      link.addEventListener("click", (event) => {
+        event.preventDefault();
+        download(link.dataset.download);
+      });
+    }
     $("ui-ydir").addEventListener("change", () => {
       if (state.selected !== null && state.selected !== state.result?.root_shape_id) loadOverlay(state.selected);
     });

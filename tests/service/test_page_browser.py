@@ -191,6 +191,14 @@ def test_results_page_end_to_end(
     page.evaluate("window.scrollTo(0, 0)")
     page.screenshot(path=str(screenshot_path(tmp_path)))
 
+    # downloads go through the API with the key too
+    with page.expect_download() as info:
+        page.click("a[data-download='tree.svg']")
+    download = info.value
+    assert download.suggested_filename == f"regtree-job-{job_id}-tree.svg"
+    svg_text = Path(download.path()).read_text()
+    assert all(s["name"] in svg_text for s in result["subjects"])
+
     # the parent link in the numbers opens the parent; a table row opens its subject
     numbers.locator("[data-field=parent] a").click()
     expect(
