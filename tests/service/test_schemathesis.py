@@ -439,33 +439,48 @@ def test_fuzz_reached_every_operation(seeded: tuple[Service, Known]) -> None:
 TOO_BIG = 2**63  # one past SQLite's INTEGER
 
 
-@pytest.mark.parametrize(
-    ("method", "path"),
-    [
-        ("GET", "/v1/collections/{big}"),
-        ("DELETE", "/v1/collections/{big}"),
-        ("GET", "/v1/collections/{big}/shapes"),
-        ("GET", "/v1/collections/{cid}/shapes/{big}"),
-        ("DELETE", "/v1/collections/{cid}/shapes/{big}"),
-        ("GET", "/v1/collections?offset={big}"),
-        ("GET", "/v1/collections/{cid}/shapes?offset={big}"),
-        ("GET", "/v1/jobs?offset={big}"),
-        ("GET", "/v1/jobs?collection_id={big}"),
-        ("GET", "/v1/jobs/{big}"),
-        ("POST", "/v1/jobs/{big}/cancel"),
-        ("GET", "/v1/jobs/{big}/result"),
-        ("GET", "/v1/jobs/{job}/result/subjects/{big}"),
-    ],
-)
-def test_ids_past_64_bits_are_422_not_500(
-    seeded: tuple[Service, Known], method: str, path: str
-) -> None:
-    """SQLite cannot bind an int past 64 bits (OverflowError): ids and offsets are bounded."""
+def _integer_parameters(document: dict[str, Any]) -> Iterator[tuple[str, str, str, str]]:
+    """(method, path, location, name) of every integer path or query parameter."""
+    for path, item in document["paths"].items():
+        for method, operation in item.items():
+            for parameter in operation.get("parameters", []):
+                schema_ = parameter.get("schema", {})
+                types = {schema_.get("type")} | {s.get("type") for s in schema_.get("anyOf", [])}
+                if "integer" in types and parameter["in"] in ("path", "query"):
+                    yield method.upper(), path, parameter["in"], parameter["name"]
+
+
+def test_ids_past_64_bits_are_422_not_500(seeded: tuple[Service, Known]) -> None:
+    """SQLite cannot bind an int past 64 bits (OverflowError, a 500): every integer path
+    parameter of every operation refuses it with 422, and no integer query parameter makes
+    a 500 with it."""
     svc, known = seeded
-    url = path.format(big=TOO_BIG * 1000, cid=known.collection_id, job=known.job_id)
+    ids = {"collection_id": known.collection_id, "job_id": known.job_id}
+    ids["shape_id"] = known.subject_ids[-1]
+    big = str(TOO_BIG * 1000)
+    bodies: dict[tuple[str, str], dict[str, Any]] = {
+        UPLOAD: {"content": _image("PNG"), "headers": {"content-type": "image/png"}},
+        ("POST", "/v1/jobs/{job_id}/result/subjects/{shape_id}/transform"): {
+            "json": {"points": [[0.0, 0.0]]}
+        },
+    }
     with svc.client() as client:
-        body = assert_problem(client.request(method, url), 422)
-    assert body["type"] == "/problems/validation-error"
+        document = client.get("/openapi.json").json()
+        cases = list(_integer_parameters(document))
+        assert sum(location == "path" for _, _, location, _ in cases) >= 10, cases
+        for method, path, location, name in cases:
+            values = {k: str(v) for k, v in ids.items()}
+            if location == "path":
+                values[name] = big
+            url = re.sub(r"{(\w+)}", lambda m, values=values: values[m.group(1)], path)
+            params = {name: big} if location == "query" else None
+            kwargs = bodies.get((method, path), {})
+            response = client.request(method, url, params=params, **kwargs)
+            where = (method, path, location, name, response.text)
+            assert response.status_code < 500, where
+            if location == "path":
+                body = assert_problem(response, 422)
+                assert body["type"] == "/problems/validation-error", where
 
 
 @pytest.mark.parametrize("field_name", ["collection_id", "model_shape_id"])
