@@ -472,7 +472,7 @@ def test_ids_past_64_bits_are_422_not_500(seeded: tuple[Service, Known]) -> None
             values = {k: str(v) for k, v in ids.items()}
             if location == "path":
                 values[name] = big
-            url = re.sub(r"{(\w+)}", lambda m, values=values: values[m.group(1)], path)
+            url = path.format(**values)
             params = {name: big} if location == "query" else None
             kwargs = bodies.get((method, path), {})
             response = client.request(method, url, params=params, **kwargs)
