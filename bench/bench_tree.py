@@ -1,9 +1,11 @@
 """The paper's protocol (Du et al. 2016, Table 1-3): direct CPD vs static tree vs dynamic tree.
 
-For every data set the same root model is registered to every other shape three ways;
-the table gives the mean and 95th percentile of e (eq. 10, size-normalised shapes) on the
-subjects the dynamic tree placed at layer >= 3 (the paper's statistic: on layer 2 the
-dynamic tree *is* direct CPD), for all three methods on those same subjects. Where ground
+For every data set and root model, the root is registered to every other shape four
+ways: plain CPD (no pre-alignment, as the paper's baseline), direct CPD after the affine-
+ICP pre-alignment (regtree's `register_direct` default), the static tree and the dynamic
+tree. The table gives the mean and 95th percentile of e (eq. 10, size-normalised shapes)
+on the subjects the dynamic tree placed at layer >= 3 (the paper's statistic: on layer 2
+the dynamic tree *is* direct CPD), for every method on those same subjects. Where ground
 truth exists (Chui & Rangarajan deformation series, a generated chained family) it also
 gives the RMS ground-truth correspondence error (relative to the subject's RMS radius).
 
@@ -29,6 +31,7 @@ from registration import (
     SubjectResult,
     build_dynamic_tree,
     build_static_tree,
+    register_direct,
     resample,
 )
 from registration.synthetic import chained_family, correspondence_error
@@ -43,7 +46,6 @@ class Dataset:
     names: list[str]
     # ground truth: for subject k, where each root point should land, else None
     truth: Callable[[int], np.ndarray] | None = None
-    root: int = 0
 
 
 def _mpeg7(cls: str, points: int) -> Dataset | None:
@@ -146,14 +148,17 @@ def _ce(ds: Dataset, s: SubjectResult) -> float | None:
     return correspondence_error(s.warped, ds.truth(s.index), ds.shapes[s.index])
 
 
-def evaluate(ds: Dataset, dyn: CollectionResult, sta: CollectionResult) -> dict[str, object]:
+def evaluate(
+    ds: Dataset, dyn: CollectionResult, sta: CollectionResult, plain: CollectionResult
+) -> dict[str, object]:
     assert dyn.direct is not None
     deep = [s for s in dyn.subjects if s.attached and s.layer is not None and s.layer >= 3]
     idx = {s.index for s in deep}
     direct = {s.index: s for s in dyn.direct}
     static = {s.index: s for s in sta.subjects}
+    plain_by = {s.index: s for s in plain.subjects}
     row: dict[str, object] = {
-        "dataset": ds.name,
+        "dataset": f"{ds.name} (root {ds.names[dyn.root]})",
         "shapes": len(ds.shapes),
         "attached": sum(s.attached for s in dyn.subjects),
         "depth": dyn.summary()["depth"],
@@ -161,6 +166,7 @@ def evaluate(ds: Dataset, dyn: CollectionResult, sta: CollectionResult) -> dict[
         "thresholds": (dyn.thresholds["similarity"], dyn.thresholds["error"]),
     }
     for label, group in [
+        ("plain", [plain_by[i] for i in sorted(idx)]),
         ("direct", [direct[i] for i in sorted(idx)]),
         ("static", [static[i] for i in sorted(idx) if static[i].attached]),
         ("dynamic", deep),
@@ -181,6 +187,13 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=400, help="resample image sets to this")
     ap.add_argument("--ns-limit", type=int, default=218)
     ap.add_argument("--chui-trials", type=int, default=8)
+    ap.add_argument("--roots", default="0,2",
+                    help="comma-separated root indices, each run separately (the paper "
+                    "reports two models per data set)")
+    ap.add_argument("--max-rotation", type=float, default=None,
+                    help="upright collections: ICP starts within +- this many degrees")
+    ap.add_argument("--no-prealign", action="store_true",
+                    help="no affine pre-alignment before CPD in the trees and direct CPD")
     ap.add_argument("--out", type=Path, default=None, help="also write a markdown table here")
     args = ap.parse_args()
     datasets, missing = load_all(args.points, args.ns_limit, args.chui_trials)
@@ -190,22 +203,29 @@ def main() -> None:
         datasets = [d for d in datasets if d.name in args.only or
                     any(d.name.startswith(o) for o in args.only)]
     rows = []
+    roots = [int(r) for r in args.roots.split(",")]
     with LocalProcessExecutor() as ex:
         for ds in datasets:
-            t0 = time.perf_counter()
-            dyn = build_dynamic_tree(ds.shapes, ds.root, names=ds.names, compare_direct=True,
-                                     executor=ex)
-            t1 = time.perf_counter()
-            sta = build_static_tree(ds.shapes, ds.root, names=ds.names, executor=ex,
-                                    similarity_threshold=dyn.thresholds["similarity"])
-            t2 = time.perf_counter()
-            row = evaluate(ds, dyn, sta)
-            row["seconds"] = (t1 - t0, t2 - t1)
-            rows.append(row)
-            print(_line(row), flush=True)
+            for root in roots:
+                t0 = time.perf_counter()
+                opts = {"max_rotation": args.max_rotation, "prealign": not args.no_prealign}
+                dyn = build_dynamic_tree(ds.shapes, root, names=ds.names, compare_direct=True,
+                                         executor=ex, **opts)
+                t1 = time.perf_counter()
+                sta = build_static_tree(ds.shapes, root, names=ds.names, executor=ex,
+                                        similarity_threshold=dyn.thresholds["similarity"],
+                                        **opts)
+                t2 = time.perf_counter()
+                plain = register_direct(ds.shapes, root, names=ds.names, executor=ex,
+                                        prealign=False)
+                row = evaluate(ds, dyn, sta, plain)
+                row["seconds"] = (t1 - t0, t2 - t1)
+                rows.append(row)
+                print(_line(row), flush=True)
     table = _markdown(rows)
     print()
     print(table)
+    print(f"\noptions: max_rotation={args.max_rotation}, prealign={not args.no_prealign}")
     if args.out is not None:
         args.out.write_text(table + "\n")
 
@@ -221,21 +241,22 @@ def _line(r: dict[str, object]) -> str:
 
 def _markdown(rows: list[dict[str, object]]) -> str:
     out = [
-        "| data set | shapes | attached | depth | layer >= 3 | direct e mean / p95 | "
-        "static e mean / p95 | dynamic e mean / p95 | dynamic / direct (mean, p95) | "
-        "GT corr. error direct / static / dynamic (mean) | thresholds (D, e) | seconds "
-        "(dynamic+direct, static) |",
-        "|" + "---|" * 12,
+        "| data set (root) | shapes | attached | depth | layer >= 3 | plain CPD e mean / p95 "
+        "| direct CPD e mean / p95 | static e mean / p95 | dynamic e mean / p95 | "
+        "dynamic / direct (mean, p95) | GT corr. error plain / direct / static / dynamic "
+        "(mean) | thresholds (D, e) | seconds (dynamic+direct, static) |",
+        "|" + "---|" * 13,
     ]
     for r in rows:
-        de, se, ye = r["direct_e"], r["static_e"], r["dynamic_e"]
+        pe, de, se, ye = r["plain_e"], r["direct_e"], r["static_e"], r["dynamic_e"]
         assert isinstance(de, tuple) and isinstance(se, tuple) and isinstance(ye, tuple)
+        assert isinstance(pe, tuple)
         ratio = (f"{ye[0] / de[0]:.2f}, {ye[1] / de[1]:.2f}"
                  if np.isfinite(de[0]) and de[0] > 0 and np.isfinite(ye[0]) else "n/a")
         ce = "n/a"
         if r.get("dynamic_ce"):
             parts = []
-            for k in ("direct_ce", "static_ce", "dynamic_ce"):
+            for k in ("plain_ce", "direct_ce", "static_ce", "dynamic_ce"):
                 v = r.get(k)
                 parts.append(fmt(v[0]) if isinstance(v, tuple) else "n/a")
             ce = " / ".join(parts)
@@ -244,7 +265,8 @@ def _markdown(rows: list[dict[str, object]]) -> str:
         assert isinstance(th, tuple) and isinstance(sec, tuple)
         out.append(
             f"| {r['dataset']} | {r['shapes']} | {r['attached']} | {r['depth']} | "
-            f"{r['n_deep']} | {fmt(de[0])} / {fmt(de[1])} | {fmt(se[0])} / {fmt(se[1])} | "
+            f"{r['n_deep']} | {fmt(pe[0])} / {fmt(pe[1])} | {fmt(de[0])} / {fmt(de[1])} | "
+            f"{fmt(se[0])} / {fmt(se[1])} | "
             f"{fmt(ye[0])} / {fmt(ye[1])} | {ratio} | {ce} | {fmt(th[0])}, {fmt(th[1])} | "
             f"{sec[0]:.0f}, {sec[1]:.0f} |"
         )

@@ -37,6 +37,7 @@ __all__ = [
 
 _MIN_ABS_DET = 1e-8
 _KEEP_STARTS = 3
+_UPRIGHT_STEP_DEG = 15.0
 
 
 @dataclass(frozen=True)
@@ -256,6 +257,7 @@ def pairwise_affine_icp(
     *,
     n_rotations: int = 8,
     allow_reflection: bool = True,
+    max_rotation: float | None = None,
     coarse_iterations: int = 12,
     refine_iterations: int = 40,
     tol: float = 1e-4,
@@ -265,25 +267,34 @@ def pairwise_affine_icp(
     All pairs go through the same vectorised stages: every start of every pair on the
     coarse subsamples, the best few starts per pair continued, refined on the mid
     subsamples, the best of them refined on the medium subsamples, and D (eq. 9)
-    evaluated on the full point sets. When both (i, j)
-    and (j, i) are asked for, the second starts from the inverse of the first's map
-    instead of a multi-start search.
+    evaluated on the full point sets. When both (i, j) and (j, i) are asked for, the
+    second starts from the inverse of the first's map instead of a multi-start search.
+    Starts: see :func:`affine_icp` (`n_rotations`, `allow_reflection`, `max_rotation`).
     """
     if not pairs:
         return []
     forward = [p for p in pairs if (p[1], p[0]) not in pairs or p[0] < p[1]]
     reverse = [p for p in pairs if p not in set(forward)]
-    angles = np.arange(n_rotations) * (2.0 * np.pi / n_rotations)
+    if max_rotation is None:
+        angles = np.arange(n_rotations) * (2.0 * np.pi / n_rotations)
+    else:
+        # upright shapes: rotations of the shapes as given, within +-max_rotation
+        k = int(np.ceil(max_rotation / _UPRIGHT_STEP_DEG))
+        angles = np.deg2rad(np.linspace(-max_rotation, max_rotation, 2 * k + 1))
     cos, sin = np.cos(angles), np.sin(angles)
     rots = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
-    if allow_reflection:
+    if allow_reflection and max_rotation is None:
         rots = np.concatenate([rots, rots @ np.diag([1.0, -1.0])], axis=0)
     n_s = rots.shape[0]
     # stage 1: every start of every forward pair
     A_l, t_l, xs, ys = [], [], [], []
     for i, j in forward:
         x, y = shapes[i], shapes[j]
-        A_s = np.linalg.inv(y.whiten)[None] @ rots @ x.whiten[None]
+        if max_rotation is None:
+            A_s = np.linalg.inv(y.whiten)[None] @ rots @ x.whiten[None]
+        else:  # isotropic scale from the covariances, then the rotation
+            scale = np.sqrt(abs(np.linalg.det(x.whiten) / np.linalg.det(y.whiten)))
+            A_s = scale * rots
         A_l.append(A_s)
         t_l.append(y.mean[None, :] - np.einsum("sij,j->si", A_s, x.mean))
         xs.append(np.broadcast_to(x.coarse, (n_s, *x.coarse.shape)))
@@ -414,6 +425,7 @@ def affine_icp(
     init: tuple[ArrayLike, ArrayLike] | None = None,
     n_rotations: int = 8,
     allow_reflection: bool = True,
+    max_rotation: float | None = None,
     coarse_points: int = 48,
     coarse_iterations: int = 12,
     max_iter: int = 100,
@@ -436,6 +448,12 @@ def affine_icp(
     allow_reflection : bool
         Also try reflected starts. The paper only requires ``det(A) != 0``, so a
         reflection is a valid affine map; set False where mirror images must differ.
+    max_rotation : float, optional
+        For shapes given upright (glyph scans, aligned outlines): start only from
+        rotations of the shapes as given within +-`max_rotation` degrees (every 15
+        degrees), with no reflection, instead of every orientation of the principal-
+        axes alignment. Measured on shapes with large deformations, the best D over all
+        orientations often belongs to a wrong pose (bench/calibrate_thresholds.py).
     coarse_points : int
         Points per shape in the multi-start stage.
     coarse_iterations : int
@@ -467,6 +485,8 @@ def affine_icp(
         raise ValueError(f"tol must be positive; got {tol}")
     if coarse_iterations < 1:
         raise ValueError(f"coarse_iterations must be at least 1; got {coarse_iterations}")
+    if max_rotation is not None and not 0 <= max_rotation <= 180:
+        raise ValueError(f"max_rotation must be in [0, 180] degrees; got {max_rotation}")
     px = prepare_shape(model, coarse_points=coarse_points, name="model")
     py = prepare_shape(subject, coarse_points=coarse_points, name="subject")
     if init is not None:
@@ -481,7 +501,8 @@ def affine_icp(
     else:
         (_, _, _, A0, t0), = pairwise_affine_icp(
             {0: px, 1: py}, [(0, 1)], n_rotations=n_rotations,
-            allow_reflection=allow_reflection, coarse_iterations=coarse_iterations,
+            allow_reflection=allow_reflection, max_rotation=max_rotation,
+            coarse_iterations=coarse_iterations,
         )
     A, t, dist, it, conv = _refine(px.points, py.points, py.tree, A0, t0, max_iter, tol)
     return AffineICPResult(A=A, t=t, distance=dist, iterations=it, converged=conv)

@@ -44,16 +44,20 @@ class Similarity:
     A: FloatArray
     t: FloatArray
     computed: int = 0
+    max_rotation: float | None = None
     _shapes: list[FloatArray] = field(default_factory=list, repr=False)
 
     @classmethod
-    def empty(cls, normalised_shapes: Sequence[FloatArray]) -> Similarity:
+    def empty(
+        cls, normalised_shapes: Sequence[FloatArray], *, max_rotation: float | None = None
+    ) -> Similarity:
         n = len(normalised_shapes)
         D = np.full((n, n), np.nan)
         np.fill_diagonal(D, 0.0)
         A = np.zeros((n, n, 2, 2))
         A[:] = np.eye(2)
-        return cls(D=D, A=A, t=np.zeros((n, n, 2)), _shapes=list(normalised_shapes))
+        return cls(D=D, A=A, t=np.zeros((n, n, 2)), max_rotation=max_rotation,
+                   _shapes=list(normalised_shapes))
 
     def ensure(
         self,
@@ -78,7 +82,8 @@ class Similarity:
                 end += 1  # keep (i, j) and (j, i) in the same task
             chunk = todo[k:end]
             tasks.append(
-                _PairTask(pairs=chunk, shapes={idx: self._shapes[idx] for p in chunk for idx in p})
+                _PairTask(pairs=chunk, shapes={idx: self._shapes[idx] for p in chunk for idx in p},
+                          max_rotation=self.max_rotation)
             )
             k = end
         ex = executor if executor is not None else default_executor(len(todo))
@@ -106,12 +111,14 @@ class Similarity:
 class _PairTask:
     pairs: list[tuple[int, int]]
     shapes: dict[int, FloatArray]
+    max_rotation: float | None = None
 
 
 def _icp_task(task: _PairTask) -> list[tuple[int, int, float, FloatArray, FloatArray]]:
     """Affine ICP for a chunk of pairs, vectorised across the chunk."""
     prepared = {k: prepare_shape(v) for k, v in task.shapes.items()}
-    return pairwise_affine_icp(prepared, task.pairs, tol=_SIMILARITY_TOL)
+    return pairwise_affine_icp(prepared, task.pairs, tol=_SIMILARITY_TOL,
+                               max_rotation=task.max_rotation)
 
 
 def shape_descriptor(normalised: FloatArray, *, bins: int = 16) -> FloatArray:
@@ -148,6 +155,7 @@ def similarity_matrix(
     *,
     candidates: int | None = None,
     pairs: Iterable[tuple[int, int]] | None = None,
+    max_rotation: float | None = None,
     executor: Executor | None = None,
     progress: ProgressCallback | None = None,
 ) -> Similarity:
@@ -162,6 +170,9 @@ def similarity_matrix(
         cheap descriptor (both directions). Default: all ordered pairs.
     pairs : iterable of (int, int), optional
         Explicit (model, subject) pairs to compute; overrides `candidates`.
+    max_rotation : float, optional
+        For upright shapes: ICP starts only within +-`max_rotation` degrees of the
+        shapes as given (see :func:`affine_icp`). Default: every orientation.
     executor : Executor, optional
         Where ICP runs; default: serial for small collections, else a local process pool.
     progress : callable(stage, done, total), optional
@@ -187,6 +198,6 @@ def similarity_matrix(
         todo = candidate_pairs(normed, candidates)
     else:
         todo = [(i, j) for i in range(n) for j in range(n) if i != j]
-    sim = Similarity.empty(normed)
+    sim = Similarity.empty(normed, max_rotation=max_rotation)
     sim.ensure(todo, executor=executor, progress=progress)
     return sim

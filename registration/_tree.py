@@ -232,8 +232,11 @@ def _run_tasks(
     return [r for r in results if r is not None]
 
 
-def _options_dict(cpd: CPDOptions, prealign: bool, max_candidates: int) -> dict[str, Any]:
-    return {"cpd": asdict(cpd), "affine_prealign": prealign, "max_candidates": max_candidates}
+def _options_dict(
+    cpd: CPDOptions, prealign: bool, max_candidates: int, max_rotation: float | None
+) -> dict[str, Any]:
+    return {"cpd": asdict(cpd), "affine_prealign": prealign, "max_candidates": max_candidates,
+            "max_rotation": max_rotation}
 
 
 # ----------------------------------------------------------------------------- thresholds
@@ -326,12 +329,13 @@ def _prepare_similarity(
     candidates: int | None,
     executor: Executor | None,
     progress: ProgressCallback | None,
+    max_rotation: float | None,
 ) -> tuple[Similarity, set[tuple[int, int]] | None]:
     """Build the similarity store; compute up front what the automatic threshold needs.
 
     Returns the store and the allowed pairs (None: any pair, computed lazily).
     """
-    sim = Similarity.empty(coll.normed)
+    sim = Similarity.empty(coll.normed, max_rotation=max_rotation)
     allowed: set[tuple[int, int]] | None = None
     if candidates is None and coll.n > MAX_EXHAUSTIVE_SHAPES:
         candidates = DEFAULT_CANDIDATES
@@ -366,6 +370,7 @@ def build_dynamic_tree(
     max_candidates: int = 3,
     candidates: int | None = None,
     prealign: bool = True,
+    max_rotation: float | None = None,
     fold_check: bool = True,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
@@ -398,6 +403,10 @@ def build_dynamic_tree(
         shapes, 12 nearest beyond.
     prealign : bool
         Affine-ICP pre-alignment before each CPD (initialised from the similarity's map).
+    max_rotation : float, optional
+        For collections given upright (glyph scans, aligned outlines): affine ICP only
+        starts within +-`max_rotation` degrees of the shapes as given, without
+        reflections. Default: every orientation (the paper's det(A) != 0).
     fold_check : bool
         Also reject registrations whose displacement field folds the model (Jacobian
         determinant <= 0 at a model point): e can be small while correspondences are wrong.
@@ -424,7 +433,9 @@ def build_dynamic_tree(
         raise ValueError(f"max_candidates must be at least 1; got {max_candidates}")
     cpd = cpd if cpd is not None else CPDOptions()
     coll = _Collection.prepare(shapes, root, names)
-    sim, allowed = _prepare_similarity(coll, similarity_threshold, candidates, executor, progress)
+    sim, allowed = _prepare_similarity(
+        coll, similarity_threshold, candidates, executor, progress, max_rotation
+    )
     subjects_idx = [k for k in range(coll.n) if k != root]
     tau_sim = (
         similarity_threshold
@@ -526,7 +537,7 @@ def build_dynamic_tree(
             f"{SPACING_FACTOR} x the subject's squared point spacing)",
             "fold_check": fold_check,
         },
-        options=_options_dict(cpd, prealign, max_candidates),
+        options=_options_dict(cpd, prealign, max_candidates, max_rotation),
         direct=direct,
         similarity_pairs=sim.computed,
     )
@@ -541,6 +552,7 @@ def build_static_tree(
     cpd: CPDOptions | None = None,
     candidates: int | None = None,
     prealign: bool = True,
+    max_rotation: float | None = None,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
     executor: Executor | None = None,
@@ -561,7 +573,9 @@ def build_static_tree(
     del error_threshold
     cpd = cpd if cpd is not None else CPDOptions()
     coll = _Collection.prepare(shapes, root, names)
-    sim, allowed = _prepare_similarity(coll, similarity_threshold, candidates, executor, progress)
+    sim, allowed = _prepare_similarity(
+        coll, similarity_threshold, candidates, executor, progress, max_rotation
+    )
     subjects_idx = [k for k in range(coll.n) if k != root]
     tau_sim = (
         similarity_threshold
@@ -624,7 +638,7 @@ def build_static_tree(
             "error": None,
             "error_rule": "none: the static tree does not reject",
         },
-        options=_options_dict(cpd, prealign, 1),
+        options=_options_dict(cpd, prealign, 1, max_rotation),
         direct=direct,
         similarity_pairs=sim.computed,
     )
@@ -666,6 +680,7 @@ def register_direct(
     error_threshold: float | None = None,
     cpd: CPDOptions | None = None,
     prealign: bool = True,
+    max_rotation: float | None = None,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
     executor: Executor | None = None,
@@ -681,7 +696,7 @@ def register_direct(
     del similarity_threshold, error_threshold, compare_direct
     cpd = cpd if cpd is not None else CPDOptions()
     coll = _Collection.prepare(shapes, root, names)
-    sim = Similarity.empty(coll.normed)
+    sim = Similarity.empty(coll.normed, max_rotation=max_rotation)
     subjects = _direct_results(coll, sim, cpd, prealign, executor, progress)
     return CollectionResult(
         method="direct",
@@ -689,7 +704,7 @@ def register_direct(
         names=coll.names,
         subjects=subjects,
         thresholds={"similarity": None, "error": None, "error_rule": "none"},
-        options=_options_dict(cpd, prealign, 1),
+        options=_options_dict(cpd, prealign, 1, max_rotation),
         direct=None,
         similarity_pairs=sim.computed,
     )

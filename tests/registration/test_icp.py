@@ -96,3 +96,21 @@ def test_affine_icp_rejects_bad_options(kwargs, message):
     x = base_outline(30)
     with pytest.raises(ValueError, match=message):
         affine_icp(x, x, **kwargs)
+
+
+def test_upright_starts_keep_the_pose_of_a_near_symmetric_shape():
+    # an ellipse-like outline deformed on one side: every orientation search may prefer a
+    # flipped pose; the upright search stays within +-max_rotation of the given pose
+    x = base_outline(200)
+    y = x.copy()
+    y[:, 1] += 0.25 * np.exp(-((x[:, 0] - 0.5) ** 2) / 0.05)  # a bump, no rotation
+    res = affine_icp(x, y, max_rotation=30.0)
+    angle = np.degrees(np.arctan2(res.A[1, 0], res.A[0, 0]))
+    assert abs(angle) <= 30.0 + 10.0
+    assert np.linalg.det(res.A) > 0
+
+
+def test_max_rotation_is_validated():
+    x = base_outline(30)
+    with pytest.raises(ValueError, match=r"max_rotation must be in \[0, 180\]"):
+        affine_icp(x, x, max_rotation=200.0)
