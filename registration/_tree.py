@@ -48,10 +48,10 @@ __all__ = [
     "register_direct",
 ]
 
-# Automatic thresholds (see `_auto_similarity_threshold` and `_auto_error_threshold`).
-SIMILARITY_FACTOR = 3.0
+# Automatic thresholds (see `_similarity_limits` and `_auto_error_threshold`).
 CAPTURE_D = 0.01
-ERROR_FACTOR = 2.5
+SIMILAR_NEIGHBOURS = 4
+ERROR_FACTOR = 3.0
 SPACING_FACTOR = 0.5
 MAX_EXHAUSTIVE_SHAPES = 64
 DEFAULT_CANDIDATES = 12
@@ -242,71 +242,83 @@ def _options_dict(
 # ----------------------------------------------------------------------------- thresholds
 
 
-def _nearest_similarity(sim: Similarity, subjects: Sequence[int]) -> dict[int, float]:
-    """For each subject, the smallest computed D from any other shape to it."""
-    out = {}
-    for s in subjects:
-        col = np.delete(sim.D[:, s], s)
-        col = col[np.isfinite(col)]
-        out[s] = float(col.min()) if col.size else math.inf
-    return out
+@dataclass(frozen=True)
+class _SimilarityRule:
+    """Which (member, subject) pairs count as similar.
 
+    Explicit: ``D <= threshold`` for every pair, as in the paper. Automatic: ``D`` at
+    most the largest of ``CAPTURE_D``, the D from the subject's ``SIMILAR_NEIGHBOURS``-th
+    nearest shape and the D to the member's ``SIMILAR_NEIGHBOURS``-th nearest shape
+    (a k-nearest-neighbour graph, both ways), so that
 
-def _bottleneck_from_root(D: FloatArray, root: int) -> FloatArray:
-    """For every shape, the smallest possible largest D along a path of computed pairs
-    from the root (minimax path; inf where no path exists)."""
-    n = D.shape[0]
-    W = np.where(np.isfinite(D), D, np.inf)
-    best = np.full(n, np.inf)
-    best[root] = 0.0
-    done = np.zeros(n, dtype=bool)
-    for _ in range(n):
-        cand = np.where(done, np.inf, best)
-        u = int(np.argmin(cand))
-        if not np.isfinite(cand[u]):
-            break
-        done[u] = True
-        best = np.minimum(best, np.where(done, best, np.maximum(best[u], W[u])))
-    return best
-
-
-def _auto_similarity_threshold(sim: Similarity, subjects: Sequence[int], root: int) -> float:
-    """``max(SIMILARITY_FACTOR x median nearest-shape D, CAPTURE_D, median bottleneck)``.
-
-    - The first term adapts to the collection: shapes count as similar when they are
-      about as close as typical nearest neighbours are.
-    - ``CAPTURE_D`` is CPD's capture range measured on data with ground truth
-      (bench/calibrate_thresholds.py): after the affine pre-alignment, 85% of pairs with
-      D < 0.01 registered with an RMS correspondence error under 5% of the shape's size,
-      against 60% for 0.01-0.02 and 22% for 0.02-0.04; such pairs are never dissimilar.
-    - The median, over subjects, of the minimax ("bottleneck") D of a path from the root
-      guarantees that at least half of the collection is reachable from the root through
-      similar shapes, so a collection whose root stands apart is not left unattached.
-
-    A subject still not reachable gets no similar member and is reported unattached.
+    - a pair within CPD's capture range is always similar: measured on data with ground
+      truth (bench/calibrate_thresholds.py), after the affine pre-alignment 85% of pairs
+      with D < 0.01 registered with an RMS correspondence error under 5% of the shape's
+      size, against 60% for 0.01-0.02 and 22% for 0.02-0.04;
+    - every shape, the root included, has a few similar shapes whatever the scale of D in
+      the collection (D grows with genuine shape variety and shrinks with denser
+      sampling), so a far subject waits for one of its nearest shapes to join the tree
+      and is registered from it, which is the point of the tree.
     """
-    nn = [v for v in _nearest_similarity(sim, subjects).values() if math.isfinite(v)]
-    if not nn:
-        return math.inf
-    reach = _bottleneck_from_root(sim.D, root)[list(subjects)]
-    reach = reach[np.isfinite(reach)]
-    floor = float(np.median(reach)) if reach.size else 0.0
-    return max(SIMILARITY_FACTOR * float(np.median(nn)), CAPTURE_D, floor)
+
+    explicit: float | None
+    into: dict[int, float]  # subject -> D from its k-th nearest shape
+    out_of: dict[int, float]  # member -> D to its k-th nearest shape
+
+    @classmethod
+    def build(cls, sim: Similarity, explicit: float | None) -> _SimilarityRule:
+        if explicit is not None:
+            return cls(explicit=explicit, into={}, out_of={})
+        n = sim.D.shape[0]
+        off = ~np.eye(n, dtype=bool)
+
+        def kth(values: FloatArray) -> float:
+            v = np.sort(values[np.isfinite(values)])
+            return float(v[min(SIMILAR_NEIGHBOURS, v.size) - 1]) if v.size else 0.0
+
+        return cls(
+            explicit=None,
+            into={s: kth(sim.D[:, s][off[:, s]]) for s in range(n)},
+            out_of={m: kth(sim.D[m, :][off[m, :]]) for m in range(n)},
+        )
+
+    def limit(self, member: int, subject: int) -> float:
+        if self.explicit is not None:
+            return self.explicit
+        return max(CAPTURE_D, self.into[subject], self.out_of[member])
+
+    def similar(self, sim: Similarity, member: int, subject: int) -> bool:
+        d = sim.D[member, subject]
+        return bool(np.isfinite(d) and d <= self.limit(member, subject))
+
+
+def _similarity_report(rule: _SimilarityRule) -> dict[str, Any]:
+    values = list(rule.into.values())
+    return {
+        "similarity": rule.explicit if rule.explicit is not None
+        else max(CAPTURE_D, float(np.median(values))) if values else None,
+        "similarity_rule": "explicit" if rule.explicit is not None
+        else f"auto, per pair: max({CAPTURE_D}, D from the subject's {SIMILAR_NEIGHBOURS}th "
+        f"nearest shape, D to the member's {SIMILAR_NEIGHBOURS}th nearest shape); "
+        "'similarity' is the median over subjects",
+    }
 
 
 def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:
-    """``ERROR_FACTOR`` times the median e of the second layer's registrations.
+    """``ERROR_FACTOR`` times the lower quartile of the second layer's e.
 
-    Those are registrations of the root to the subjects most similar to it; on real
-    collections they mostly succeed, so their median e measures what "registered" means
-    for this collection (its point density, noise and genuine shape variation) and
-    failures sit far above it. Applied per subject together with a floor from the
-    subject's own sampling (:func:`_spacing_floor`).
+    Those are registrations of the root to the subjects similar to it. The best of them
+    measure what "registered" means for this collection (its point density, noise and
+    genuine shape variation); failed registrations sit an order of magnitude above
+    (generated families: 2e-4 to 5e-4 against about 5e-3). The lower quartile rather
+    than the median, because every shape's few nearest shapes count as similar, so the
+    root's similar subjects can include far ones that fail. Applied per subject together
+    with a floor from the subject's own sampling (:func:`_spacing_floor`).
     """
     errs = [o.error for o in outcomes if math.isfinite(o.error)]
     if not errs:
         return math.inf
-    return ERROR_FACTOR * float(np.median(errs))
+    return ERROR_FACTOR * float(np.percentile(errs, 25))
 
 
 def _spacing_floor(normalised: FloatArray) -> float:
@@ -387,11 +399,13 @@ def build_dynamic_tree(
         Index of the model shape.
     similarity_threshold : float, optional
         A subject is similar to a member when ``D[member, subject]`` (eq. 9, normalised
-        shapes) is at most this. Default: automatic, ``3 x`` the median over subjects of
-        D to their nearest shape.
+        shapes) is at most this. Default: automatic, per pair: the largest of CPD's
+        measured capture range (D = 0.01), the D from the subject's 4th nearest shape and
+        the D to the member's 4th nearest shape (see `_SimilarityRule`).
     error_threshold : float, optional
         A registration is accepted when e (eq. 10, normalised shapes) is below this.
-        Default: automatic, ``2.5 x`` the median e of the second layer's registrations.
+        Default: automatic, ``3 x`` the lower quartile of the second layer's e, and never
+        below half the subject's squared point spacing.
     cpd : CPDOptions, optional
     max_candidates : int
         When several members are similar to a waiting subject, the `max_candidates`
@@ -437,11 +451,7 @@ def build_dynamic_tree(
         coll, similarity_threshold, candidates, executor, progress, max_rotation
     )
     subjects_idx = [k for k in range(coll.n) if k != root]
-    tau_sim = (
-        similarity_threshold
-        if similarity_threshold is not None
-        else _auto_similarity_threshold(sim, subjects_idx, root)
-    )
+    sim_rule = _SimilarityRule.build(sim, similarity_threshold)
     tau_err = error_threshold
     floors = {s: _spacing_floor(coll.normed[s]) for s in subjects_idx}
 
@@ -464,7 +474,7 @@ def build_dynamic_tree(
             cands = sorted(
                 (float(sim.D[m, s]), m)
                 for m in nodes
-                if (m, s) not in tried and np.isfinite(sim.D[m, s]) and sim.D[m, s] <= tau_sim
+                if (m, s) not in tried and sim_rule.similar(sim, m, s)
             )[:max_candidates]
             for d, m in cands:
                 tried.add((m, s))
@@ -515,7 +525,7 @@ def build_dynamic_tree(
         r = results[s]
         r.reason = (
             f"rejected: {r.attempts[-1].reason}" if r.attempts
-            else "no similar member (no D at or below the similarity threshold)"
+            else "no similar member (no tree member's D to it within the similarity rule)"
         )
     out_subjects = [results[s] for s in subjects_idx]
     direct = (
@@ -527,13 +537,10 @@ def build_dynamic_tree(
         names=coll.names,
         subjects=out_subjects,
         thresholds={
-            "similarity": tau_sim,
-            "similarity_rule": "explicit" if similarity_threshold is not None
-            else f"auto: max({SIMILARITY_FACTOR} x median nearest-shape D, {CAPTURE_D}, "
-            "median bottleneck D from the root)",
+            **_similarity_report(sim_rule),
             "error": tau_err,
             "error_rule": "explicit" if error_threshold is not None
-            else f"auto: max({ERROR_FACTOR} x median e of layer-2 registrations, "
+            else f"auto: max({ERROR_FACTOR} x lower quartile of layer-2 e, "
             f"{SPACING_FACTOR} x the subject's squared point spacing)",
             "fold_check": fold_check,
         },
@@ -577,11 +584,7 @@ def build_static_tree(
         coll, similarity_threshold, candidates, executor, progress, max_rotation
     )
     subjects_idx = [k for k in range(coll.n) if k != root]
-    tau_sim = (
-        similarity_threshold
-        if similarity_threshold is not None
-        else _auto_similarity_threshold(sim, subjects_idx, root)
-    )
+    sim_rule = _SimilarityRule.build(sim, similarity_threshold)
     # 1. the tree, from the similarity alone
     parent: dict[int, int] = {}
     layers: list[list[int]] = [[root]]
@@ -595,8 +598,7 @@ def build_static_tree(
                    stage=f"similarity layer {len(layers) + 1}")
         new = []
         for s in sorted(waiting):
-            cands = [(float(sim.D[m, s]), m) for m in frontier
-                     if np.isfinite(sim.D[m, s]) and sim.D[m, s] <= tau_sim]
+            cands = [(float(sim.D[m, s]), m) for m in frontier if sim_rule.similar(sim, m, s)]
             if cands:
                 parent[s] = min(cands)[1]
                 new.append(s)
@@ -631,10 +633,7 @@ def build_static_tree(
         names=coll.names,
         subjects=[results[s] for s in subjects_idx],
         thresholds={
-            "similarity": tau_sim,
-            "similarity_rule": "explicit" if similarity_threshold is not None
-            else f"auto: max({SIMILARITY_FACTOR} x median nearest-shape D, {CAPTURE_D}, "
-            "median bottleneck D from the root)",
+            **_similarity_report(sim_rule),
             "error": None,
             "error_rule": "none: the static tree does not reject",
         },
