@@ -113,6 +113,7 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
             for name, sub in model_schema.pop("$defs", {}).items():
                 schemas.setdefault(name, sub)
             schemas.setdefault(model.__name__, model_schema)
+        _document_errors_as_problems(schema)
         components["securitySchemes"] = {
             "ApiKeyHeader": {"type": "apiKey", "in": "header", "name": "X-API-Key"},
             "Bearer": {"type": "http", "scheme": "bearer"},
@@ -129,3 +130,33 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
 
     app.openapi = openapi  # type: ignore[method-assign]
     return app
+
+
+_PROBLEM_CONTENT = {
+    "application/problem+json": {"schema": {"$ref": "#/components/schemas/Problem"}}
+}
+
+
+def _document_errors_as_problems(schema: dict[str, Any]) -> None:
+    """Make the schema say what the service sends: every error is a problem document.
+
+    FastAPI documents its automatic 422 as ``application/json`` ``HTTPValidationError``,
+    while the validation handler answers ``application/problem+json``; and a request body
+    that cannot be parsed at all is refused with 400 before any route code runs.
+    """
+    for item in schema.get("paths", {}).values():
+        for operation in item.values():
+            if not isinstance(operation, dict):
+                continue
+            responses = operation.setdefault("responses", {})
+            if "422" in responses:
+                responses["422"]["content"] = dict(_PROBLEM_CONTENT)
+            if "requestBody" in operation and "400" not in responses:
+                responses["400"] = {
+                    "description": "The request body cannot be parsed (malformed JSON or "
+                    "multipart).",
+                    "content": dict(_PROBLEM_CONTENT),
+                }
+    component_schemas = schema.get("components", {}).get("schemas", {})
+    for name in ("HTTPValidationError", "ValidationError"):
+        component_schemas.pop(name, None)
