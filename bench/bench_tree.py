@@ -212,9 +212,8 @@ def main() -> None:
                 dyn = build_dynamic_tree(ds.shapes, root, names=ds.names, compare_direct=True,
                                          executor=ex, **opts)
                 t1 = time.perf_counter()
-                sta = build_static_tree(ds.shapes, root, names=ds.names, executor=ex,
-                                        similarity_threshold=dyn.thresholds["similarity"],
-                                        **opts)
+                # the same (automatic, per-pair) similarity rule as the dynamic tree
+                sta = build_static_tree(ds.shapes, root, names=ds.names, executor=ex, **opts)
                 t2 = time.perf_counter()
                 plain = register_direct(ds.shapes, root, names=ds.names, executor=ex,
                                         prealign=False)
