@@ -23,6 +23,7 @@ from matplotlib import font_manager
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.font_manager import FontProperties
 
 Format = Literal["png", "svg"]
 MEDIA_TYPES: dict[str, str] = {"png": "image/png", "svg": "image/svg+xml"}
@@ -113,6 +114,8 @@ def _rc() -> Any:
         "font.sans-serif": _font_families(),
         "axes.titlesize": "medium",
         "path.simplify": False,
+        # names are shown as written: "$x$" is not mathtext
+        "text.parse_math": False,
     }
 
 
@@ -178,3 +181,130 @@ def fmt_e(value: float | None) -> str:
     if value is None:
         return "n/a"
     return f"{value:.3g}"
+
+
+# --- fitting text into a width ---------------------------------------------------------------
+
+_BREAK_AFTER = "_-/.,;:)]"
+
+
+@dataclass(frozen=True)
+class Fitted:
+    """Text fitted to a width: ``text`` (lines joined by newlines), ``fontsize`` in points,
+    ``lines``, ``width_px`` (of the widest line, as measured) and whether it was ``cut``."""
+
+    text: str
+    fontsize: float
+    lines: int
+    width_px: float
+    cut: bool
+
+
+def text_width_px(fig: Figure, text: str, fontsize: float, weight: str = "normal") -> float:
+    """Width in pixels of one line of ``text`` drawn in ``fig`` (inside :func:`figure`)."""
+    if not text:
+        return 0.0
+    renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+    prop = FontProperties(size=fontsize, weight=weight)
+    width, _, _ = renderer.get_text_width_height_descent(text, prop, ismath=False)
+    return float(width)
+
+
+def line_height_px(fontsize: float, dpi: float, lines: int = 1) -> float:
+    """Height of ``lines`` lines of text (matplotlib's 1.2 line spacing)."""
+    return 1.2 * fontsize * dpi / 72.0 * max(lines, 1)
+
+
+def _split_word(fig: Figure, word: str, max_px: float, size: float, weight: str) -> list[str]:
+    """A word too wide for a line, in pieces that fit, broken after punctuation if possible."""
+    pieces: list[str] = []
+    rest = word
+    while rest and text_width_px(fig, rest, size, weight) > max_px:
+        lo, hi = 1, len(rest)  # longest prefix that fits (at least one character)
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if text_width_px(fig, rest[:mid], size, weight) <= max_px:
+                lo = mid
+            else:
+                hi = mid - 1
+        cut = lo
+        soft = max((rest.rfind(c, 0, lo) for c in _BREAK_AFTER), default=-1)
+        if soft + 1 >= max(lo // 2, 1):
+            cut = soft + 1
+        pieces.append(rest[:cut])
+        rest = rest[cut:]
+    if rest:
+        pieces.append(rest)
+    return pieces
+
+
+def _wrap(fig: Figure, text: str, max_px: float, size: float, weight: str) -> list[str]:
+    lines: list[str] = []
+    current = ""
+    for word in text.split():
+        trial = f"{current} {word}" if current else word
+        if text_width_px(fig, trial, size, weight) <= max_px:
+            current = trial
+            continue
+        if current:
+            lines.append(current)
+        pieces = _split_word(fig, word, max_px, size, weight)
+        lines.extend(pieces[:-1])
+        current = pieces[-1] if pieces else ""
+    if current:
+        lines.append(current)
+    return lines or [""]
+
+
+def _ellipsize(fig: Figure, line: str, max_px: float, size: float, weight: str) -> str:
+    while line and text_width_px(fig, line + "…", size, weight) > max_px:
+        line = line[:-1]
+    return line.rstrip() + "…"
+
+
+def fit_text(
+    fig: Figure,
+    text: str,
+    max_px: float,
+    fontsize: float,
+    *,
+    min_fontsize: float = 7.0,
+    max_lines: int = 2,
+    weight: str = "normal",
+) -> Fitted:
+    """Fit ``text`` into ``max_px`` pixels of width (inside :func:`figure`).
+
+    On one line if it fits at ``fontsize`` or a little smaller (down to 85 %); else wrapped
+    (between words, or inside a long word after punctuation) into at most ``max_lines``
+    lines at the largest size from ``fontsize`` down to ``min_fontsize`` that needs no more;
+    else ``max_lines`` lines at ``min_fontsize``, the last ending in "…".
+    """
+    text = " ".join(text.split())
+    max_px = max(max_px, 1.0)
+    steps = [fontsize - 0.5 * k for k in range(int((fontsize - min_fontsize) / 0.5) + 1)]
+    steps = steps or [fontsize]
+
+    def fitted(lines: list[str], size: float, cut: bool) -> Fitted:
+        width = max(text_width_px(fig, line, size, weight) for line in lines)
+        return Fitted("\n".join(lines), size, len(lines), width, cut)
+
+    for size in steps:
+        if size < 0.85 * fontsize:
+            break
+        if text_width_px(fig, text, size, weight) <= max_px:
+            return fitted([text], size, False)
+    for size in steps:
+        lines = _wrap(fig, text, max_px, size, weight)
+        if len(lines) <= max_lines:
+            return fitted(lines, size, False)
+    size = steps[-1]
+    lines = _wrap(fig, text, max_px, size, weight)[:max_lines]
+    lines[-1] = _ellipsize(fig, lines[-1], max_px, size, weight)
+    return fitted(lines, size, True)
+
+
+def text_box_pixels(fig: Figure, artist: Any) -> list[float]:
+    """``[col0, row0, col1, row1]`` of a drawn text artist in PNG pixels. Call after a draw."""
+    height = fig.get_figheight() * fig.dpi
+    bbox = artist.get_window_extent(fig.canvas.get_renderer())  # type: ignore[attr-defined]
+    return [float(bbox.x0), float(height - bbox.y1), float(bbox.x1), float(height - bbox.y0)]

@@ -3,6 +3,7 @@ CPD's registration of the same subject when the job compared with it."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -18,9 +19,13 @@ from service.plots._common import (
     check_format,
     data_to_pixel,
     figure,
+    fit_text,
     fmt_e,
+    line_height_px,
     save,
     shorten,
+    text_box_pixels,
+    text_width_px,
 )
 
 SUBJECT_COLOUR = "#555555"
@@ -28,7 +33,8 @@ WARPED_COLOUR = "#d62728"
 LINE_COLOUR = "#2ca02c"
 COLOURS = {"subject": SUBJECT_COLOUR, "warped": WARPED_COLOUR, "lines": LINE_COLOUR}
 
-_TOP_PX, _BOTTOM_PX, _SIDE_PX, _GAP_PX = 64, 58, 44, 40
+_BOTTOM_PX, _SIDE_PX, _GAP_PX = 58, 44, 40
+_LEGEND_PT = 8.5
 
 
 def _points(value: Any) -> NDArray[np.float64] | None:
@@ -69,7 +75,7 @@ def _panels(subject: Mapping[str, Any], method: str) -> list[dict[str, Any]]:
                 "correspondence": None,
                 "error": None,
                 "layer": None,
-                "title": f"unattached: {shorten(reason, 70)}",
+                "title": f"unattached: {shorten(reason, 300)}",
             }
         )
     direct = subject.get("direct")
@@ -191,8 +197,14 @@ def render_subject(
 
     ``meta``: ``panels`` (per panel ``name`` — "tree", "subject" or "direct" —, ``error``,
     ``lines``, ``data_to_pixel`` ``[[a, 0, b], [0, c, d]]`` mapping a point to PNG pixel
-    column ``a x + b`` and row ``c y + d``, and ``bbox_px``), ``colours``, ``y_down``,
-    ``warnings``.
+    column ``a x + b`` and row ``c y + d``, ``bbox_px`` of the axes, ``slot_px`` of the
+    room the panel was given, and ``title``), ``title`` (the picture's), ``colours``,
+    ``y_down``, ``warnings``. A ``title`` is ``text`` (lines joined by newlines),
+    ``fontsize``, ``lines``, ``cut`` (ends in "…") and ``bbox_px``; all boxes are
+    ``[col0, row0, col1, row1]`` in PNG pixels.
+
+    Titles are fitted to their room: a little smaller on one line, else wrapped (up to four
+    lines for a panel, two for the picture), and cut with "…" only if still too long.
     """
     fmt_ = check_format(fmt)
     points = _points(subject_points)
@@ -214,39 +226,78 @@ def render_subject(
 
     k = len(panels)
     panel_w = (width - 2 * _SIDE_PX - (k - 1) * _GAP_PX) / k
-    if height is None:
-        aspect = (ylim[1] - ylim[0]) / (xlim[1] - xlim[0])
-        height = int(_TOP_PX + _BOTTOM_PX + np.clip(panel_w * aspect, 240, 1200))
-    with figure(width, height, dpi) as fig:
-        panel_h = height - _TOP_PX - _BOTTOM_PX
+    name = str(subject.get("name", ""))
+    sid = subject.get("shape_id")
+    heading = title or (f"{shorten(name, 120)} (shape {sid})" if sid is not None else name)
+    # provisional height: titles are fitted to widths, then the height is settled
+    with figure(width, height or 600, dpi) as fig:
+        # a title may use its panel's width and half of each gap beside it
+        title_px = panel_w + _GAP_PX - 8
+        titles = [
+            fit_text(fig, p["title"], title_px, 9.5, min_fontsize=7.5, max_lines=4) for p in panels
+        ]
+        # side by side panels read alike: one size for their titles
+        size = min(t.fontsize for t in titles)
+        titles = [
+            fit_text(fig, p["title"], title_px, size, min_fontsize=size, max_lines=4)
+            for p in panels
+        ]
+        head = fit_text(fig, heading, width - 24, 12.0, min_fontsize=9.0, max_lines=2)
+        legend_labels = ["subject points"]
+        if any(p["warped"] is not None for p in panels):
+            legend_labels.append("model warped onto it")
+        if n_lines > 0 and any(
+            p["warped"] is not None and p["correspondence"] is not None for p in panels
+        ):
+            legend_labels.append(f"correspondences ({n_lines} sampled)")
+        entry_px = [
+            text_width_px(fig, label, _LEGEND_PT) + 4.0 * _LEGEND_PT * dpi / 72
+            for label in legend_labels
+        ]
+        legend_cols = len(entry_px)
+        while legend_cols > 1 and sum(entry_px[:legend_cols]) > width - 16:
+            legend_cols -= 1
+        legend_rows = math.ceil(len(entry_px) / legend_cols)
+
+        title_h = max(line_height_px(t.fontsize, dpi, t.lines) for t in titles)
+        top_px = 10 + line_height_px(head.fontsize, dpi, head.lines) + 12 + title_h + 10
+        bottom_px = _BOTTOM_PX + line_height_px(_LEGEND_PT, dpi, legend_rows - 1) * 1.4
+        if height is None:
+            aspect = (ylim[1] - ylim[0]) / (xlim[1] - xlim[0])
+            height = int(top_px + bottom_px + np.clip(panel_w * aspect, 160, 1200))
+            fig.set_size_inches(width / dpi, height / dpi)
+        panel_h = max(height - top_px - bottom_px, 20.0)
         axes: list[Axes] = []
         lines: list[int] = []
+        title_artists = []
         for i, panel in enumerate(panels):
             left = _SIDE_PX + i * (panel_w + _GAP_PX)
-            ax = fig.add_axes(
-                (left / width, _BOTTOM_PX / height, panel_w / width, panel_h / height)
-            )
+            ax = fig.add_axes((left / width, bottom_px / height, panel_w / width, panel_h / height))
             ax.set_gid(f"panel-{panel['name']}")
             lines.append(_draw_panel(ax, panel, points, n_lines, marker, warnings))
             ax.set_xlim(*xlim)
             ax.set_ylim(*(ylim[::-1] if y_down else ylim))
             ax.set_aspect("equal", adjustable="box", anchor="C")
             ax.tick_params(labelsize=7, colors="#666666")
-            ax.set_title(panel["title"], fontsize=9.5)
+            title_artists.append(
+                ax.set_title(titles[i].text, fontsize=titles[i].fontsize, linespacing=1.2)
+            )
             axes.append(ax)
 
-        name = str(subject.get("name", ""))
-        sid = subject.get("shape_id")
-        fig.suptitle(
-            title or (f"{shorten(name, 60)} (shape {sid})" if sid is not None else name),
+        suptitle = fig.suptitle(
+            head.text,
             y=1 - 10 / height,
             va="top",
-            fontsize=12,
+            fontsize=head.fontsize,
+            linespacing=1.2,
         )
         handles = [
             Line2D([], [], ls="", marker="o", color=SUBJECT_COLOUR, label="subject points"),
-            Line2D([], [], ls="", marker="o", color=WARPED_COLOUR, label="model warped onto it"),
         ]
+        if len(legend_labels) > 1:
+            handles.append(
+                Line2D([], [], ls="", marker="o", color=WARPED_COLOUR, label=legend_labels[1])
+            )
         if any(lines):
             handles.append(
                 Line2D([], [], color=LINE_COLOUR, label=f"correspondences ({max(lines)} sampled)")
@@ -254,9 +305,9 @@ def render_subject(
         fig.legend(
             handles=handles,
             loc="lower center",
-            ncols=len(handles),
+            ncols=min(legend_cols, len(handles)),
             frameon=False,
-            fontsize=8.5,
+            fontsize=_LEGEND_PT,
             bbox_to_anchor=(0.5, 2 / height),
         )
         fig.canvas.draw()
@@ -268,9 +319,29 @@ def render_subject(
                     "lines": n,
                     "data_to_pixel": data_to_pixel(fig, ax),
                     "bbox_px": axes_box_pixels(fig, ax),
+                    "slot_px": [
+                        _SIDE_PX + i * (panel_w + _GAP_PX),
+                        top_px,
+                        _SIDE_PX + i * (panel_w + _GAP_PX) + panel_w,
+                        height - bottom_px,
+                    ],
+                    "title": {
+                        "text": titles[i].text,
+                        "fontsize": titles[i].fontsize,
+                        "lines": titles[i].lines,
+                        "cut": titles[i].cut,
+                        "bbox_px": text_box_pixels(fig, title_artists[i]),
+                    },
                 }
-                for panel, ax, n in zip(panels, axes, lines, strict=True)
+                for i, (panel, ax, n) in enumerate(zip(panels, axes, lines, strict=True))
             ],
+            "title": {
+                "text": head.text,
+                "fontsize": head.fontsize,
+                "lines": head.lines,
+                "cut": head.cut,
+                "bbox_px": text_box_pixels(fig, suptitle),
+            },
             "colours": dict(COLOURS),
             "y_down": y_down,
             "warnings": warnings,

@@ -201,8 +201,8 @@ def near_fraction(image: np.ndarray, panel: dict[str, Any], points: np.ndarray) 
     red[r0:r1, c0:c1] = colour_mask(image[r0:r1, c0:c1], WARPED_COLOUR)
     subject = np.zeros_like(red)
     px = np.round(project(points, panel["data_to_pixel"])).astype(int)
-    inside = (px[:, 0] >= 0) & (px[:, 0] < red.shape[1]) & (px[:, 1] >= 0)
-    inside &= px[:, 1] < red.shape[0]
+    rows, cols = image.shape[:2]
+    inside = (px[:, 0] >= 0) & (px[:, 0] < cols) & (px[:, 1] >= 0) & (px[:, 1] < rows)
     subject[px[inside, 1], px[inside, 0]] = True
     near = ndimage.distance_transform_edt(~subject) <= 10
     assert red.sum() > 50, "the warped model is not drawn"
@@ -275,6 +275,70 @@ def test_subject_unattached_shows_reason_and_direct(real: dict[str, Any]) -> Non
     # correspondences that do not index these points are reported, not drawn
     mismatch = render_subject(base, points[:10])
     assert mismatch.meta["panels"][0]["lines"] == 0 and mismatch.meta["warnings"]
+
+
+LONG_NAME = "aoyagi-soseki__aoyagi-soseki__0_edge_outline_of_the_glyph_with_a_long_name"
+LONG_REASON = (
+    "no member of the tree registered it within the error threshold "
+    "(best e = 0.0123 from shape 17, threshold 0.0045); similar to 0 members"
+)
+
+
+def within(box: list[float], room: list[float], slack: float = 1.0) -> bool:
+    return (
+        box[0] >= room[0] - slack
+        and box[2] <= room[2] + slack
+        and box[1] >= room[1] - slack
+        and box[3] <= room[3] + slack
+    )
+
+
+def apart(a: list[float], b: list[float]) -> bool:
+    return a[2] <= b[0] or b[2] <= a[0] or a[3] <= b[1] or b[3] <= a[1]
+
+
+@pytest.mark.parametrize("width", [700, 520])
+@pytest.mark.parametrize("attached", [True, False])
+def test_subject_titles_fit_their_panels(real: dict[str, Any], width: int, attached: bool) -> None:
+    base = good_subject(real)
+    points = real["points"][base["shape_id"]]
+    subject = dict(base, name=LONG_NAME)
+    if not attached:
+        subject.update(attached=False, layer=None, warped=None, correspondence=None)
+        subject["reason"] = LONG_REASON
+    rendered = render_subject(subject, points, width=width, method="dynamic_tree")
+    meta = rendered.meta
+    panels = meta["panels"]
+    assert [p["name"] for p in panels] == (["tree" if attached else "subject", "direct"])
+    picture = [0.0, 0.0, float(rendered.width), float(rendered.height)]
+    gaps = [panels[0]["slot_px"][2], panels[1]["slot_px"][0]]
+    for i, panel in enumerate(panels):
+        title = panel["title"]
+        # within the panel's column (up to the middle of the gap beside it) and the picture
+        left = (gaps[0] + gaps[1]) / 2 if i else 0.0
+        right = (gaps[0] + gaps[1]) / 2 if i == 0 else float(rendered.width)
+        assert within(title["bbox_px"], [left, 0.0, right, panel["bbox_px"][1]]), title
+        assert within(title["bbox_px"], picture)
+        # the whole text is shown, legibly
+        assert not title["cut"] and title["fontsize"] >= 7.5
+    if not attached:  # lines break between words, or inside a word too long for a line
+        shown = panels[0]["title"]["text"].replace("\n", " ").split()
+        assert "".join(shown) == "".join(f"unattached: {LONG_REASON}".split())
+    assert apart(panels[0]["title"]["bbox_px"], panels[1]["title"]["bbox_px"])
+    heading = meta["title"]
+    assert within(heading["bbox_px"], picture) and not heading["cut"]
+    assert LONG_NAME in heading["text"].replace("\n", "")
+    for panel in panels:
+        assert apart(heading["bbox_px"], panel["title"]["bbox_px"])
+    # the same boxes hold in the SVG: titles are text with the same lines
+    svg = render_subject(subject, points, width=width, fmt="svg", method="dynamic_tree")
+    texts = svg_texts(ET.fromstring(svg.data))
+    for panel in panels:
+        for line in panel["title"]["text"].split("\n"):
+            assert line in texts
+    # wider, the titles are whole too
+    wide = render_subject(subject, points, width=900, method="dynamic_tree").meta
+    assert not any(p["title"]["cut"] for p in wide["panels"])
 
 
 def test_find_subject(real: dict[str, Any]) -> None:
