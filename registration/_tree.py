@@ -252,9 +252,9 @@ class _SimilarityRule:
     (a k-nearest-neighbour graph, both ways), so that
 
     - a pair within CPD's capture range is always similar: measured on data with ground
-      truth (bench/calibrate_thresholds.py), after the affine pre-alignment 85% of pairs
+      truth (bench/calibrate_thresholds.py), after the affine pre-alignment 95% of pairs
       with D < 0.01 registered with an RMS correspondence error under 5% of the shape's
-      size, against 60% for 0.01-0.02 and 22% for 0.02-0.04;
+      size, against 65% for 0.01-0.02 and 26% for 0.02-0.04;
     - every shape, the root included, has a few similar shapes whatever the scale of D in
       the collection (D grows with genuine shape variety and shrinks with denser
       sampling), so a far subject waits for one of its nearest shapes to join the tree
