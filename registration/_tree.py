@@ -364,6 +364,23 @@ def _prepare_similarity(
     return sim, allowed
 
 
+def _ensure_frontier(
+    sim: Similarity,
+    frontier: Sequence[int],
+    waiting: set[int],
+    allowed: set[tuple[int, int]] | None,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+    layer: int,
+) -> None:
+    """Compute D from the newest members to the waiting subjects (lazily: only the pairs
+    that can give a subject its next candidate)."""
+    pairs = [(m, s) for m in frontier for s in sorted(waiting)]
+    if allowed is not None:
+        pairs = [p for p in pairs if p in allowed]
+    sim.ensure(pairs, executor=executor, progress=progress, stage=f"similarity layer {layer}")
+
+
 def _check_threshold(name: str, value: float | None) -> None:
     if value is not None and not (value > 0 and math.isfinite(value)):
         raise ValueError(f"{name} must be a positive finite number or None; got {value}")
@@ -465,10 +482,7 @@ def build_dynamic_tree(
     layer = 1
     while waiting and frontier:
         layer += 1
-        pairs = [(m, s) for m in frontier for s in sorted(waiting)]
-        if allowed is not None:
-            pairs = [p for p in pairs if p in allowed]
-        sim.ensure(pairs, executor=executor, progress=progress, stage=f"similarity layer {layer}")
+        _ensure_frontier(sim, frontier, waiting, allowed, executor, progress, layer)
         tasks: list[_RegTask] = []
         for s in sorted(waiting):
             cands = sorted(
@@ -591,11 +605,7 @@ def build_static_tree(
     waiting = set(subjects_idx)
     while waiting and layers[-1]:
         frontier = layers[-1]
-        pairs = [(m, s) for m in frontier for s in sorted(waiting)]
-        if allowed is not None:
-            pairs = [p for p in pairs if p in allowed]
-        sim.ensure(pairs, executor=executor, progress=progress,
-                   stage=f"similarity layer {len(layers) + 1}")
+        _ensure_frontier(sim, frontier, waiting, allowed, executor, progress, len(layers) + 1)
         new = []
         for s in sorted(waiting):
             cands = [(float(sim.D[m, s]), m) for m in frontier if sim_rule.similar(sim, m, s)]
