@@ -114,8 +114,6 @@ def _rc() -> Any:
         "font.sans-serif": _font_families(),
         "axes.titlesize": "medium",
         "path.simplify": False,
-        # names are shown as written: "$x$" is not mathtext
-        "text.parse_math": False,
     }
 
 

@@ -280,7 +280,12 @@ def render_subject(
             ax.set_aspect("equal", adjustable="box", anchor="C")
             ax.tick_params(labelsize=7, colors="#666666")
             title_artists.append(
-                ax.set_title(titles[i].text, fontsize=titles[i].fontsize, linespacing=1.2)
+                ax.set_title(
+                    titles[i].text,
+                    fontsize=titles[i].fontsize,
+                    linespacing=1.2,
+                    parse_math=False,
+                )
             )
             axes.append(ax)
 
@@ -290,6 +295,7 @@ def render_subject(
             va="top",
             fontsize=head.fontsize,
             linespacing=1.2,
+            parse_math=False,
         )
         handles = [
             Line2D([], [], ls="", marker="o", color=SUBJECT_COLOUR, label="subject points"),

@@ -131,6 +131,7 @@ def render_summary(
             y=1 - 10 / height,
             va="top",
             fontsize=12,
+            parse_math=False,
         )
         fig.text(0.5, 1 - 36 / height, subtitle, ha="center", va="top", fontsize=9, color="#444")
         meta: dict[str, Any] = {

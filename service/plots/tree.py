@@ -27,6 +27,8 @@ UNATTACHED_COLOUR = "#888888"
 NAME_LIMIT = 40  # characters of a name drawn; longer names end in "…"
 
 _LEFT_PX, _RIGHT_PX, _TOP_PX, _BOTTOM_PX = 64, 120, 56, 24
+_WIDE_PX = 2400  # widest default picture with names written across
+_UPRIGHT_SLOT_PX = 30  # room per shape in a row when names are upright
 
 
 @dataclass
@@ -68,36 +70,81 @@ def _build(doc: Mapping[str, Any]) -> tuple[dict[int, _Node], list[tuple[int, st
     return nodes, unattached, warnings
 
 
-def _layout(nodes: dict[int, _Node], root: int) -> int:
-    """Tidy layered layout: leaves on consecutive slots in depth-first order, each parent
-    centred over its children, so rows never cross. Returns the number of slots."""
-    next_slot = 0
-    seen: set[int] = set()
-    stack: list[tuple[int, bool]] = [(root, False)]
+def _layout(nodes: dict[int, _Node], root: int, row: dict[int, int]) -> float:
+    """Tidy layered layout (in the manner of Reingold and Tilford); ``row`` maps a layer to its
+    row. Returns the width in slots.
+
+    Each subtree is laid out on its own, then a parent's subtrees are put side by side,
+    left to right in the document's order, each as close to the previous ones as keeps every
+    row's nodes at least one slot apart; the parent goes at the mean x of its children. So
+    rows never cross, a parent is over its children, and a shallow branch tucks in beside
+    deeper ones instead of taking columns of its own all the way down. An edge that skips
+    rows (a child attached layers after its parent) keeps its rows clear as a node would.
+    """
+    # the tree as reached from the root, children in order (a broken document's cycles cut)
+    order: list[int] = []
+    seen = {root}
+    stack = [root]
     while stack:
-        sid, done = stack.pop()
+        sid = stack.pop()
+        order.append(sid)
+        kids = [c for c in nodes[sid].children if c not in seen]
+        seen.update(kids)
+        nodes[sid].children = kids
+        stack.extend(reversed(kids))
+
+    # per subtree, relative to its root: the children's offsets and the row contours
+    offset: dict[int, float] = {}
+    left: dict[int, dict[int, float]] = {}
+    right: dict[int, dict[int, float]] = {}
+    for sid in reversed(order):  # children before parents
         node = nodes[sid]
-        if done:
-            kids = [nodes[c] for c in node.children if c in seen]
-            node.x = (kids[0].x + kids[-1].x) / 2 if kids else node.x
+        r = row[node.layer]
+        if not node.children:
+            left[sid], right[sid] = {r: 0.0}, {r: 0.0}
             continue
-        if sid in seen:
-            continue
-        seen.add(sid)
-        kids_todo = [c for c in node.children if c not in seen]
-        node.children = kids_todo
-        if not kids_todo:
-            node.x = float(next_slot)
-            next_slot += 1
-            continue
-        stack.append((sid, True))
-        stack.extend((c, False) for c in reversed(kids_todo))
+        forest_left: dict[int, float] = {}
+        forest_right: dict[int, float] = {}
+        placed: list[float] = []
+        for c in node.children:
+            c_left, c_right = left.pop(c), right.pop(c)
+            # the edge from this node down to the child passes the rows between them
+            c_row = row[nodes[c].layer]
+            for between in range(r + 1, c_row):
+                c_left.setdefault(between, 0.0)
+                c_right.setdefault(between, 0.0)
+            common = [k for k in c_left if k in forest_right]
+            if common:
+                x = max(forest_right[k] - c_left[k] + 1.0 for k in common)
+            else:
+                x = placed[-1] + 1.0 if placed else 0.0
+            placed.append(x)
+            offset[c] = x
+            for k, v in c_left.items():
+                forest_left[k] = min(forest_left.get(k, math.inf), v + x)
+            for k, v in c_right.items():
+                forest_right[k] = max(forest_right.get(k, -math.inf), v + x)
+        centre = float(np.mean(placed))
+        for c in node.children:
+            offset[c] -= centre
+        left[sid] = {k: v - centre for k, v in forest_left.items()}
+        right[sid] = {k: v - centre for k, v in forest_right.items()}
+        left[sid][r] = min(left[sid].get(r, 0.0), 0.0)
+        right[sid][r] = max(right[sid].get(r, 0.0), 0.0)
+
+    # absolute positions, the leftmost node at 0
+    lowest = min(left[root].values())
+    nodes[root].x = -lowest
+    for sid in order:
+        for c in nodes[sid].children:
+            nodes[c].x = nodes[sid].x + offset[c]
+    width = max(right[root].values()) - lowest + 1.0
     # nodes unreachable from the root (cycles in a broken document): a slot each
     for node in nodes.values():
         if node.shape_id not in seen:
-            node.x = float(next_slot)
-            next_slot += 1
-    return max(next_slot, 1)
+            node.x = width
+            width += 1.0
+    return max(width, 1.0)
 
 
 def _edge_norm(errors: list[float]) -> tuple[Normalize, str]:
@@ -139,20 +186,26 @@ def render_tree(
     from the member a shape was registered from to the shape, coloured by that shape's
     registration error e (colour bar on the right; logarithmic when e spans more than 50x).
     Shapes no member could register are in a separate box labelled "unattached" below.
+    The layout is tidy (see `_layout`): each parent at the mean x of its children, rows that
+    never cross, subtrees packed side by side. Names are written across below their shapes
+    when that keeps the picture at most 2400 px wide by default; otherwise (or when a
+    ``width`` leaves too little room) they stand upright, read downwards from the shape
+    (``label_rotation`` 270), and the shapes of a row are about 30 px apart.
 
     In SVG the tree is the group ``<g id="tree">`` and the box ``<g id="unattached">``; each
     name is a ``<text>`` in a group ``node-<shape_id>`` (``unattached-<shape_id>``).
     ``meta`` holds ``nodes`` (shape_id, name, layer, parent_shape_id, error, x), ``unattached``
     (shape_id, name), ``depth``, ``norm`` ("log" or "linear"), ``e_range``, ``label_rotation``
-    and ``warnings``.
+    (0 or 270), ``label_fontsize`` and ``warnings``; ``x`` is in slots, one slot at least
+    between two shapes of a row.
     """
     fmt_ = check_format(fmt)
     nodes, unattached, warnings = _build(result)
     root = _doc.root_id(result)
-    slots = _layout(nodes, root)
     depth = max(n.layer for n in nodes.values())
     layers = sorted({n.layer for n in nodes.values()})
     layer_index = {layer: i for i, layer in enumerate(layers)}
+    slots = _layout(nodes, root, layer_index)
 
     label_len = (
         max(len(shorten(n.name, NAME_LIMIT)) for n in nodes.values() if n.parent)
@@ -160,7 +213,14 @@ def render_tree(
         else len(shorten(nodes[root].name, NAME_LIMIT))
     )
     auto_slot = float(min(120, max(34, 7.5 * label_len + 14)))
-    fig_w = width or int(min(4000, max(640, _LEFT_PX + _RIGHT_PX + slots * auto_slot)))
+    if width:
+        fig_w = width
+    elif _LEFT_PX + _RIGHT_PX + slots * auto_slot <= _WIDE_PX:
+        fig_w = int(max(640, _LEFT_PX + _RIGHT_PX + slots * auto_slot))
+    else:
+        # names side by side would make a very wide picture: they stand upright instead,
+        # and the shapes of a row come closer
+        fig_w = int(min(20_000, max(640, _LEFT_PX + _RIGHT_PX + slots * _UPRIGHT_SLOT_PX)))
     axes_w = max(fig_w - _LEFT_PX - _RIGHT_PX, 40)
     slot_px = axes_w / slots
 
@@ -168,7 +228,7 @@ def render_tree(
     fontsize, rotation = 9.0, 0
     while fontsize > 4 and _text_px(label_len, fontsize, dpi) > 0.92 * slot_px:
         if rotation == 0 and 1.4 * fontsize * dpi / 72 < 0.9 * slot_px:
-            rotation = 90
+            rotation = 270  # upright, read downwards from the node
             break
         fontsize -= 0.5
     label_px = (_text_px(label_len, fontsize, dpi) if rotation else 1.4 * fontsize * dpi / 72) + 10
@@ -256,12 +316,16 @@ def render_tree(
             label = shorten(node.name, NAME_LIMIT)
             if is_model:
                 # the model sits on top: its name goes above it, clear of the edges
+                label += " (model)"
+                # ... and stays inside the picture when the model is near a side
+                centre_px = _LEFT_PX + (node.x + 0.5) / slots * axes_w
+                half = 0.55 * _text_px(len(label), fontsize, dpi) + 6
+                shift_px = max(0.0, half - centre_px) - max(0.0, centre_px + half - fig_w)
                 where: dict[str, Any] = {
-                    "xytext": (0, offset * 1.3),
+                    "xytext": (shift_px * 72 / dpi, offset * 1.3),
                     "ha": "center",
                     "va": "bottom",
                 }
-                label += " (model)"
             elif rotation:
                 # vertical names beside the node, clear of an edge going straight down
                 where = {"xytext": (2, -offset), "ha": "left", "va": "top"}
@@ -276,6 +340,7 @@ def render_tree(
                 color=ROOT_COLOUR if is_model else "#111111",
                 fontweight="bold" if is_model else "normal",
                 annotation_clip=False,
+                parse_math=False,  # a name is shown as written, "$" and all
                 bbox={"boxstyle": "square,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.85},
                 zorder=3,
                 **where,
@@ -283,12 +348,14 @@ def render_tree(
             text.set_gid(f"node-{node.shape_id}")
 
         if segments:
+            tree_bottom = _BOTTOM_PX + u_h + 16 if unattached else _BOTTOM_PX
+            bar_h = min(max(tree_h * 0.8, 20), 420)
             cax = fig.add_axes(
                 (
                     (fig_w - _RIGHT_PX + 28) / fig_w,
-                    (_BOTTOM_PX + u_h + 16) / fig_h if unattached else _BOTTOM_PX / fig_h,
+                    (tree_bottom + 0.8 * tree_h - bar_h) / fig_h,
                     14 / fig_w,
-                    max(tree_h * 0.8, 20) / fig_h,
+                    bar_h / fig_h,
                 )
             )
             cb = fig.colorbar(ScalarMappable(norm=norm, cmap=EDGE_CMAP), cax=cax)
@@ -318,7 +385,7 @@ def render_tree(
                             edgecolor=UNATTACHED_COLOUR, linewidths=1.0)  # fmt: skip
                 t = uax.text(
                     col, -row + 0.2, shorten(name, NAME_LIMIT), ha="center", va="top",
-                    fontsize=u_fontsize, color="#444444", clip_on=False,
+                    fontsize=u_fontsize, color="#444444", clip_on=False, parse_math=False,
                 )  # fmt: skip
                 t.set_gid(f"unattached-{sid}")
 
@@ -334,6 +401,7 @@ def render_tree(
             ha="left",
             va="top",
             fontsize=11,
+            parse_math=False,
         )
         meta = {
             "nodes": [

@@ -7,6 +7,7 @@ import json
 import re
 import threading
 import xml.etree.ElementTree as ET
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -169,6 +170,74 @@ def test_tree_real_result_and_log_colour_scale(real: dict[str, Any]) -> None:
     assert render_tree(spread, fmt="png").meta["norm"] == "log"
 
 
+def tree_doc(parents: dict[int, int], layers: dict[int, int], **names: str) -> dict[str, Any]:
+    """A result document from child -> parent and child -> layer (the root is shape 1)."""
+    subjects = [
+        {"shape_id": k, "name": names.get(f"s{k}", f"shape-{k}"), "layer": layers[k],
+         "attached": True, "parent_shape_id": p, "error": 0.001 * k}
+        for k, p in parents.items()
+    ]  # fmt: skip
+    return {"job_id": 1, "method": "dynamic_tree", "root_shape_id": 1, "subjects": subjects}
+
+
+def check_tidy(meta: dict[str, Any]) -> dict[int, dict[str, Any]]:
+    nodes = {n["shape_id"]: n for n in meta["nodes"]}
+    rows: dict[int, list[float]] = {}
+    for n in nodes.values():
+        rows.setdefault(n["layer"], []).append(n["x"])
+    for xs in rows.values():
+        xs.sort()
+        assert all(b - a >= 1 - 1e-9 for a, b in pairwise(xs))
+    for sid, node in nodes.items():
+        kids = [n["x"] for n in nodes.values() if n["parent_shape_id"] == sid]
+        if kids:  # each parent at the mean of its children
+            assert node["x"] == pytest.approx(float(np.mean(kids)))
+    return nodes
+
+
+def test_tree_layout_is_tidy_and_compact() -> None:
+    # root -> a (three leaves under it), b (a leaf): b tucks in beside a's children's row
+    doc = tree_doc({2: 1, 3: 1, 4: 2, 5: 2, 6: 2}, {2: 2, 3: 2, 4: 3, 5: 3, 6: 3})
+    nodes = check_tidy(render_tree(doc, fmt="svg").meta)
+    assert [nodes[k]["x"] for k in (4, 5, 6)] == [0.0, 1.0, 2.0]
+    assert nodes[2]["x"] == 1.0 and nodes[3]["x"] == 2.0  # not a column of its own
+    assert nodes[1]["x"] == 1.5  # the model is over its children, not off to a side
+
+    # a big random tree, some children attached layers after their parents
+    rng = np.random.default_rng(3)
+    parents: dict[int, int] = {}
+    layers = {1: 1}
+    for k in range(2, 302):
+        parent = int(rng.choice(list(layers)[-40:]))
+        parents[k] = parent
+        layers[k] = layers[parent] + int(rng.choice([1, 1, 1, 2]))
+    rendered = render_tree(tree_doc(parents, layers), fmt="svg")
+    nodes = check_tidy(rendered.meta)
+    # an edge that skips rows keeps them clear: no node of a skipped row sits on it
+    for k, node in nodes.items():
+        parent = nodes[node["parent_shape_id"]] if node["parent_shape_id"] else None
+        if parent is None or node["layer"] - parent["layer"] < 2:
+            continue
+        between = [n["x"] for n in nodes.values() if parent["layer"] < n["layer"] < node["layer"]]
+        assert all(abs(x - node["x"]) >= 1 - 1e-9 for x in between), k
+    # names stand upright rather than making a very wide picture; every name is there
+    assert rendered.meta["label_rotation"] == 270
+    slots = max(n["x"] for n in nodes.values()) + 1
+    assert rendered.width <= 200 + 30 * slots  # about 30 px a shape, not 80 for a wide name
+    texts = svg_texts(svg_group(ET.fromstring(rendered.data), "tree"))
+    assert all(f"shape-{k}" in texts for k in parents)
+
+
+def test_tree_names_are_drawn_as_written() -> None:
+    names = {"s2": "cost $5 and $6", "s3": r"$\alpha$"}
+    doc = tree_doc({2: 1, 3: 1}, {2: 2, 3: 2}, **names)
+    doc["subjects"].append(
+        {"shape_id": 4, "name": "$x$", "layer": None, "attached": False, "error": None}
+    )
+    texts = svg_texts(ET.fromstring(render_tree(doc, fmt="svg").data))
+    assert {"cost $5 and $6", r"$\alpha$", "$x$"} <= set(texts)
+
+
 def test_tree_crowded_labels_turn_vertical() -> None:
     subjects = [
         {"shape_id": k, "name": f"glyph-instance-{k:04d}", "layer": 2, "attached": True,
@@ -177,7 +246,7 @@ def test_tree_crowded_labels_turn_vertical() -> None:
     ]  # fmt: skip
     doc = {"job_id": 1, "method": "dynamic_tree", "root_shape_id": 1, "subjects": subjects}
     rendered = render_tree(doc, fmt="png", width=1600)
-    assert rendered.meta["label_rotation"] == 90
+    assert rendered.meta["label_rotation"] == 270
     assert png_image(rendered).shape[1] == 1600
 
 
