@@ -6,6 +6,14 @@ foreign keys on, and pysqlite's own transaction handling is switched off so that
 half-way through, so two writers queue on the busy timeout instead of one failing with
 "database is locked" on lock upgrade (the SQLAlchemy pysqlite "serializable isolation" recipe).
 
+PostgreSQL (``postgresql+psycopg://user:password@host/db``) works with the same code: its
+transactions are READ COMMITTED, so the few places that must not race say so themselves, in a
+form that SQLite ignores or does not need: the job queue claims with ``FOR UPDATE SKIP
+LOCKED`` (:mod:`service.jobs.queue`), an ``Idempotency-Key`` is serialised with a
+transaction-level advisory lock (:mod:`service.api.idempotency`), and read-modify-write
+routes lock their row with ``FOR UPDATE``. ``SELECT ... FOR UPDATE`` compiles to plain
+``SELECT`` on SQLite, where ``BEGIN IMMEDIATE`` already serialises every writer.
+
 Use :meth:`Database.read` for reads and :meth:`Database.write` for anything that writes.
 """
 
@@ -26,6 +34,11 @@ def _is_sqlite(url: str) -> bool:
     return make_url(url).get_backend_name() == "sqlite"
 
 
+def is_postgresql(session: Session) -> bool:
+    """Whether a session talks to PostgreSQL."""
+    return bool(session.get_bind().dialect.name == "postgresql")
+
+
 def ensure_sqlite_dir(url: str) -> None:
     """Create the folder of a file-backed SQLite URL (``./var`` by default)."""
     parsed = make_url(url)
@@ -36,6 +49,8 @@ def ensure_sqlite_dir(url: str) -> None:
 def create_db_engine(url: str, *, busy_timeout_ms: int = 30_000) -> Engine:
     """Create an engine; for SQLite, set up WAL, busy timeout, foreign keys and BEGIN modes."""
     if not _is_sqlite(url):
+        # A server database: pre-ping so that a connection the server dropped (restart,
+        # idle timeout) is replaced instead of failing the next request.
         return create_engine(url, pool_pre_ping=True)
 
     ensure_sqlite_dir(url)
@@ -87,6 +102,8 @@ class Database:
     @contextmanager
     def write(self) -> Iterator[Session]:
         """A session whose transaction starts with ``BEGIN IMMEDIATE`` on SQLite.
+
+        On PostgreSQL it is an ordinary READ COMMITTED transaction (see the module's notes).
 
         Commits when the block ends normally, rolls back on an exception.
         """

@@ -5,6 +5,11 @@ Every state change a worker makes is one conditional UPDATE, guarded by
 expired and whose job was claimed again (``attempts`` went up) therefore cannot write
 anything: its UPDATE matches no row, and it learns that it lost the job. On SQLite all of it
 runs in ``BEGIN IMMEDIATE`` transactions (:meth:`Database.write`), so claims are serialised.
+
+On PostgreSQL (READ COMMITTED) the claim and the reaper select their rows with ``FOR UPDATE
+SKIP LOCKED``: concurrent workers each lock a different job instead of queueing behind one
+another's, and a job is claimed by one of them only. The guarded UPDATE stays as the fence.
+SQLite compiles ``FOR UPDATE`` away; there ``BEGIN IMMEDIATE`` does that work.
 """
 
 from __future__ import annotations
@@ -66,7 +71,10 @@ def reap_expired(session: Session, now: datetime) -> list[int]:
     ends ``failed`` with an error saying so. Others stay claimable by :func:`claim`.
     """
     expired = session.scalars(
-        select(Job).where(Job.status == JobStatus.running.value, Job.lease_expires_at < now)
+        select(Job)
+        .where(Job.status == JobStatus.running.value, Job.lease_expires_at < now)
+        .order_by(Job.id)
+        .with_for_update(skip_locked=True)
     ).all()
     settled = []
     for job in expired:
@@ -108,7 +116,11 @@ def claim(db: Database, owner: str, *, lease_seconds: float) -> Claim | None:
             ),
         )
         job = session.scalars(
-            select(Job).where(claimable).order_by(Job.created_at, Job.id).limit(1)
+            select(Job)
+            .where(claimable)
+            .order_by(Job.created_at, Job.id)
+            .limit(1)
+            .with_for_update(skip_locked=True)
         ).first()
         if job is None:
             return None
@@ -184,7 +196,11 @@ def complete(
     """
     now = utcnow()
     with db.write() as session:
-        cancel = session.scalar(select(Job.cancel_requested).where(Job.id == claim.job_id))
+        # Locked (on PostgreSQL) so that a cancel cannot slip in between this read and the
+        # update below: the cancel route locks the same row (see routes/jobs.py).
+        cancel = session.scalar(
+            select(Job.cancel_requested).where(Job.id == claim.job_id).with_for_update()
+        )
         if cancel:
             cancelled = _update(
                 session,

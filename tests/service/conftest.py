@@ -1,6 +1,7 @@
 """Fixtures that run the real service: ``regtree serve`` / ``regtree worker`` subprocesses.
 
-Each server gets a free port and its own SQLite file; settings go through REGTREE_*
+Each server gets a free port and its own SQLite file (or the ``database_url`` it is given,
+e.g. a scratch PostgreSQL database); settings go through REGTREE_*
 environment variables exactly as an operator would set them. Leases are short so that
 crash recovery is testable in seconds.
 """
@@ -55,13 +56,21 @@ def _stop(process: subprocess.Popen[bytes], timeout: float = 20.0) -> None:
 class Service:
     """A ``regtree serve`` subprocess plus any ``regtree worker`` subprocesses."""
 
-    def __init__(self, workdir: Path, *, workers: int = 1, env: dict[str, str] | None = None):
+    def __init__(
+        self,
+        workdir: Path,
+        *,
+        workers: int = 1,
+        env: dict[str, str] | None = None,
+        database_url: str | None = None,
+    ):
         self.workdir = workdir
         self.db_path = workdir / "regtree.sqlite"
+        self.database_url = database_url or f"sqlite:///{self.db_path}"
         self.env = {
             **os.environ,
             **FAST_ENV,
-            "REGTREE_DATABASE_URL": f"sqlite:///{self.db_path}",
+            "REGTREE_DATABASE_URL": self.database_url,
             "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])),
             **(env or {}),
         }

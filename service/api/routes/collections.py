@@ -37,8 +37,10 @@ def collection_out(collection: Collection, n_shapes: int) -> CollectionOut:
     )
 
 
-def get_collection_or_404(session: Session, collection_id: int) -> Collection:
-    collection = session.get(Collection, collection_id)
+def get_collection_or_404(
+    session: Session, collection_id: int, *, for_update: bool = False
+) -> Collection:
+    collection = session.get(Collection, collection_id, with_for_update=for_update)
     if collection is None:
         raise not_found("collection", collection_id)
     return collection

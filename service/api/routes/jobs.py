@@ -57,8 +57,8 @@ def job_out(job: Job) -> JobOut:
     )
 
 
-def _get_job(session: Session, job_id: int) -> Job:
-    job = session.get(Job, job_id)
+def _get_job(session: Session, job_id: int, *, for_update: bool = False) -> Job:
+    job = session.get(Job, job_id, with_for_update=for_update)
     if job is None:
         raise not_found("job", job_id)
     return job
@@ -190,7 +190,8 @@ def get_job(job_id: DbInt, db: DbDep) -> JobOut:
 )
 def cancel_job(job_id: DbInt, db: DbDep) -> JobOut:
     with db.write() as session:
-        job = _get_job(session, job_id)
+        # Row-locked on PostgreSQL: a worker's claim or completion cannot interleave.
+        job = _get_job(session, job_id, for_update=True)
         if not queue.request_cancel(session, job):
             raise ProblemError(
                 409, f"job {job_id} already {job.status}", type_="/problems/job-finished"

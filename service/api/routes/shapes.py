@@ -272,7 +272,8 @@ def _store(
         if entry is not None:
             shapes = [session.get(Shape, sid) for sid in entry.resource_ids]
             return [shape_out(s) for s in shapes if s is not None]
-        get_collection_or_404(session, collection_id)
+        # Row-locked on PostgreSQL, so concurrent uploads cannot both pass the size limit.
+        get_collection_or_404(session, collection_id, for_update=True)
         existing = (
             session.scalar(select(func.count(Shape.id)).where(Shape.collection_id == collection_id))
             or 0

@@ -1,0 +1,348 @@
+"""The service on PostgreSQL: migrations, uploads, jobs, idempotency races, crash recovery.
+
+Skipped unless ``REGTREE_TEST_POSTGRES_URL`` names a PostgreSQL database whose role may
+create databases, e.g. ``postgresql+psycopg://regtree:regtree@127.0.0.1:5432/regtree`` as
+printed by ``.ci/postgres.sh``. Each test gets a scratch database of its own, dropped at the
+end. The servers are conftest's, only pointed at that database.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from tests.service.conftest import (
+    REPO,
+    Service,
+    assert_problem,
+    create_collection,
+    family,
+    npy_bytes,
+    submit_job,
+    upload_family,
+    wait_job,
+)
+
+BASE_URL = os.environ.get("REGTREE_TEST_POSTGRES_URL", "")
+
+pytestmark = pytest.mark.skipif(
+    not BASE_URL,
+    reason="REGTREE_TEST_POSTGRES_URL is not set (run `bash .ci/postgres.sh` and export the "
+    "URL it prints to test the service on PostgreSQL)",
+)
+
+TABLES = {"collections", "shapes", "jobs", "results", "result_subjects", "idempotency_keys"}
+
+
+@pytest.fixture
+def pg_url() -> Iterator[str]:
+    """The URL of a fresh, empty database, dropped after the test."""
+    pytest.importorskip("psycopg", reason="the psycopg driver is not installed")
+    from sqlalchemy import create_engine, make_url, text
+
+    base = make_url(BASE_URL)
+    assert base.get_backend_name() == "postgresql", f"not a PostgreSQL URL: {BASE_URL}"
+    name = f"regtree_test_{uuid.uuid4().hex[:12]}"
+    admin = create_engine(base, isolation_level="AUTOCOMMIT")
+    try:
+        with admin.connect() as connection:
+            connection.execute(text(f'CREATE DATABASE "{name}"'))
+        yield base.set(database=name).render_as_string(hide_password=False)
+        with admin.connect() as connection:
+            connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+    finally:
+        admin.dispose()
+
+
+@pytest.fixture
+def pg_service(make_service: Callable[..., Service], pg_url: str) -> Callable[..., Service]:
+    """conftest's ``make_service``, on the scratch PostgreSQL database."""
+
+    def make(**kwargs: Any) -> Service:
+        return make_service(database_url=pg_url, **kwargs)
+
+    return make
+
+
+def _migrate(tmp_path: Path, url: str, *args: str) -> str:
+    env = {**os.environ, "REGTREE_DATABASE_URL": url, "PYTHONPATH": str(REPO)}
+    done = subprocess.run(
+        [sys.executable, "-m", "service.cli", "migrate", *args],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    return done.stdout.strip()
+
+
+def test_migrations_upgrade_downgrade(tmp_path: Path, pg_url: str) -> None:
+    from alembic.autogenerate import compare_metadata
+    from alembic.migration import MigrationContext
+    from sqlalchemy import create_engine, inspect
+
+    from service.models import Base
+
+    assert _migrate(tmp_path, pg_url, "upgrade") == "0001"
+    engine = create_engine(pg_url)
+    try:
+        assert TABLES <= set(inspect(engine).get_table_names())
+        with engine.connect() as connection:
+            assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
+        assert _migrate(tmp_path, pg_url, "downgrade", "base") == "base"
+        assert set(inspect(engine).get_table_names()) <= {"alembic_version"}
+        assert _migrate(tmp_path, pg_url, "upgrade", "head") == "0001"
+        assert _migrate(tmp_path, pg_url, "current") == "0001"
+    finally:
+        engine.dispose()
+
+
+def test_uploads_job_and_result(pg_service: Callable[..., Service]) -> None:
+    svc = pg_service(workers=1).start()
+    shapes = family(n_chains=2, chain_length=3, n_points=60)[:6]
+    with svc.client() as client:
+        cid = create_collection(client, "pg")
+        # JSON batch.
+        ids = upload_family(client, cid, shapes[:4])
+        # Raw .npy: the stored bytes (bytea) come back as the same float64 points.
+        name, points = shapes[4]
+        response = client.post(
+            f"/v1/collections/{cid}/shapes",
+            params={"name": name},
+            content=npy_bytes(points),
+            headers={"content-type": "application/octet-stream"},
+        )
+        assert response.status_code == 201, response.text
+        ids.append(response.json()["id"])
+        # Multipart CSV.
+        name, points = shapes[5]
+        csv = "x,y\n" + "\n".join(f"{x!r},{y!r}" for x, y in points.tolist())
+        response = client.post(
+            f"/v1/collections/{cid}/shapes",
+            files={"files": (f"{name}.csv", csv.encode(), "text/csv")},
+        )
+        assert response.status_code == 201, response.text
+        assert response.json()["items"][0]["source_format"] == "csv"
+        ids.append(response.json()["items"][0]["id"])
+
+        for shape_id, (_, expected) in zip(ids, shapes, strict=True):
+            detail = client.get(f"/v1/collections/{cid}/shapes/{shape_id}").json()
+            np.testing.assert_array_equal(np.array(detail["points"]), expected)
+
+        listed = client.get(f"/v1/collections/{cid}/shapes", params={"limit": 2, "offset": 1})
+        assert [s["id"] for s in listed.json()["items"]] == ids[1:3]
+        assert listed.json()["total"] == 6
+
+        job = submit_job(client, cid, ids[0], compare_direct=True)
+        done = wait_job(client, job["id"])
+        assert done["status"] == "succeeded", done
+        result = client.get(f"/v1/jobs/{job['id']}/result").json()
+        assert sorted(s["shape_id"] for s in result["subjects"]) == sorted(ids[1:])
+        subject = client.get(f"/v1/jobs/{job['id']}/result/subjects/{ids[1]}")
+        assert subject.status_code == 200, subject.text
+        assert client.get("/v1/jobs", params={"offset": 2**62}).json()["items"] == []
+
+        assert client.delete(f"/v1/collections/{cid}").status_code == 204
+        assert_problem(client.get(f"/v1/jobs/{job['id']}"), 404)  # cascaded
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="the models declare ids as Integer: on PostgreSQL that is a 32-bit column and every "
+    "bound id is cast ::INTEGER, so an id past 2**31 - 1 fails with 'integer out of range' "
+    "(a 500) where SQLite answers 404; needs BigInteger ids in service/models.py plus a "
+    "migration",
+)
+def test_ids_past_32_bits_are_404(tmp_path: Path, pg_url: str) -> None:
+    # conftest's Service without make_service, whose teardown would also fail on the 500s.
+    svc = Service(tmp_path, workers=0, database_url=pg_url).start()
+    try:
+        with svc.client() as client:
+            cid = create_collection(client)
+            for url in (
+                f"/v1/collections/{2**31}",
+                f"/v1/collections/{2**63 - 1}",
+                f"/v1/jobs/{2**40}",
+                f"/v1/collections/{cid}/shapes/{2**40}",
+            ):
+                assert_problem(client.get(url), 404)
+            assert client.get("/v1/jobs", params={"collection_id": 2**40}).json()["total"] == 0
+    finally:
+        svc.stop()
+
+
+def _post_concurrently(
+    client: httpx.Client, n: int, path: str, **kwargs: Any
+) -> list[httpx.Response]:
+    barrier = threading.Barrier(n)
+    responses: list[httpx.Response | None] = [None] * n
+
+    def post(i: int) -> None:
+        barrier.wait()
+        responses[i] = client.post(path, **kwargs)
+
+    threads = [threading.Thread(target=post, args=(i,)) for i in range(n)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60)
+    assert all(r is not None for r in responses)
+    return [r for r in responses if r is not None]
+
+
+def test_concurrent_posts_with_one_idempotency_key(pg_service: Callable[..., Service]) -> None:
+    svc = pg_service(workers=0).start()
+    n = 8
+    limits = httpx.Limits(max_connections=n, max_keepalive_connections=n)
+    with svc.client(limits=limits) as client:
+        for attempt in range(3):  # the race is timing-dependent: run it a few times
+            key = {"Idempotency-Key": f"collection-{attempt}"}
+            responses = _post_concurrently(
+                client, n, "/v1/collections", json={"name": "same"}, headers=key
+            )
+            assert {r.status_code for r in responses} == {201}, [r.text for r in responses]
+            assert len({r.json()["id"] for r in responses}) == 1
+        total = client.get("/v1/collections").json()["total"]
+        assert total == 3
+
+        cid = create_collection(client, "shapes")
+        body = {"shapes": [{"name": n, "points": p.tolist()} for n, p in family()[:3]]}
+        responses = _post_concurrently(
+            client,
+            n,
+            f"/v1/collections/{cid}/shapes",
+            json=body,
+            headers={"Idempotency-Key": "shapes"},
+        )
+        assert {r.status_code for r in responses} == {201}, [r.text for r in responses]
+        assert len({tuple(s["id"] for s in r.json()["items"]) for r in responses}) == 1
+        assert client.get(f"/v1/collections/{cid}/shapes").json()["total"] == 3
+
+        model = responses[0].json()["items"][0]["id"]
+        responses = _post_concurrently(
+            client,
+            n,
+            "/v1/jobs",
+            json={"collection_id": cid, "model_shape_id": model},
+            headers={"Idempotency-Key": "job"},
+        )
+        assert {r.status_code for r in responses} == {202}, [r.text for r in responses]
+        assert len({r.json()["id"] for r in responses}) == 1
+        assert client.get("/v1/jobs", params={"collection_id": cid}).json()["total"] == 1
+
+        # The same key with another body is still refused.
+        reused = client.post(
+            "/v1/collections", json={"name": "other"}, headers={"Idempotency-Key": "collection-0"}
+        )
+        assert_problem(reused, 422)
+    assert not svc.unhandled_errors(), svc.unhandled_errors()
+
+
+def test_concurrent_workers_claim_each_job_once(pg_url: str) -> None:
+    """Many in-process workers racing on PostgreSQL: every job is claimed exactly once."""
+    from service import migrate
+    from service.core.config import Settings
+    from service.db import Database
+    from service.jobs import queue
+    from service.models import Collection, Job
+
+    settings = Settings(database_url=pg_url)
+    migrate.upgrade(settings)
+    db = Database(pg_url)
+    try:
+        n_jobs, n_workers = 40, 8
+        with db.write() as session:
+            collection = Collection(name="c", description="")
+            session.add(collection)
+            session.flush()
+            for _ in range(n_jobs):
+                session.add(
+                    Job(
+                        collection_id=collection.id,
+                        model_shape_id=1,
+                        shape_ids=[1, 2],
+                        method="direct",
+                        params={},
+                        max_attempts=3,
+                    )
+                )
+        claimed: list[list[int]] = [[] for _ in range(n_workers)]
+        barrier = threading.Barrier(n_workers)
+
+        def work(i: int) -> None:
+            barrier.wait()
+            while (claim := queue.claim(db, f"w{i}", lease_seconds=60)) is not None:
+                claimed[i].append(claim.job_id)
+                assert queue.heartbeat(db, claim, lease_seconds=60, progress=("x", 1, 1)).held
+                assert queue.complete(db, claim, {"ok": True}, []) == "succeeded"
+
+        threads = [threading.Thread(target=work, args=(i,)) for i in range(n_workers)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(120)
+        every = [job_id for ids in claimed for job_id in ids]
+        assert sorted(every) == sorted(set(every)) and len(every) == n_jobs
+        assert sum(1 for ids in claimed if ids) > 1  # they really ran side by side
+
+        # An expired lease fences its old holder on PostgreSQL too.
+        with db.write() as session:
+            session.add(
+                Job(
+                    collection_id=collection.id,
+                    model_shape_id=1,
+                    shape_ids=[1, 2],
+                    method="direct",
+                    params={},
+                    max_attempts=3,
+                )
+            )
+        old = queue.claim(db, "old", lease_seconds=0.05)
+        assert old is not None
+        time.sleep(0.1)
+        new = queue.claim(db, "new", lease_seconds=60)
+        assert new is not None and new.job_id == old.job_id and new.attempt == 2
+        assert not queue.heartbeat(db, old, lease_seconds=60).held
+        assert queue.complete(db, old, {}, []) == "lost"
+        assert queue.complete(db, new, {"ok": True}, []) == "succeeded"
+    finally:
+        db.dispose()
+
+
+def test_sigkilled_worker_job_is_reclaimed_once(pg_service: Callable[..., Service]) -> None:
+    svc = pg_service(workers=0).start()
+    with svc.client() as client:
+        cid = create_collection(client)
+        ids = upload_family(client, cid, family(n_chains=4, chain_length=5, n_points=100))
+        job = submit_job(client, cid, ids[0])
+        doomed = svc.start_worker()
+        wait_job(
+            client,
+            job["id"],
+            until=lambda j: j["status"] == "running" and j["progress"]["done"] > 0,
+            timeout=60,
+        )
+        doomed.send_signal(signal.SIGKILL)
+        doomed.wait(10)
+
+        svc.start_worker()
+        svc.start_worker()  # two survivors race for the orphaned job
+        done = wait_job(client, job["id"], timeout=120)
+        assert done["status"] == "succeeded", done
+        assert done["attempts"] == 2
+        result = client.get(f"/v1/jobs/{job['id']}/result").json()
+        assert sorted(s["shape_id"] for s in result["subjects"]) == sorted(ids[1:])
