@@ -14,7 +14,15 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import ListedColormap, LogNorm, Normalize
 
 from service.plots import _doc
-from service.plots._common import Rendered, check_format, figure, method_label, save, shorten
+from service.plots._common import (
+    Rendered,
+    check_format,
+    data_to_pixel,
+    figure,
+    method_label,
+    save,
+    shorten,
+)
 
 # plasma without its palest yellows, which vanish on white
 # (an edge without e is grey)
@@ -196,8 +204,11 @@ def render_tree(
     name is a ``<text>`` in a group ``node-<shape_id>`` (``unattached-<shape_id>``).
     ``meta`` holds ``nodes`` (shape_id, name, layer, parent_shape_id, error, x), ``unattached``
     (shape_id, name), ``depth``, ``norm`` ("log" or "linear"), ``e_range``, ``label_rotation``
-    (0 or 270), ``label_fontsize`` and ``warnings``; ``x`` is in slots, one slot at least
-    between two shapes of a row.
+    (0 or 270), ``label_fontsize``, ``data_to_pixel`` (``[[a, 0, b], [0, c, d]]``: a node at
+    ``x`` in row ``y`` is at PNG pixel column ``a x + b``, row ``c y + d``; ``meta["rows"]``
+    gives each layer's ``y``) and ``warnings``; ``x`` is in slots, one slot at least between
+    two shapes of a row. Each row is as far below the previous one as that row's longest
+    name needs, and a wide fan of edges a little more (64 to 200 px at the default height).
     """
     fmt_ = check_format(fmt)
     nodes, unattached, warnings = _build(result)
@@ -240,9 +251,34 @@ def render_tree(
     u_rows = math.ceil(len(unattached) / per_row) if unattached else 0
     u_box = 34 + 30 * u_rows if unattached else 0
 
-    layer_gap = max(64.0, label_px + 42)
-    tree_px = (len(layers) - 1) * layer_gap + label_px + 36
+    # each row's names hang below it (the model's goes above): a row is as far below the
+    # previous one as that row's longest name needs, so short names make short gaps
+    row_label_px = [0.0] * len(layers)
+    for node in nodes.values():
+        if node.parent is None:
+            continue
+        chars = len(shorten(node.name, NAME_LIMIT))
+        need = (_text_px(chars, fontsize, dpi) if rotation else 1.4 * fontsize * dpi / 72) + 10
+        i = layer_index[node.layer]
+        row_label_px[i] = max(row_label_px[i], need)
+    # ... and a wide fan of edges gets some height, so that its edges can be told apart
+    fan_px = [0.0] * len(layers)
+    for node in nodes.values():
+        if node.parent is not None:
+            parent = nodes[node.parent]
+            i = layer_index[parent.layer]
+            fan_px[i] = max(fan_px[i], abs(node.x - parent.x) * slot_px)
+    row_y = [0.0]  # in pixels, downwards from the model's row
+    for i in range(len(layers) - 1):
+        gap = max(64.0, row_label_px[i] + 42, min(200.0, 0.2 * fan_px[i]))
+        row_y.append(row_y[-1] - gap)
+    below = row_label_px[-1] if len(layers) > 1 else label_px
+    above = 1.6 * fontsize * dpi / 72 + 14
+    tree_px = -row_y[-1] + below + 36
     fig_h = height or int(min(6000, max(320, _TOP_PX + tree_px + u_box + _BOTTOM_PX + 20)))
+
+    def y_of(node: _Node) -> float:
+        return row_y[layer_index[node.layer]]
 
     errors = [n.error for n in nodes.values() if n.parent is not None and n.error is not None]
     norm, norm_kind = _edge_norm(errors)
@@ -260,30 +296,26 @@ def render_tree(
             )
         )
         ax.set_gid("tree")
-        # rows: layer i at y = -i; room below the last row for its labels
-        bottom_pad = label_px / max(layer_gap, 1.0) if len(layers) > 1 else 1.0
+        # rows at row_y (pixels at the default height); room below the last row for its names
         ax.set_xlim(-0.5, slots - 0.5)
-        top_pad = (1.6 * fontsize * dpi / 72 + 14) / max(layer_gap, 1.0)
-        ax.set_ylim(-(len(layers) - 1) - bottom_pad - 0.1, top_pad)
+        ax.set_ylim(row_y[-1] - below - 10, above)
         for spine in ax.spines.values():
             spine.set_visible(False)
         ax.set_xticks([])
         ax.set_yticks(
-            [-layer_index[layer] for layer in layers],
+            row_y,
             [f"layer {layer}" for layer in layers],
         )
         ax.tick_params(axis="y", length=0, labelsize=8, labelcolor="#555555")
-        for i in range(len(layers)):
-            ax.axhline(-i, color="#eeeeee", lw=0.8, zorder=0)
+        for y in row_y:
+            ax.axhline(y, color="#eeeeee", lw=0.8, zorder=0)
 
         segments, colours = [], []
         for node in nodes.values():
             if node.parent is None:
                 continue
             parent = nodes[node.parent]
-            segments.append(
-                [(parent.x, -layer_index[parent.layer]), (node.x, -layer_index[node.layer])]
-            )
+            segments.append([(parent.x, row_y[layer_index[parent.layer]]), (node.x, y_of(node))])
             colours.append(node.error)
         if segments:
             lc = LineCollection(
@@ -299,7 +331,7 @@ def render_tree(
             ax.add_collection(lc)
 
         xs = np.asarray([n.x for n in nodes.values()])
-        ys = np.asarray([-layer_index[n.layer] for n in nodes.values()])
+        ys = np.asarray([y_of(n) for n in nodes.values()])
         is_root = np.asarray([n.parent is None for n in nodes.values()])
         marker_s = float(np.clip(0.25 * slot_px, 12, 60))
         ax.scatter(
@@ -333,7 +365,7 @@ def render_tree(
                 where = {"xytext": (0, -offset), "ha": "center", "va": "top"}
             text = ax.annotate(
                 label,
-                (node.x, -layer_index[node.layer]),
+                (node.x, y_of(node)),
                 textcoords="offset points",
                 rotation=0 if is_model else rotation,
                 fontsize=fontsize,
@@ -419,7 +451,9 @@ def render_tree(
             "depth": depth,
             "norm": norm_kind,
             "e_range": [norm.vmin, norm.vmax] if segments else None,
+            "rows": {layer: row_y[i] for i, layer in enumerate(layers)},
             "label_rotation": rotation,
+            "data_to_pixel": data_to_pixel(fig, ax),
             "label_fontsize": fontsize,
             "warnings": warnings,
         }

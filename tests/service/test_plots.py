@@ -228,6 +228,22 @@ def test_tree_layout_is_tidy_and_compact() -> None:
     assert all(f"shape-{k}" in texts for k in parents)
 
 
+def test_tree_rows_are_as_far_apart_as_their_names_need() -> None:
+    # upright names: long ones below row 2, short ones below row 3, none below the model
+    long = {f"s{k}": f"a-rather-long-font-family-name__variant-{k:03d}" for k in range(2, 80)}
+    parents = {k: 1 for k in range(2, 80)} | {k: 2 for k in range(80, 90)}
+    layers = {k: 2 for k in range(2, 80)} | {k: 3 for k in range(80, 90)}
+    rendered = render_tree(tree_doc(parents, layers, **long), fmt="png")
+    meta = rendered.meta
+    assert meta["label_rotation"] == 270
+    (_, _, _), (_, c, d) = meta["data_to_pixel"]
+    row_px = {layer: c * y + d for layer, y in meta["rows"].items()}
+    assert 60 <= row_px[2] - row_px[1] <= 210  # the model is near its children
+    assert row_px[3] - row_px[2] > 250  # room for the long upright names of row 2
+    assert row_px[2] - row_px[1] < row_px[3] - row_px[2] - 100
+    assert row_px[3] < rendered.height - 80  # and for the short ones of row 3
+
+
 def test_tree_names_are_drawn_as_written() -> None:
     names = {"s2": "cost $5 and $6", "s3": r"$\alpha$"}
     doc = tree_doc({2: 1, 3: 1}, {2: 2, 3: 2}, **names)
