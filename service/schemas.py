@@ -9,7 +9,24 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 from annotated_types import Interval
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from service.core.config import Settings
+
 T = TypeVar("T")
+
+
+def _default(setting: str) -> Any:
+    return Settings.model_fields[setting].default
+
+
+#: Text without NUL characters: PostgreSQL cannot store them in a text column, so every
+#: name and description refuses them, on every database alike.
+NO_NUL = r"^[^\x00]*$"
+
+#: The upload limits the schema states: the settings' defaults. An operator who changes the
+#: settings changes what the server accepts; the descriptions say which setting rules.
+MIN_POINTS: int = _default("min_points")
+MAX_POINTS: int = _default("max_points_per_shape")
+MAX_COORDINATE: float = _default("max_coordinate")
 
 #: Largest value of SQLite's INTEGER (a signed 64-bit integer).
 INT64_MAX = 2**63 - 1
@@ -43,8 +60,8 @@ class CollectionCreate(BaseModel):
         },
     )
 
-    name: str = Field(min_length=1, max_length=200)
-    description: str = Field(default="", max_length=5000)
+    name: str = Field(min_length=1, max_length=200, pattern=NO_NUL)
+    description: str = Field(default="", max_length=5000, pattern=NO_NUL)
 
 
 class CollectionOut(BaseModel):
@@ -75,10 +92,17 @@ class CollectionOut(BaseModel):
 
 
 Point = tuple[float, float]
+#: A coordinate of an uploaded point: at most ``max_coordinate`` in absolute value.
+Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE)]
+InputPoint = tuple[Coordinate, Coordinate]
 
 
 class ShapeJSON(BaseModel):
-    """A shape sent as JSON: a name and its (x, y) points in the user's own units."""
+    """A shape sent as JSON: a name and its (x, y) points in the user's own units.
+
+    The bounds are the defaults of the settings ``min_points``, ``max_points_per_shape`` and
+    ``max_coordinate``; the server enforces the configured values.
+    """
 
     model_config = ConfigDict(
         json_schema_extra={
@@ -86,14 +110,19 @@ class ShapeJSON(BaseModel):
         }
     )
 
-    name: str | None = Field(default=None, max_length=300)
-    points: list[Point]
+    name: str | None = Field(default=None, min_length=1, max_length=300, pattern=NO_NUL)
+    points: list[InputPoint] = Field(
+        min_length=MIN_POINTS,
+        max_length=MAX_POINTS,
+        description=f"{MIN_POINTS} to {MAX_POINTS} points [x, y], each coordinate within "
+        f"±{MAX_COORDINATE:g} (settings min_points, max_points_per_shape, max_coordinate).",
+    )
 
 
 class ShapeBatchJSON(BaseModel):
     """Several shapes in one JSON body; all are stored or none."""
 
-    shapes: list[ShapeJSON]
+    shapes: list[ShapeJSON] = Field(min_length=1)
 
 
 class BBox(BaseModel):

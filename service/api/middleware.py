@@ -9,6 +9,7 @@ import uuid
 
 from starlette.datastructures import Headers
 from starlette.requests import Request
+from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.problems import BodyTooLarge, problem_response
@@ -24,8 +25,33 @@ PUBLIC_PATHS = frozenset(
 )
 
 
+#: The order methods are listed in an ``Allow`` header.
+_METHOD_ORDER = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
+def allowed_methods(app: object, scope: Scope) -> list[str]:
+    """Every method that some route of ``app`` answers on the request's path.
+
+    Starlette answers a 405 from the first route whose path matched, so its ``Allow`` header
+    names that route's methods only, though FastAPI gives each method of a path a route of
+    its own (``POST /v1/collections`` and ``GET /v1/collections``). Each method is asked of
+    the app's routes as if the request had used it (``BaseRoute.matches``), which also sees
+    the routes of included routers.
+    """
+    routes = getattr(app, "routes", ())
+    return [
+        method
+        for method in _METHOD_ORDER
+        if any(route.matches({**scope, "method": method})[0] is Match.FULL for route in routes)
+    ]
+
+
 class RequestLogMiddleware:
-    """Give every request an ``X-Request-ID`` and log one JSON line when it ends."""
+    """Give every request an ``X-Request-ID`` and log one JSON line when it ends.
+
+    As the outermost layer it also completes a 405's ``Allow`` header with every method of
+    the path (see :func:`allowed_methods`).
+    """
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
@@ -46,6 +72,11 @@ class RequestLogMiddleware:
                 status = message["status"]
                 headers = list(message.get("headers", []))
                 headers.append((b"x-request-id", request_id.encode("latin-1")))
+                if status == 405:
+                    allow = allowed_methods(scope.get("app"), scope)
+                    if allow:
+                        headers = [(k, v) for k, v in headers if k.lower() != b"allow"]
+                        headers.append((b"allow", ", ".join(allow).encode("latin-1")))
                 message = {**message, "headers": headers}
             await send(message)
 

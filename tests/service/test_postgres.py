@@ -155,6 +155,10 @@ def test_uploads_job_and_result(pg_service: Callable[..., Service]) -> None:
         subject = client.get(f"/v1/jobs/{job['id']}/result/subjects/{ids[1]}")
         assert subject.status_code == 200, subject.text
         assert client.get("/v1/jobs", params={"offset": 2**62}).json()["items"] == []
+        # PostgreSQL cannot store NUL in text: refused up front, not a 500.
+        assert_problem(client.post("/v1/collections", json={"name": "a\u0000"}), 422)
+        nul_shape = {"name": "a\u0000", "points": shapes[0][1].tolist()}
+        assert_problem(client.post(f"/v1/collections/{cid}/shapes", json=nul_shape), 422)
 
         assert client.delete(f"/v1/collections/{cid}").status_code == 204
         assert_problem(client.get(f"/v1/jobs/{job['id']}"), 404)  # cascaded

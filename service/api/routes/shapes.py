@@ -32,6 +32,9 @@ from service.api.routes.collections import get_collection_or_404
 from service.core.config import Settings
 from service.models import TERMINAL_STATUSES, Job, Shape, points_to_npy
 from service.schemas import (
+    MAX_POINTS,
+    MIN_POINTS,
+    NO_NUL,
     DbInt,
     ImageMode,
     Page,
@@ -41,6 +44,11 @@ from service.schemas import (
 )
 
 router = APIRouter(prefix="/collections/{collection_id}/shapes", tags=["shapes"])
+
+_TARGET_POINTS_DOC = (
+    "Upper bound on the points taken from an image; between the settings min_points and "
+    f"max_points_per_shape ({MIN_POINTS} and {MAX_POINTS} by default)."
+)
 
 RAW_TYPES = {
     "text/csv": "csv",
@@ -94,7 +102,12 @@ _UPLOAD_OPENAPI: dict[str, Any] = {
                             "enum": ["contour", "edges", "skeleton"],
                             "default": "contour",
                         },
-                        "target_points": {"type": "integer", "minimum": 1},
+                        "target_points": {
+                            "type": "integer",
+                            "minimum": MIN_POINTS,
+                            "maximum": MAX_POINTS,
+                            "description": _TARGET_POINTS_DOC,
+                        },
                     },
                 }
             },
@@ -156,7 +169,7 @@ def _source_format(data: bytes, filename: str | None, content_type: str | None, 
 def _stem(filename: str | None, fallback: str) -> str:
     if not filename:
         return fallback
-    base = filename.replace("\\", "/").rsplit("/", 1)[-1]
+    base = filename.replace("\x00", "").replace("\\", "/").rsplit("/", 1)[-1]
     stem = base.rsplit(".", 1)[0] if "." in base else base
     return (stem or fallback)[:300]
 
@@ -168,6 +181,16 @@ def _parse_target_points(raw: str | None) -> int | None:
         return int(raw)
     except ValueError as e:
         raise _invalid(f"target_points must be an integer; got {raw[:40]!r}") from e
+
+
+def _check_target_points(target: int | None, limits: ingest.Limits) -> int | None:
+    """The configured bounds, for every upload form (the schema states the defaults)."""
+    if target is not None and not limits.min_points <= target <= limits.max_points:
+        raise _invalid(
+            f"target_points must be an integer between {limits.min_points} and "
+            f"{limits.max_points} (settings min_points and max_points_per_shape); got {target}"
+        )
+    return target
 
 
 def _parse_mode(raw: str | None) -> ImageMode:
@@ -199,6 +222,8 @@ def _decode_json_body(body: bytes, limits: ingest.Limits) -> tuple[list[Decoded]
         name = item.get("name")
         if name is not None and (not isinstance(name, str) or not 0 < len(name) <= 300):
             raise _invalid(f"{label}: name must be a string of 1 to 300 characters")
+        if name is not None and "\x00" in name:
+            raise _invalid(f"{label}: name must not contain NUL characters")
         try:
             points = ingest.points_from_json(item, limits=limits)
         except ingest.IngestError as e:
@@ -332,15 +357,23 @@ async def upload_shapes(
     db: DbDep,
     settings: SettingsDep,
     idempotency_key: IdempotencyKeyDep = None,
-    name: Annotated[str | None, Query(max_length=300, description="Name of a raw upload.")] = None,
+    name: Annotated[
+        str | None,
+        Query(max_length=300, pattern=NO_NUL, description="Name of a raw upload."),
+    ] = None,
     mode: Annotated[ImageMode | None, Query(description="Image mode of a raw upload.")] = None,
     target_points: Annotated[
-        int | None, Query(ge=1, description="Upper bound on points taken from an image.")
+        int | None,
+        Query(
+            description=_TARGET_POINTS_DOC,
+            json_schema_extra={"minimum": MIN_POINTS, "maximum": MAX_POINTS},
+        ),
     ] = None,
 ) -> ShapeOut | ShapeBatchOut:
     content_type = request.headers.get("content-type", "")
     media_type = content_type.split(";", 1)[0].strip().lower()
     limits = _limits(settings)
+    target_points = _check_target_points(target_points, limits)
     scope = f"POST {request.url.path}"
     batch: bool
 
@@ -368,7 +401,7 @@ async def upload_shapes(
             files = [(u.filename, u.content_type, await u.read()) for u in uploads]
         image_mode = _parse_mode(form_mode if isinstance(form_mode, str) else mode)
         target = _parse_target_points(form_target if isinstance(form_target, str) else None)
-        target = target if target is not None else target_points
+        target = _check_target_points(target, limits) if target is not None else target_points
         request_hash = idempotency.hash_bytes(
             b"multipart",
             image_mode.encode(),
