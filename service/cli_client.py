@@ -212,6 +212,13 @@ def add_commands(sub: Any) -> None:
         help="largest registration error e to accept (default: automatic)",
     )
     run.add_argument(
+        "--max-rotation",
+        type=float,
+        metavar="DEG",
+        help="upright collections (glyph scans): consider only poses within +-DEG degrees "
+        "of the uploaded ones, no mirror images (default: every orientation; 30 suits glyphs)",
+    )
+    run.add_argument(
         "--no-compare-direct",
         dest="compare_direct",
         action="store_false",
@@ -504,6 +511,7 @@ def cmd_run(args: argparse.Namespace, rt: RegtreeClient) -> int:
         method=args.method,
         similarity_threshold=args.similarity_threshold,
         error_threshold=args.error_threshold,
+        max_rotation=args.max_rotation,
         compare_direct=args.compare_direct,
     )
     if args.quiet:

@@ -784,13 +784,16 @@ class RegtreeClient:
         error_threshold: float | None = None,
         compare_direct: bool = True,
         cpd: Mapping[str, Any] | None = None,
+        max_rotation: float | None = None,
         idempotency_key: str | None = None,
     ) -> JobStatus:
         """Queue a job registering ``model_shape_id`` onto every shape of the collection.
 
         Thresholds left None are chosen automatically by the service. ``cpd`` may set
-        ``beta``, ``lmbda``, ``w``, ``max_iter``, ``tol``. Give ``idempotency_key`` to make a
-        resubmission (e.g. after a crash of your script) return the same job.
+        ``beta``, ``lmbda``, ``w``, ``max_iter``, ``tol``. ``max_rotation`` (degrees) is for
+        upright collections such as glyph scans: poses within that rotation only, no
+        mirror images. Give ``idempotency_key`` to make a resubmission (e.g. after a crash of
+        your script) return the same job.
         """
         body: dict[str, Any] = {
             "collection_id": collection_id,
@@ -800,6 +803,8 @@ class RegtreeClient:
             "error_threshold": error_threshold,
             "compare_direct": compare_direct,
         }
+        if max_rotation is not None:
+            body["max_rotation"] = max_rotation
         if cpd is not None:
             body["cpd"] = dict(cpd)
         response = self._request(

@@ -220,6 +220,15 @@ class JobCreate(BaseModel):
     compare_direct: bool = Field(
         default=False, description="Also register every subject directly from the model."
     )
+    max_rotation: float | None = Field(
+        default=None,
+        ge=0,
+        le=180,
+        description="For upright collections (glyph scans, aligned outlines): the affine "
+        "pre-alignment only considers poses within +-max_rotation degrees of the shapes as "
+        "uploaded, without mirror images. null = every orientation. 30 is a good value for "
+        "glyphs: see bench/RESULTS.md.",
+    )
     cpd: CPDParams = Field(default_factory=CPDParams)
 
     _check_similarity = field_validator("similarity_threshold")(_finite_positive)

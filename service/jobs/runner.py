@@ -255,6 +255,7 @@ def run_registration(
         executor=executor,
         progress=progress,
         compare_direct=bool(params.get("compare_direct", False)),
+        max_rotation=params.get("max_rotation"),
     )
     doc: dict[str, Any] = result.to_dict()
     return doc

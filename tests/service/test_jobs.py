@@ -108,6 +108,12 @@ def test_job_validation(client: httpx.Client) -> None:
     )
     done = wait_job(client, first.json()["id"])
     assert done["status"] == "succeeded", done
+    # Upright collections: max_rotation reaches the library and is bounded to [0, 180].
+    upright = submit_job(client, a, ids_a[0], method="direct", max_rotation=30)
+    assert upright["params"]["max_rotation"] == 30
+    assert wait_job(client, upright["id"])["status"] == "succeeded"
+    assert client.get(f"/v1/jobs/{upright['id']}/result").json()["options"]["max_rotation"] == 30
+    assert_problem(client.post("/v1/jobs", json={**body, "max_rotation": 200}), 422)
     # A finished job cannot be cancelled; a result of an unfinished one is a 409 problem.
     assert_problem(client.post(f"/v1/jobs/{done['id']}/cancel"), 409)
 

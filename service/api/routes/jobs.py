@@ -116,7 +116,10 @@ def create_job(
                 )
             params = body.model_dump(
                 mode="json",
-                include={"similarity_threshold", "error_threshold", "compare_direct", "cpd"},
+                include={
+                    "similarity_threshold", "error_threshold", "compare_direct", "max_rotation",
+                    "cpd",
+                },
             )
             job = Job(
                 collection_id=body.collection_id,
