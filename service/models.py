@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     DateTime,
     Dialect,
@@ -29,6 +30,10 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 from sqlalchemy.types import TypeDecorator
+
+# Ids are 64-bit everywhere (the API accepts any id up to 2**63 - 1): BIGINT on a server
+# database, plain INTEGER on SQLite (already 64-bit, and required for AUTOINCREMENT).
+Id = BigInteger().with_variant(Integer(), "sqlite")
 
 
 def utcnow() -> datetime:
@@ -73,7 +78,7 @@ class Collection(Base):
     __tablename__ = "collections"
     __table_args__ = ({"sqlite_autoincrement": True},)
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    id: Mapped[int] = mapped_column(Id, primary_key=True)
     name: Mapped[str] = mapped_column(String(200))
     description: Mapped[str] = mapped_column(Text, default="")
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
@@ -91,9 +96,9 @@ class Shape(Base):
         {"sqlite_autoincrement": True},
     )
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    id: Mapped[int] = mapped_column(Id, primary_key=True)
     collection_id: Mapped[int] = mapped_column(
-        ForeignKey("collections.id", ondelete="CASCADE"), index=False
+        Id, ForeignKey("collections.id", ondelete="CASCADE"), index=False
     )
     name: Mapped[str] = mapped_column(String(300))
     source_format: Mapped[str] = mapped_column(String(40))
@@ -132,10 +137,12 @@ class Job(Base):
         {"sqlite_autoincrement": True},
     )
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    collection_id: Mapped[int] = mapped_column(ForeignKey("collections.id", ondelete="CASCADE"))
+    id: Mapped[int] = mapped_column(Id, primary_key=True)
+    collection_id: Mapped[int] = mapped_column(
+        Id, ForeignKey("collections.id", ondelete="CASCADE")
+    )
     # A plain id, not a foreign key: a finished job keeps naming its model after a delete.
-    model_shape_id: Mapped[int] = mapped_column(Integer)
+    model_shape_id: Mapped[int] = mapped_column(Id)
     # The shapes of the collection when the job was submitted, in input order.
     shape_ids: Mapped[list[int]] = mapped_column(JSON)
     method: Mapped[str] = mapped_column(String(40))
@@ -162,7 +169,9 @@ class Result(Base):
 
     __tablename__ = "results"
 
-    job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
+    job_id: Mapped[int] = mapped_column(
+        Id, ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True
+    )
     document: Mapped[dict[str, Any]] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
@@ -172,10 +181,12 @@ class ResultSubject(Base):
 
     __tablename__ = "result_subjects"
 
-    job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
-    shape_id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    job_id: Mapped[int] = mapped_column(
+        Id, ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True
+    )
+    shape_id: Mapped[int] = mapped_column(Id, primary_key=True)
     position: Mapped[int] = mapped_column(Integer)
-    parent_shape_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    parent_shape_id: Mapped[int | None] = mapped_column(Id, nullable=True)
     layer: Mapped[int | None] = mapped_column(Integer, nullable=True)
     error: Mapped[float | None] = mapped_column(Float, nullable=True)
     document: Mapped[dict[str, Any]] = mapped_column(JSON)
@@ -187,7 +198,7 @@ class IdempotencyKey(Base):
     __tablename__ = "idempotency_keys"
     __table_args__ = (UniqueConstraint("scope", "key", name="uq_idempotency_scope_key"),)
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    id: Mapped[int] = mapped_column(Id, primary_key=True)
     scope: Mapped[str] = mapped_column(String(300))
     key: Mapped[str] = mapped_column(String(300))
     request_hash: Mapped[str] = mapped_column(String(64))

@@ -33,7 +33,7 @@ def _cli(tmp_path: Path, url: str, *args: str) -> str:
 
 def test_upgrade_downgrade_roundtrip(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path / 'm.sqlite'}"
-    assert _cli(tmp_path, url, "upgrade") == "0001"
+    assert _cli(tmp_path, url, "upgrade") == "0002"
     engine = create_engine(url)
     try:
         assert TABLES <= set(inspect(engine).get_table_names())
@@ -41,8 +41,8 @@ def test_upgrade_downgrade_roundtrip(tmp_path: Path) -> None:
             assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
         assert _cli(tmp_path, url, "downgrade", "base") == "base"
         assert set(inspect(engine).get_table_names()) <= {"alembic_version"}
-        assert _cli(tmp_path, url, "upgrade", "head") == "0001"
-        assert _cli(tmp_path, url, "current") == "0001"
+        assert _cli(tmp_path, url, "upgrade", "head") == "0002"
+        assert _cli(tmp_path, url, "current") == "0002"
     finally:
         engine.dispose()
 

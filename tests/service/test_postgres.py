@@ -97,7 +97,7 @@ def test_migrations_upgrade_downgrade(tmp_path: Path, pg_url: str) -> None:
 
     from service.models import Base
 
-    assert _migrate(tmp_path, pg_url, "upgrade") == "0001"
+    assert _migrate(tmp_path, pg_url, "upgrade") == "0002"
     engine = create_engine(pg_url)
     try:
         assert TABLES <= set(inspect(engine).get_table_names())
@@ -105,8 +105,8 @@ def test_migrations_upgrade_downgrade(tmp_path: Path, pg_url: str) -> None:
             assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
         assert _migrate(tmp_path, pg_url, "downgrade", "base") == "base"
         assert set(inspect(engine).get_table_names()) <= {"alembic_version"}
-        assert _migrate(tmp_path, pg_url, "upgrade", "head") == "0001"
-        assert _migrate(tmp_path, pg_url, "current") == "0001"
+        assert _migrate(tmp_path, pg_url, "upgrade", "head") == "0002"
+        assert _migrate(tmp_path, pg_url, "current") == "0002"
     finally:
         engine.dispose()
 
@@ -164,13 +164,6 @@ def test_uploads_job_and_result(pg_service: Callable[..., Service]) -> None:
         assert_problem(client.get(f"/v1/jobs/{job['id']}"), 404)  # cascaded
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the models declare ids as Integer: on PostgreSQL that is a 32-bit column and every "
-    "bound id is cast ::INTEGER, so an id past 2**31 - 1 fails with 'integer out of range' "
-    "(a 500) where SQLite answers 404; needs BigInteger ids in service/models.py plus a "
-    "migration",
-)
 def test_ids_past_32_bits_are_404(tmp_path: Path, pg_url: str) -> None:
     # conftest's Service without make_service, whose teardown would also fail on the 500s.
     svc = Service(tmp_path, workers=0, database_url=pg_url).start()
