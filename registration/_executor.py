@@ -13,12 +13,19 @@ import os
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from typing import Protocol, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
 
-__all__ = ["Executor", "LocalProcessExecutor", "SerialExecutor", "default_executor"]
+__all__ = [
+    "Executor",
+    "LocalProcessExecutor",
+    "SerialExecutor",
+    "default_executor",
+    "owned_executor",
+]
 
 
 class Executor(Protocol):
@@ -141,7 +148,26 @@ def _available_cpus() -> int:
 
 
 def default_executor(n_tasks: int, *, min_parallel_tasks: int = 64) -> Executor:
-    """Serial for small jobs (a pool's start-up would dominate), else a local pool."""
+    """Serial for small jobs (a pool's start-up would dominate), else a local pool.
+
+    A returned :class:`LocalProcessExecutor` holds processes until it is closed; prefer
+    :func:`owned_executor`, which closes what it creates.
+    """
     if n_tasks < min_parallel_tasks or _available_cpus() < 2:
         return SerialExecutor()
     return LocalProcessExecutor()
+
+
+@contextmanager
+def owned_executor(executor: Executor | None, n_tasks: int) -> Iterator[Executor]:
+    """The caller's executor as it is, or a default one for `n_tasks` tasks that is
+    closed (its processes stopped) when the block ends."""
+    if executor is not None:
+        yield executor
+        return
+    created = default_executor(n_tasks)
+    try:
+        yield created
+    finally:
+        if isinstance(created, LocalProcessExecutor):
+            created.close()

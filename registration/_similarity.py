@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._executor import Executor, default_executor
+from ._executor import Executor, owned_executor
 from ._icp import pairwise_affine_icp, prepare_shape
 from ._points import normalise
 
@@ -86,19 +86,19 @@ class Similarity:
                           max_rotation=self.max_rotation)
             )
             k = end
-        ex = executor if executor is not None else default_executor(len(todo))
-        done = 0
-        if progress is not None:
-            progress(stage, 0, len(todo))
-        for _, rows in ex.map_unordered(_icp_task, tasks):
-            for i, j, d, a, t in rows:
-                self.D[i, j] = d
-                self.A[i, j] = a
-                self.t[i, j] = t
-            done += len(rows)
-            self.computed += len(rows)
+        with owned_executor(executor, len(todo)) as ex:
+            done = 0
             if progress is not None:
-                progress(stage, done, len(todo))
+                progress(stage, 0, len(todo))
+            for _, rows in ex.map_unordered(_icp_task, tasks):
+                for i, j, d, a, t in rows:
+                    self.D[i, j] = d
+                    self.A[i, j] = a
+                    self.t[i, j] = t
+                done += len(rows)
+                self.computed += len(rows)
+                if progress is not None:
+                    progress(stage, done, len(todo))
 
     def to_dict(self) -> dict[str, object]:
         return {

@@ -20,10 +20,11 @@ subject ``s`` fixed, matching the direction of the registration that follows.
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -31,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from ._cpd import cpd_nonrigid
 from ._error import registration_error
-from ._executor import Executor, default_executor
+from ._executor import Executor, owned_executor
 from ._icp import affine_icp
 from ._points import Normalization, normalise
 from ._result import Attempt, CollectionResult, SubjectResult
@@ -40,6 +41,8 @@ from ._transform import AffineTransform, ChainTransform, PointTransform, jacobia
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+P = ParamSpec("P")
+R = TypeVar("R")
 
 __all__ = [
     "CPDOptions",
@@ -207,8 +210,19 @@ def _subject_from_outcome(
     return res, _Node(q=out.warped, chain=chain, layer=out.layer)
 
 
-def _resolve_executor(executor: Executor | None, n_tasks: int) -> Executor:
-    return executor if executor is not None else default_executor(n_tasks)
+def _owns_executor(fn: Callable[P, R]) -> Callable[P, R]:
+    """Run a method with one executor for all its stages: the caller's, or a default one
+    (a local pool for larger collections) that is closed when the method returns."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        shapes = args[0] if args else kwargs["shapes"]
+        given = kwargs.get("executor")
+        with owned_executor(given, len(shapes) ** 2) as ex:  # type: ignore[arg-type]
+            kwargs["executor"] = ex
+            return fn(*args, **kwargs)
+
+    return wrapper
 
 
 def _run_tasks(
@@ -219,16 +233,16 @@ def _run_tasks(
 ) -> list[_RegOutcome]:
     if not tasks:
         return []
-    ex = _resolve_executor(executor, 8 * len(tasks))
     results: list[_RegOutcome | None] = [None] * len(tasks)
-    if progress is not None:
-        progress(stage, 0, len(tasks))
-    done = 0
-    for pos, out in ex.map_unordered(_register_task, tasks):
-        results[pos] = out
-        done += 1
+    with owned_executor(executor, 8 * len(tasks)) as ex:
         if progress is not None:
-            progress(stage, done, len(tasks))
+            progress(stage, 0, len(tasks))
+        done = 0
+        for pos, out in ex.map_unordered(_register_task, tasks):
+            results[pos] = out
+            done += 1
+            if progress is not None:
+                progress(stage, done, len(tasks))
     return [r for r in results if r is not None]
 
 
@@ -389,6 +403,7 @@ def _check_threshold(name: str, value: float | None) -> None:
 # ----------------------------------------------------------------------------- methods
 
 
+@_owns_executor
 def build_dynamic_tree(
     shapes: Sequence[ArrayLike],
     root: int = 0,
@@ -564,6 +579,7 @@ def build_dynamic_tree(
     )
 
 
+@_owns_executor
 def build_static_tree(
     shapes: Sequence[ArrayLike],
     root: int = 0,
@@ -681,6 +697,7 @@ def _direct_results(
     return [out_by_subject[s] for s in subjects_idx]
 
 
+@_owns_executor
 def register_direct(
     shapes: Sequence[ArrayLike],
     root: int = 0,

@@ -170,3 +170,12 @@ def test_bad_shapes_raise():
         register_direct([good, [[0, 0], [1, 1]]])
     with pytest.raises(ValueError, match=r"shapes\[1\] has zero size"):
         build_static_tree([good, np.ones((5, 2))])
+
+
+def test_default_executor_is_closed_when_the_run_ends(family):
+    import multiprocessing
+
+    shapes = family.shapes[:9]  # 81 pairs: the default is a local process pool
+    res = build_dynamic_tree(shapes, 0, cpd=CPDOptions(max_iter=20))
+    assert res.subjects
+    assert multiprocessing.active_children() == []
