@@ -26,7 +26,6 @@ parser and must be able to limit BLAS threads before numpy is imported.
 from __future__ import annotations
 
 import argparse
-import fnmatch
 import json
 import math
 import os
@@ -411,28 +410,12 @@ def find_shape(rt: RegtreeClient, collection: Collection, value: str) -> Shape:
 
 
 def _shape_files(folder: Path, pattern: str, recursive: bool) -> list[Path]:
-    from service.client import UPLOAD_SUFFIXES
+    from service.client import find_shape_files
 
-    if not folder.is_dir():
-        raise CLIError(f"{folder} is not a folder", EXIT_USAGE)
-    candidates = folder.rglob("*") if recursive else folder.iterdir()
-    files = sorted(
-        (
-            p
-            for p in candidates
-            if p.is_file()
-            and p.suffix.lower() in UPLOAD_SUFFIXES
-            and fnmatch.fnmatch(p.name, pattern)
-        ),
-        key=lambda p: str(p.relative_to(folder)),
-    )
-    if not files:
-        raise CLIError(
-            f"no shape files matching {pattern!r} in {folder} "
-            f"(looked for {', '.join(sorted(UPLOAD_SUFFIXES))})",
-            EXIT_USAGE,
-        )
-    return files
+    try:
+        return find_shape_files(folder, pattern=pattern, recursive=recursive)
+    except FileNotFoundError as exc:
+        raise CLIError(str(exc), EXIT_USAGE) from None
 
 
 def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:

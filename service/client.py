@@ -455,6 +455,39 @@ def _points_list(points: ArrayLike) -> list[list[float]]:
     return out
 
 
+def find_shape_files(
+    folder: str | Path, *, pattern: str = "*", recursive: bool = False
+) -> list[Path]:
+    """The point files and images in ``folder`` whose name matches ``pattern``, sorted by
+    their path relative to the folder; other files are skipped.
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``folder`` is not a folder or holds no matching shape file.
+    """
+    root = Path(folder)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root} is not a folder")
+    candidates = root.rglob("*") if recursive else root.iterdir()
+    files = sorted(
+        (
+            p
+            for p in candidates
+            if p.is_file()
+            and p.suffix.lower() in UPLOAD_SUFFIXES
+            and fnmatch.fnmatch(p.name, pattern)
+        ),
+        key=lambda p: str(p.relative_to(root)),
+    )
+    if not files:
+        raise FileNotFoundError(
+            f"no shape files matching {pattern!r} in {root} "
+            f"(looked for {', '.join(sorted(UPLOAD_SUFFIXES))})"
+        )
+    return files
+
+
 class RegtreeClient:
     """Synchronous client for one regtree service.
 
@@ -724,25 +757,7 @@ class RegtreeClient:
         skeleton) and at most ``target_points`` points. Returns the stored shapes in upload
         order. See :meth:`upload_files` for batching and partial failures.
         """
-        root = Path(folder)
-        if not root.is_dir():
-            raise FileNotFoundError(f"{root} is not a folder")
-        candidates = root.rglob("*") if recursive else root.iterdir()
-        files = sorted(
-            (
-                p
-                for p in candidates
-                if p.is_file()
-                and p.suffix.lower() in UPLOAD_SUFFIXES
-                and fnmatch.fnmatch(p.name, pattern)
-            ),
-            key=lambda p: str(p.relative_to(root)),
-        )
-        if not files:
-            raise FileNotFoundError(
-                f"no shape files matching {pattern!r} in {root} "
-                f"(looked for {', '.join(sorted(UPLOAD_SUFFIXES))})"
-            )
+        files = find_shape_files(folder, pattern=pattern, recursive=recursive)
         return self.upload_files(
             collection_id,
             files,
