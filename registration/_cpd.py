@@ -34,6 +34,8 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from ._points import as_points
+
 __all__ = ["CPDResult", "NonrigidTransform", "cpd_nonrigid"]
 
 FloatArray = NDArray[np.float64]
@@ -290,24 +292,6 @@ class CPDResult:
 # ----------------------------------------------------------------------------------------
 # validation
 # ----------------------------------------------------------------------------------------
-def _as_points(name: str, a: ArrayLike) -> FloatArray:
-    try:
-        arr = np.asarray(a, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a numeric array of shape (n, 2); {exc}") from None
-    if arr.ndim != 2 or arr.shape[1] != 2:
-        raise ValueError(f"{name} must have shape (n, 2); got {arr.shape}")
-    if arr.shape[0] < 3:
-        raise ValueError(f"{name} must have at least 3 points; got {arr.shape[0]}")
-    bad = ~np.isfinite(arr).all(axis=1)
-    if bad.any():
-        raise ValueError(
-            f"{name} must contain only finite values; row {int(np.argmax(bad))} is "
-            f"{arr[int(np.argmax(bad))].tolist()} ({int(bad.sum())} non-finite rows)"
-        )
-    return arr
-
-
 def _real(name: str, v: Any) -> float:
     if isinstance(v, bool) or not isinstance(v, numbers.Real):
         raise ValueError(f"{name} must be a real number; got {v!r}")
@@ -782,8 +766,8 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
                   tol: Any, max_iter: Any, sigma2: Any, normalize: Any, low_rank: Any,
                   num_eig: Any, dtype: Any, truncate: Any, backend: Any,
                   callback: Callable[[int, float, float], None] | None) -> CPDResult:
-    y_in = _as_points("model", model)
-    x_in = _as_points("subject", subject)
+    y_in = as_points(model, name="model")
+    x_in = as_points(subject, name="subject")
     m, n = len(y_in), len(x_in)
     _check_params(beta, lmbda, w, tol, max_iter, sigma2, num_eig, dtype, backend, low_rank,
                   truncate, normalize, callback, m)

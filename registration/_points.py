@@ -45,7 +45,11 @@ def as_points(points: ArrayLike, *, name: str = "points", min_points: int = 3) -
     finite = np.isfinite(arr).all(axis=1)
     if not finite.all():
         bad = int(np.flatnonzero(~finite)[0])
-        raise ValueError(f"{name} has a non-finite coordinate at point {bad}")
+        raise ValueError(
+            f"{name} has a non-finite coordinate at point {bad} ({name} must contain only "
+            f"finite values; row {bad} is {arr[bad].tolist()}, {int((~finite).sum())} "
+            "non-finite rows)"
+        )
     return np.ascontiguousarray(arr)
 
 
