@@ -182,17 +182,34 @@ def _coarse(p: FloatArray, n: int) -> FloatArray:
     return p[idx]
 
 
-def _batch_distances(
-    x: NDArray[np.floating], y: NDArray[np.floating], A: NDArray[np.floating],
-    t: NDArray[np.floating],
-) -> NDArray[np.floating]:
-    """Squared distances (B, n, m) between ``A_b x_b + t_b`` and ``y_b`` for B problems."""
-    tx = np.matmul(x, A.transpose(0, 2, 1)) + t[:, None, :]
-    d2 = np.matmul(tx, -2.0 * y.transpose(0, 2, 1))
-    d2 += (tx * tx).sum(axis=2)[:, :, None]
-    d2 += (y * y).sum(axis=2)[:, None, :]
-    np.maximum(d2, 0.0, out=d2)
-    return d2
+def _as_components(p: NDArray[np.floating], n_b: int) -> tuple[FloatArray, FloatArray]:
+    """The x and y coordinates of (B, n, 2) or (n, 2) points as contiguous (B, n) arrays."""
+    if p.ndim == 2:
+        p = np.broadcast_to(p, (n_b, *p.shape))
+    return np.ascontiguousarray(p[..., 0]), np.ascontiguousarray(p[..., 1])
+
+
+def _rows(p0: FloatArray, p1: FloatArray) -> NDArray[np.float32]:
+    """``[p, 1]`` per point, float32, shape (B, n, 3)."""
+    out = np.empty((*p0.shape, 3), dtype=np.float32)
+    out[..., 0] = p0
+    out[..., 1] = p1
+    out[..., 2] = 1.0
+    return out
+
+
+def _cols(p0: FloatArray, p1: FloatArray) -> NDArray[np.float32]:
+    """``[-2 p, |p|^2]`` per point as columns, float32, shape (B, 3, n).
+
+    ``[x, 1] . [-2 y, |y|^2] = |x - y|^2 - |x|^2``: one (B, n, 3) x (B, 3, m) product
+    gives every row's squared distances up to a constant per row, which is all an argmin
+    along the row needs, in one pass over the (B, n, m) array.
+    """
+    out = np.empty((p0.shape[0], 3, p0.shape[1]), dtype=np.float32)
+    out[:, 0] = -2.0 * p0
+    out[:, 1] = -2.0 * p1
+    out[:, 2] = p0 * p0 + p1 * p1
+    return out
 
 
 def _batch_icp(
@@ -204,27 +221,40 @@ def _batch_icp(
     x : (B, n, 2) or (n, 2); y : (B, m, 2) or (m, 2); A : (B, 2, 2); t : (B, 2).
     Returns the final A, t and eq. 9 distance (B,) of every problem. Problems whose D
     stops decreasing by more than `tol` (relative) are frozen; the loop ends early when
-    all are.
+    all are. Nearest neighbours are found in float32 (half the memory traffic; ties
+    aside, the same neighbours); D and the eq. 8 fit are computed in float64 from
+    moment sums of the coordinates, centred per problem so that the sums keep their
+    precision in any user coordinates.
     """
     n_b = A.shape[0]
-    xb = np.broadcast_to(x, (n_b, *x.shape[-2:])) if x.ndim == 2 else x
-    yb = np.broadcast_to(y, (n_b, *y.shape[-2:])) if y.ndim == 2 else y
-    # nearest neighbours in float32 (half the memory traffic); D itself in float64
-    x32, y32 = xb.astype(np.float32), yb.astype(np.float32)
-    A, t = A.copy(), t.copy()
+    x0, x1 = _as_components(x, n_b)
+    y0, y1 = _as_components(y, n_b)
+    n, m = x0.shape[1], y0.shape[1]
+    # centre every problem: x' = x - cx, y' = y - cy, t' = t + A cx - cy
+    cx = np.stack([x0.mean(axis=1), x1.mean(axis=1)], axis=1)
+    cy = np.stack([y0.mean(axis=1), y1.mean(axis=1)], axis=1)
+    x0, x1 = x0 - cx[:, :1], x1 - cx[:, 1:]
+    y0, y1 = y0 - cy[:, :1], y1 - cy[:, 1:]
+    A = A.copy()
+    t = t + np.einsum("bij,bj->bi", A, cx) - cy
+    y_rows, y_cols = _rows(y0, y1), _cols(y0, y1)
+    # the model half of eq. 8's stacked pairs is fixed: its moments once
+    x00, x01, x11 = (x0 * x0).sum(axis=1), (x0 * x1).sum(axis=1), (x1 * x1).sum(axis=1)
     A_prev, t_prev = A.copy(), t.copy()
     dist = np.full(n_b, np.inf)
     idx = np.arange(n_b)  # problems still iterating: only they are computed
     for it in range(iterations + 1):
-        xs, ys = xb[idx], yb[idx]
-        d2 = _batch_distances(x32[idx], y32[idx], A[idx].astype(np.float32),
-                              t[idx].astype(np.float32))
-        c = d2.argmin(axis=2)  # subject index for each model point (eq. 3)
-        d = d2.argmin(axis=1)  # model index for each subject point
-        tx = np.matmul(xs, A[idx].transpose(0, 2, 1)) + t[idx][:, None, :]
-        fwd = ((tx - np.take_along_axis(ys, c[:, :, None], axis=1)) ** 2).sum(axis=2)
-        bwd = ((np.take_along_axis(tx, d[:, :, None], axis=1) - ys) ** 2).sum(axis=2)
-        new = fwd.mean(axis=1) + bwd.mean(axis=1)
+        X0, X1, Y0, Y1 = x0[idx], x1[idx], y0[idx], y1[idx]
+        Ai, ti = A[idx], t[idx]
+        tx0 = Ai[:, 0, :1] * X0 + Ai[:, 0, 1:] * X1 + ti[:, :1]
+        tx1 = Ai[:, 1, :1] * X0 + Ai[:, 1, 1:] * X1 + ti[:, 1:]
+        c = np.matmul(_rows(tx0, tx1), y_cols[idx]).argmin(axis=2)  # eq. 3, forward
+        d = np.matmul(y_rows[idx], _cols(tx0, tx1)).argmin(axis=2)  # and backward
+        yc0, yc1 = np.take_along_axis(Y0, c, axis=1), np.take_along_axis(Y1, c, axis=1)
+        txd0, txd1 = np.take_along_axis(tx0, d, axis=1), np.take_along_axis(tx1, d, axis=1)
+        new = ((tx0 - yc0) ** 2 + (tx1 - yc1) ** 2).mean(axis=1) + (
+            (txd0 - Y0) ** 2 + (txd1 - Y1) ** 2
+        ).mean(axis=1)
         old = dist[idx]
         worse = new > old  # the last step raised eq. 9: undo it and freeze
         if worse.any():
@@ -235,19 +265,42 @@ def _batch_icp(
         going = ~worse & (old - new > tol * new)
         if it == iterations or not going.any():
             break
-        r = np.concatenate([xs[going], np.take_along_axis(xs[going], d[going][:, :, None],
-                                                          axis=1)], axis=1)
-        s = np.concatenate([np.take_along_axis(ys[going], c[going][:, :, None], axis=1),
-                            ys[going]], axis=1)
-        A_new, t_new = _fit_affine_batch(r, s)
-        good = np.asarray(np.isfinite(A_new).all(axis=(1, 2)))
-        det = np.linalg.det(np.where(good[:, None, None], A_new, np.eye(2)))
-        good &= np.abs(det) > _MIN_ABS_DET
-        idx = idx[going][good]
+        g = idx[going]
+        X0, X1, Y0, Y1 = X0[going], X1[going], Y0[going], Y1[going]
+        yc0, yc1, dg = yc0[going], yc1[going], d[going]
+        xd0, xd1 = np.take_along_axis(X0, dg, axis=1), np.take_along_axis(X1, dg, axis=1)
+        # eq. 8 on the stacked pairs (x_i, y_c(i)) and (x_d(j), y_j), from moment sums
+        k = float(n + m)
+        r0 = (X0.sum(axis=1) + xd0.sum(axis=1)) / k
+        r1 = (X1.sum(axis=1) + xd1.sum(axis=1)) / k
+        s0 = (yc0.sum(axis=1) + Y0.sum(axis=1)) / k
+        s1 = (yc1.sum(axis=1) + Y1.sum(axis=1)) / k
+        aa00 = x00[g] + (xd0 * xd0).sum(axis=1) - k * r0 * r0
+        aa01 = x01[g] + (xd0 * xd1).sum(axis=1) - k * r0 * r1
+        aa11 = x11[g] + (xd1 * xd1).sum(axis=1) - k * r1 * r1
+        ba00 = (yc0 * X0).sum(axis=1) + (Y0 * xd0).sum(axis=1) - k * s0 * r0
+        ba01 = (yc0 * X1).sum(axis=1) + (Y0 * xd1).sum(axis=1) - k * s0 * r1
+        ba10 = (yc1 * X0).sum(axis=1) + (Y1 * xd0).sum(axis=1) - k * s1 * r0
+        ba11 = (yc1 * X1).sum(axis=1) + (Y1 * xd1).sum(axis=1) - k * s1 * r1
+        det_aa = aa00 * aa11 - aa01 * aa01
+        ok = det_aa > 1e-12 * (aa00 + aa11) ** 2
+        det_aa = np.where(ok, det_aa, 1.0)
+        A_new = np.empty((g.size, 2, 2))
+        A_new[:, 0, 0] = (ba00 * aa11 - ba01 * aa01) / det_aa
+        A_new[:, 0, 1] = (ba01 * aa00 - ba00 * aa01) / det_aa
+        A_new[:, 1, 0] = (ba10 * aa11 - ba11 * aa01) / det_aa
+        A_new[:, 1, 1] = (ba11 * aa00 - ba10 * aa01) / det_aa
+        t_new = np.stack([s0, s1], axis=1) - np.einsum("bij,bj->bi", A_new,
+                                                        np.stack([r0, r1], axis=1))
+        det = A_new[:, 0, 0] * A_new[:, 1, 1] - A_new[:, 0, 1] * A_new[:, 1, 0]
+        good = ok & np.isfinite(det) & (np.abs(det) > _MIN_ABS_DET)
+        idx = g[good]
         A_prev[idx], t_prev[idx] = A[idx], t[idx]
         A[idx], t[idx] = A_new[good], t_new[good]
         if idx.size == 0:
             break
+    # back to the problems' own coordinates: t = t' - A cx + cy
+    t = t - np.einsum("bij,bj->bi", A, cx) + cy
     return A, t, dist
 
 

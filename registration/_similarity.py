@@ -17,7 +17,7 @@ ProgressCallback = Callable[[str, int, int], None]
 
 __all__ = ["ProgressCallback", "Similarity", "shape_descriptor", "similarity_matrix"]
 
-_PAIRS_PER_TASK = 24
+_PAIRS_PER_TASK = 64
 # D only has to be compared with a threshold: a looser tolerance than affine_icp's default
 _SIMILARITY_TOL = 1e-3
 
