@@ -16,6 +16,7 @@ then refines the best start on the full point sets with KD-trees.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -388,11 +389,53 @@ def pairwise_affine_icp(
     for i, j in pairs:
         A, t = found[(i, j)]
         A, t = np.array(A), np.array(t)
-        tx = shapes[i].points @ A.T + t
-        fwd_d, _ = shapes[j].tree.query(tx)
-        bwd_d, _ = cKDTree(tx).query(shapes[j].points)
-        out.append((i, j, float(np.mean(fwd_d**2) + np.mean(bwd_d**2)), A, t))
+        out.append((i, j, _full_distance(shapes[i], shapes[j], A, t), A, t))
     return out
+
+
+# Largest n * m for which D on the full sets uses one dense float32 product per direction
+# (4 bytes per entry); above it, KD-trees (O(n log m) but ~0.5 us per query here).
+_DENSE_FULL_MAX = 2_000_000
+
+
+_NEAREST_BLOCK = 64
+
+
+def _full_distance(x: PreparedShape, y: PreparedShape, A: FloatArray, t: FloatArray) -> float:
+    """D of eq. 9 between ``A x + t`` and ``y`` on all points.
+
+    Pairs up to ``_DENSE_FULL_MAX`` entries use one dense float32 product of augmented
+    points, ``[tx, |tx|^2, 1] . [-2 y, 1, |y|^2] = |tx - y|^2`` (coordinates centred on
+    the subject's centroid), and take the minimum along rows and columns; about 2.5x
+    faster than two KD-tree queries at 1000 x 1000 points. The product runs as a stack of
+    64-row blocks, each small enough that OpenBLAS keeps it on one thread (no
+    oversubscription in a process-pool worker). Float32 rounding bounds the error of D by
+    about 1e-6 times the squared radius of the shapes (1e-6 on size-normalised shapes).
+    Larger pairs use KD-trees.
+    """
+    tx = x.points @ A.T + t
+    n, m = tx.shape[0], y.points.shape[0]
+    if n * m > _DENSE_FULL_MAX:
+        fwd_d, _ = y.tree.query(tx)
+        bwd_d, _ = cKDTree(tx).query(y.points)
+        return float(np.mean(fwd_d**2) + np.mean(bwd_d**2))
+    centre = y.mean
+    tc, yc = tx - centre, y.points - centre
+    blocks = -(-n // _NEAREST_BLOCK)
+    rows = np.empty((blocks * _NEAREST_BLOCK, 4), dtype=np.float32)
+    rows[:n, :2] = tc
+    rows[:n, 2] = (tc * tc).sum(axis=1)
+    rows[:, 3] = 1.0
+    rows[n:] = rows[n - 1]  # padding repeats the last point: no effect on minima
+    cols = np.empty((4, m), dtype=np.float32)
+    cols[:2] = -2.0 * yc.T
+    cols[2] = 1.0
+    cols[3] = (yc * yc).sum(axis=1)
+    d2 = np.matmul(rows.reshape(blocks, _NEAREST_BLOCK, 4), cols)  # (blocks, 64, m)
+    fwd2 = d2.min(axis=2).ravel()[:n]
+    bwd2 = d2.min(axis=1).min(axis=0)
+    return float(np.maximum(fwd2, 0.0).mean(dtype=np.float64)
+                 + np.maximum(bwd2, 0.0).mean(dtype=np.float64))
 
 
 def _refine(
@@ -448,9 +491,13 @@ class PreparedShape:
     coarse: FloatArray
     mid: FloatArray
     medium: FloatArray
-    tree: cKDTree
     mean: FloatArray
     whiten: FloatArray
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        """KD-tree of all points, built on first use (dense products serve small sets)."""
+        return cKDTree(self.points)
 
 
 def prepare_shape(
@@ -467,7 +514,7 @@ def prepare_shape(
     return PreparedShape(
         points=p, coarse=_coarse(p, coarse_points),
         mid=_coarse(p, (coarse_points + medium_points) // 2),
-        medium=_coarse(p, medium_points), tree=cKDTree(p), mean=mean, whiten=whiten,
+        medium=_coarse(p, medium_points), mean=mean, whiten=whiten,
     )
 
 

@@ -18,6 +18,7 @@ ProgressCallback = Callable[[str, int, int], None]
 __all__ = ["ProgressCallback", "Similarity", "shape_descriptor", "similarity_matrix"]
 
 _PAIRS_PER_TASK = 64
+_TILE = 8
 # D only has to be compared with a threshold: a looser tolerance than affine_icp's default
 _SIMILARITY_TOL = 1e-3
 
@@ -70,7 +71,9 @@ class Similarity:
         """Compute D for the given (model, subject) pairs that are not yet known."""
         todo = sorted(
             {(i, j) for i, j in pairs if i != j and np.isnan(self.D[i, j])},
-            key=lambda p: (min(p), max(p), p),  # both directions of a pair side by side
+            # tiles of _TILE x _TILE shapes, both directions of a pair side by side: a task
+            # of consecutive pairs then needs few shapes (each task prepares its own)
+            key=lambda p: (min(p) // _TILE, max(p) // _TILE, min(p), max(p), p),
         )
         if not todo:
             return
