@@ -152,6 +152,18 @@ def default_executor(n_tasks: int, *, min_parallel_tasks: int = 64) -> Executor:
 
     A returned :class:`LocalProcessExecutor` holds processes until it is closed; prefer
     :func:`owned_executor`, which closes what it creates.
+
+    Parameters
+    ----------
+    n_tasks : int
+        Number of tasks (or a proxy for the work) the executor will run.
+    min_parallel_tasks : int
+        Below this, or on a single-CPU machine, the work runs serially.
+
+    Returns
+    -------
+    Executor
+        :class:`SerialExecutor` or :class:`LocalProcessExecutor`.
     """
     if n_tasks < min_parallel_tasks or _available_cpus() < 2:
         return SerialExecutor()

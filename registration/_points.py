@@ -134,6 +134,8 @@ def resample(points: ArrayLike, n: int, *, name: str = "points") -> FloatArray:
     points : array_like, shape (m, 2)
     n : int
         Target number of points, at least 3.
+    name : str
+        How `points` is called in error messages.
 
     Returns
     -------

@@ -119,7 +119,19 @@ class SubjectResult:
 
 
 def error_statistics(errors: list[float]) -> dict[str, Any]:
-    """Count, mean and 95th percentile (linear interpolation) of a list of e values."""
+    """Count, mean and 95th percentile of a list of e values, as the paper reports them.
+
+    Parameters
+    ----------
+    errors : list of float
+        Registration errors (eq. 10).
+
+    Returns
+    -------
+    dict
+        ``{"count": int, "mean": float | None, "p95": float | None}``; the 95th
+        percentile by linear interpolation; None for an empty list.
+    """
     if not errors:
         return {"count": 0, "mean": None, "p95": None}
     arr = np.asarray(errors, dtype=np.float64)

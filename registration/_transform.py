@@ -8,7 +8,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._points import Normalization
+from ._points import Normalization, as_points
 
 FloatArray = NDArray[np.float64]
 
@@ -134,8 +134,28 @@ def jacobian_determinants(
     """Determinant of the Jacobian of `transform` at each point (central differences).
 
     A non-positive value means the map folds (or collapses) the plane there.
+
+    Parameters
+    ----------
+    transform : object with ``apply(points) -> points``
+        Any of the library's transforms (affine, CPD non-rigid, chain).
+    points : array_like, shape (n, 2)
+        Where to evaluate, in the transform's input coordinates.
+    h : float
+        Step of the central differences.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+
+    Raises
+    ------
+    ValueError
+        If `points` is not a finite (n, 2) array or `h` is not positive.
     """
-    p = np.asarray(points, dtype=np.float64)
+    if not h > 0:
+        raise ValueError(f"h must be positive; got {h}")
+    p = as_points(points, name="points", min_points=1)
     ex = np.array([h, 0.0])
     ey = np.array([0.0, h])
     stacked = np.concatenate([p + ex, p - ex, p + ey, p - ey])

@@ -604,7 +604,23 @@ def build_static_tree(
     for a uniform interface and ignored: no registration is rejected. Subjects the
     similarity graph does not reach from the root are reported unattached.
 
-    Parameters and return value are as for :func:`build_dynamic_tree`.
+    Parameters
+    ----------
+    shapes, root, similarity_threshold, candidates, cpd, prealign, max_rotation, names,
+    compare_direct, executor, progress
+        As for :func:`build_dynamic_tree`.
+    error_threshold : float, optional
+        Ignored (the static tree rejects nothing); accepted for a uniform interface.
+
+    Returns
+    -------
+    CollectionResult
+        ``method == "static_tree"``; every attempt is accepted.
+
+    Raises
+    ------
+    ValueError
+        On invalid shapes, root, names or thresholds.
     """
     _check_threshold("similarity_threshold", similarity_threshold)
     del error_threshold
@@ -716,8 +732,35 @@ def register_direct(
 
     With `prealign` (default) each registration starts from the best affine-ICP map of
     the root onto the subject; the paper's plain CPD corresponds to ``prealign=False``.
-    Thresholds and `compare_direct` are accepted for a uniform interface and ignored.
     Every subject is at layer 2 with the root as parent.
+
+    Parameters
+    ----------
+    shapes : sequence of array_like, shape (n_i, 2)
+        The collection, in the user's coordinates; each shape is size-normalised first.
+    root : int
+        Index of the model shape.
+    similarity_threshold, error_threshold, compare_direct
+        Ignored; accepted so that the three methods take the same arguments.
+    cpd : CPDOptions, optional
+    prealign : bool
+        Affine-ICP pre-alignment (multi-start) before each CPD.
+    max_rotation : float, optional
+        Restrict the pre-alignment's starts to +-`max_rotation` degrees of the shapes as
+        given, without reflections (see :func:`build_dynamic_tree`).
+    names : sequence of str, optional
+    executor : Executor, optional
+    progress : callable(stage, done, total), optional
+
+    Returns
+    -------
+    CollectionResult
+        ``method == "direct"``.
+
+    Raises
+    ------
+    ValueError
+        On invalid shapes, root or names.
     """
     del similarity_threshold, error_threshold, compare_direct
     cpd = cpd if cpd is not None else CPDOptions()
