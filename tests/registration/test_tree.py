@@ -97,6 +97,35 @@ def test_process_pool_gives_the_serial_result(family):
     assert json.dumps(serial.to_dict()) == json.dumps(pooled.to_dict())
 
 
+class _RemoteLikeExecutor:
+    """A stand-in for a distributed engine, written against the Executor protocol only:
+    every task and result crosses a pickle boundary (as over a network) and results come
+    back in reverse completion order."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def map_unordered(self, fn, items):
+        import pickle
+
+        self.calls += 1
+        shipped = pickle.loads(pickle.dumps((fn, list(items))))
+        done = [(i, pickle.loads(pickle.dumps(shipped[0](item))))
+                for i, item in enumerate(shipped[1])]
+        yield from reversed(done)
+
+
+def test_a_foreign_executor_plugs_in_and_order_of_completion_does_not_matter(family):
+    shapes = family.shapes[:5]
+    serial = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, compare_direct=True,
+                                executor=SerialExecutor())
+    foreign = _RemoteLikeExecutor()
+    remote = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, compare_direct=True,
+                                executor=foreign)
+    assert foreign.calls >= 3  # similarity, at least one layer, direct CPD
+    assert json.dumps(serial.to_dict()) == json.dumps(remote.to_dict())
+
+
 def test_explicit_tiny_thresholds_leave_subjects_unattached_not_forced(family):
     res = build_dynamic_tree(family.shapes[:5], 0, similarity_threshold=1e-9,
                              error_threshold=1e-9, cpd=FAST_CPD, executor=SerialExecutor())
