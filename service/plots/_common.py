@@ -10,6 +10,7 @@ identical bytes.
 from __future__ import annotations
 
 import io
+import os
 import re
 import threading
 import warnings
@@ -28,31 +29,113 @@ from matplotlib.font_manager import FontProperties
 Format = Literal["png", "svg"]
 MEDIA_TYPES: dict[str, str] = {"png": "image/png", "svg": "image/svg+xml"}
 
-# Fonts tried after DejaVu Sans for glyphs it lacks (CJK glyph names are common in archives).
+# Fonts tried, glyph by glyph, after DejaVu Sans (which draws Latin, Greek and Cyrillic) for
+# the glyphs it lacks: shape names in archives are often CJK ("永_song"). Matplotlib >= 3.6
+# falls back per glyph along ``font.sans-serif``; only installed families are listed there.
+# Chinese forms first (glyph archives are mostly Chinese), then Japanese and Korean; Debian:
+# fonts-noto-cjk, fonts-wqy-zenhei, fonts-wqy-microhei, fonts-arphic-uming, fonts-droid-fallback.
 _FALLBACK_FONTS = (
-    "Noto Sans CJK JP",
     "Noto Sans CJK SC",
     "Noto Sans CJK TC",
+    "Noto Sans CJK HK",
+    "Noto Sans CJK JP",
     "Noto Sans CJK KR",
+    "Source Han Sans SC",
+    "Source Han Sans CN",
     "Source Han Sans",
+    "Noto Serif CJK SC",
+    "Noto Serif CJK TC",
+    "Noto Serif CJK JP",
+    "Noto Serif CJK KR",
+    "Source Han Serif",
     "WenQuanYi Zen Hei",
     "WenQuanYi Micro Hei",
     "Droid Sans Fallback",
     "AR PL UMing CN",
+    "AR PL UKai CN",
+    "IPAexGothic",
+    "IPAGothic",
+    "TakaoPGothic",
+    "NanumGothic",
     "Noto Sans",
+    "Unifont",
 )
+#: The subset of :data:`_FALLBACK_FONTS` that draws CJK ideographs.
+CJK_FONTS = frozenset(_FALLBACK_FONTS) - {"Noto Sans", "Unifont"}
 
 _LOCK = threading.RLock()
 _MISSING_GLYPH = re.compile(r"Glyph (\d+) .*missing from")
 _families: list[str] | None = None
 
 
-def _font_families() -> list[str]:
+def _installed_names() -> set[str]:
+    return {f.name for f in font_manager.fontManager.ttflist}
+
+
+def _add_new_system_fonts() -> int:
+    """Add to matplotlib's font manager the system fonts it does not know yet; return how many
+    files were added.
+
+    Matplotlib lists the system fonts once, into a cache file (``fontlist-*.json`` in its cache
+    directory), and trusts that file afterwards: a font installed later (``apt-get install
+    fonts-noto-cjk`` after the first plot on the machine) stays unknown to it. Adding the new
+    files to the running font manager is cheaper than rebuilding it and keeps every reference
+    to it (``font_manager.findfont`` is bound to the instance) valid.
+    """
+    manager = font_manager.fontManager
+    known = {os.path.realpath(f.fname) for f in manager.ttflist}
+    added = 0
+    for path in font_manager.findSystemFonts():
+        if os.path.realpath(path) in known:
+            continue
+        try:
+            manager.addfont(path)
+        except Exception:  # an unreadable or unsupported file: skip it
+            continue
+        known.add(os.path.realpath(path))
+        added += 1
+    return added
+
+
+def font_families(refresh: bool = False) -> list[str]:
+    """The font families the pictures use, in order: DejaVu Sans, then the installed fallbacks
+    (one family per font file: the SC, TC, JP and KR families of Noto Sans CJK share one).
+
+    It is ``font.family`` itself, not only ``font.sans-serif``: matplotlib falls back glyph by
+    glyph along the families of a text's ``font.family``, and ``"sans-serif"`` alone resolves
+    to one font.
+
+    Worked out once per process. When matplotlib knows no CJK font, the system's fonts are
+    looked at again (see :func:`_add_new_system_fonts`), so that a CJK font installed after
+    matplotlib built its cache is used. ``refresh=True`` works it out anew.
+    """
     global _families
-    if _families is None:
-        installed = {f.name for f in font_manager.fontManager.ttflist}
-        _families = ["DejaVu Sans", *[f for f in _FALLBACK_FONTS if f in installed]]
-    return _families
+    with _LOCK:
+        if _families is None or refresh:
+            installed = _installed_names()
+            if not installed & CJK_FONTS and _add_new_system_fonts():
+                installed = _installed_names()
+            _families = ["DejaVu Sans"]
+            files = {_font_file("DejaVu Sans")}
+            for family in _FALLBACK_FONTS:
+                path = _font_file(family) if family in installed else None
+                if path is not None and path not in files:  # one family per font file
+                    files.add(path)
+                    _families.append(family)
+        return list(_families)
+
+
+def _font_file(family: str) -> str | None:
+    try:
+        path = font_manager.findfont(FontProperties(family=family), fallback_to_default=False)
+    except ValueError:
+        return None
+    return os.path.realpath(path)
+
+
+def cjk_font() -> str | None:
+    """The first CJK family the pictures fall back to, or None when none is installed."""
+    return next((f for f in font_families() if f in CJK_FONTS), None)
 
 
 @dataclass(frozen=True)
@@ -110,8 +193,8 @@ def _rc() -> Any:
     return {
         "svg.fonttype": "none",
         "svg.hashsalt": "regtree",
-        "font.family": "sans-serif",
-        "font.sans-serif": _font_families(),
+        "font.family": font_families(),
+        "font.sans-serif": font_families(),
         "axes.titlesize": "medium",
         "path.simplify": False,
     }

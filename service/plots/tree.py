@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import unicodedata
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -163,8 +164,14 @@ def _edge_norm(errors: list[float]) -> tuple[Normalize, str]:
     return Normalize(vmin=0.0, vmax=hi if hi > 0 else 1.0), "linear"
 
 
-def _text_px(chars: int, fontsize: float, dpi: float) -> float:
+def _text_px(chars: float, fontsize: float, dpi: float) -> float:
     return 0.62 * fontsize * dpi / 72.0 * chars
+
+
+def _chars(text: str) -> float:
+    """Length of ``text`` in average Latin characters (0.62 em): a wide (CJK) character
+    takes a full em, about 1.6 of them."""
+    return sum(1.6 if unicodedata.east_asian_width(c) in "WF" else 1.0 for c in text)
 
 
 def render_tree(
@@ -219,9 +226,9 @@ def render_tree(
     slots = _layout(nodes, root, layer_index)
 
     label_len = (
-        max(len(shorten(n.name, NAME_LIMIT)) for n in nodes.values() if n.parent)
+        max(_chars(shorten(n.name, NAME_LIMIT)) for n in nodes.values() if n.parent)
         if len(nodes) > 1
-        else len(shorten(nodes[root].name, NAME_LIMIT))
+        else _chars(shorten(nodes[root].name, NAME_LIMIT))
     )
     auto_slot = float(min(120, max(34, 7.5 * label_len + 14)))
     if width:
@@ -244,7 +251,7 @@ def render_tree(
         fontsize -= 0.5
     label_px = (_text_px(label_len, fontsize, dpi) if rotation else 1.4 * fontsize * dpi / 72) + 10
 
-    u_len = max((len(shorten(n, NAME_LIMIT)) for _, n in unattached), default=0)
+    u_len = max((_chars(shorten(n, NAME_LIMIT)) for _, n in unattached), default=0.0)
     u_fontsize = min(9.0, fontsize + 1)
     u_slot = max(34.0, _text_px(u_len, u_fontsize, dpi) + 16)
     per_row = max(1, int(axes_w // u_slot))
@@ -257,7 +264,7 @@ def render_tree(
     for node in nodes.values():
         if node.parent is None:
             continue
-        chars = len(shorten(node.name, NAME_LIMIT))
+        chars = _chars(shorten(node.name, NAME_LIMIT))
         need = (_text_px(chars, fontsize, dpi) if rotation else 1.4 * fontsize * dpi / 72) + 10
         i = layer_index[node.layer]
         row_label_px[i] = max(row_label_px[i], need)
@@ -351,7 +358,7 @@ def render_tree(
                 label += " (model)"
                 # ... and stays inside the picture when the model is near a side
                 centre_px = _LEFT_PX + (node.x + 0.5) / slots * axes_w
-                half = 0.55 * _text_px(len(label), fontsize, dpi) + 6
+                half = 0.55 * _text_px(_chars(label), fontsize, dpi) + 6
                 shift_px = max(0.0, half - centre_px) - max(0.0, centre_px + half - fig_w)
                 where: dict[str, Any] = {
                     "xytext": (shift_px * 72 / dpi, offset * 1.3),
