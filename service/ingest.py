@@ -99,13 +99,14 @@ def _check_count(n: int, limits: Limits) -> None:
         )
     if n > limits.max_points:
         raise IngestError(
-            f"got {n} points; at most {limits.max_points} are allowed (setting max_points)"
+            f"got {n} points; at most {limits.max_points} are allowed "
+            "(setting max_points_per_shape)"
         )
 
 
 def _too_many(limits: Limits, what: str = "file") -> IngestError:
     return IngestError(
-        f"{what} has more than {limits.max_points} points, the limit (setting max_points)"
+        f"{what} has more than {limits.max_points} points, the limit (setting max_points_per_shape)"
     )
 
 
@@ -703,7 +704,8 @@ def points_from_image(
         ):
             raise IngestError(
                 f"target_points must be an integer between {limits.min_points} and "
-                f"{limits.max_points} (settings min_points and max_points); got {target_points!r}"
+                f"{limits.max_points} (settings min_points and max_points_per_shape); "
+                f"got {target_points!r}"
             )
         target_points = int(target_points)
     im = _open_image(data, limits)
@@ -754,7 +756,7 @@ def points_from_image(
 def _image_too_many(n: int, limits: Limits) -> IngestError:
     return IngestError(
         f"the image yields {n} points; at most {limits.max_points} are allowed (setting "
-        f"max_points); ask for fewer with target_points"
+        f"max_points_per_shape); ask for fewer with target_points"
     )
 
 

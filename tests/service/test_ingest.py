@@ -157,7 +157,8 @@ def test_json_errors(obj: object, match: str) -> None:
 def test_json_too_many_points() -> None:
     obj = [[i, i] for i in range(11)]
     with pytest.raises(
-        IngestError, match=r"got 11 points; at most 10 are allowed \(setting max_points\)"
+        IngestError,
+        match=r"got 11 points; at most 10 are allowed \(setting max_points_per_shape\)",
     ):
         points_from_json(obj, limits=Limits(max_points=10))
     assert points_from_json(obj[:10], limits=Limits(max_points=10)).shape == (10, 2)
@@ -256,7 +257,9 @@ def test_text_errors(text: str, match: str) -> None:
 
 def test_text_too_many_points_stops_early() -> None:
     text = "".join(f"{i} {i}\n" for i in range(20)) + "this line is never reached\n"
-    with pytest.raises(IngestError, match=r"more than 10 points, the limit \(setting max_points\)"):
+    with pytest.raises(
+        IngestError, match=r"more than 10 points, the limit \(setting max_points_per_shape\)"
+    ):
         points_from_text(text, limits=Limits(max_points=10))
 
 
@@ -339,7 +342,7 @@ def forged_npy(shape: tuple[int, ...], payload: bytes = b"") -> bytes:
         (npy(np.zeros((0, 2))), r"no points found"),
         (
             npy(np.zeros((20001, 2))),
-            r"got 20001 points; at most 20000 are allowed \(setting max_points\)",
+            r"got 20001 points; at most 20000 are allowed \(setting max_points_per_shape\)",
         ),
         (
             npy(np.where(np.arange(40).reshape(20, 2) == 25, np.nan, 1.0)),
@@ -673,8 +676,8 @@ def test_target_points_invalid(target: object) -> None:
 def test_image_with_too_many_points_suggests_target_points(mode: str) -> None:
     with pytest.raises(
         IngestError,
-        match=r"the image yields \d+ points; at most 5 are allowed \(setting max_points\); "
-        r"ask for fewer with target_points",
+        match=r"the image yields \d+ points; at most 5 are allowed "
+        r"\(setting max_points_per_shape\); ask for fewer with target_points",
     ):
         points_from_image(encode(ellipse_image()), mode=mode, limits=Limits(max_points=5))  # type: ignore[arg-type]
 
