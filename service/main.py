@@ -11,6 +11,7 @@ from fastapi.openapi.utils import get_openapi
 from sqlalchemy import text
 
 from service import __version__
+from service.api.limits import limits_description, resolve_limits
 from service.api.middleware import (
     PUBLIC_PATHS,
     ApiKeyMiddleware,
@@ -64,7 +65,7 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
     app = FastAPI(
         title="regtree",
         version=__version__,
-        description=DESCRIPTION,
+        description=DESCRIPTION + limits_description(),
         openapi_tags=TAGS,
         lifespan=lifespan,
     )
@@ -114,6 +115,9 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
                 schemas.setdefault(name, sub)
             schemas.setdefault(model.__name__, model_schema)
         _document_errors_as_problems(schema)
+        # The limits the document states are this app's settings, as enforced.
+        schema = resolve_limits(schema, settings)
+        components = schema["components"]
         components["securitySchemes"] = {
             "ApiKeyHeader": {"type": "apiKey", "in": "header", "name": "X-API-Key"},
             "Bearer": {"type": "http", "scheme": "bearer"},
@@ -155,6 +159,13 @@ def _document_errors_as_problems(schema: dict[str, Any]) -> None:
                 responses["400"] = {
                     "description": "The request body cannot be parsed (malformed JSON or "
                     "multipart).",
+                    "content": dict(_PROBLEM_CONTENT),
+                }
+            if "requestBody" in operation:
+                # BodyLimitMiddleware refuses any body past the limit, on every operation.
+                responses["413"] = {
+                    "description": "The request body is larger than {max_body_bytes} bytes "
+                    "(setting max_body_bytes).",
                     "content": dict(_PROBLEM_CONTENT),
                 }
     component_schemas = schema.get("components", {}).get("schemas", {})

@@ -9,24 +9,18 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 from annotated_types import Interval
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from service.core.config import Settings
+from service.api.limits import bounds, example
 
 T = TypeVar("T")
-
-
-def _default(setting: str) -> Any:
-    return Settings.model_fields[setting].default
 
 
 #: Text without NUL characters: PostgreSQL cannot store them in a text column, so every
 #: name and description refuses them, on every database alike.
 NO_NUL = r"^[^\x00]*$"
 
-#: The upload limits the schema states: the settings' defaults. An operator who changes the
-#: settings changes what the server accepts; the descriptions say which setting rules.
-MIN_POINTS: int = _default("min_points")
-MAX_POINTS: int = _default("max_points_per_shape")
-MAX_COORDINATE: float = _default("max_coordinate")
+# The upload limits are settings: the schema states them with placeholders that each app
+# fills in from its own settings (service.api.limits). These models document the JSON
+# upload; the server enforces the limits with the same settings (service.ingest).
 
 #: Largest value of SQLite's INTEGER (a signed 64-bit integer).
 INT64_MAX = 2**63 - 1
@@ -93,36 +87,43 @@ class CollectionOut(BaseModel):
 
 Point = tuple[float, float]
 #: A coordinate of an uploaded point: at most ``max_coordinate`` in absolute value.
-Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE)]
+Coordinate = Annotated[
+    float,
+    Field(json_schema_extra=bounds(minimum="-max_coordinate", maximum="max_coordinate")),
+]
 InputPoint = tuple[Coordinate, Coordinate]
 
 
 class ShapeJSON(BaseModel):
     """A shape sent as JSON: a name and its (x, y) points in the user's own units.
 
-    The bounds are the defaults of the settings ``min_points``, ``max_points_per_shape`` and
-    ``max_coordinate``; the server enforces the configured values.
+    The bounds are this server's settings ``min_points``, ``max_points_per_shape`` and
+    ``max_coordinate``.
     """
 
     model_config = ConfigDict(
         json_schema_extra={
-            "examples": [{"name": "fish-1", "points": [[0.0, 0.0], [1.0, 0.2], [0.5, 1.0]]}]
+            "examples": [{"name": "outline-1", "points": example("points")}]
         }
     )
 
     name: str | None = Field(default=None, min_length=1, max_length=300, pattern=NO_NUL)
     points: list[InputPoint] = Field(
-        min_length=MIN_POINTS,
-        max_length=MAX_POINTS,
-        description=f"{MIN_POINTS} to {MAX_POINTS} points [x, y], each coordinate within "
-        f"±{MAX_COORDINATE:g} (settings min_points, max_points_per_shape, max_coordinate).",
+        description="{min_points} to {max_points_per_shape} points [x, y], each coordinate "
+        "within ±{max_coordinate:g} (settings min_points, max_points_per_shape, max_coordinate).",
+        json_schema_extra=bounds(minItems="min_points", maxItems="max_points_per_shape"),
     )
 
 
 class ShapeBatchJSON(BaseModel):
     """Several shapes in one JSON body; all are stored or none."""
 
-    shapes: list[ShapeJSON] = Field(min_length=1)
+    shapes: list[ShapeJSON] = Field(
+        min_length=1,
+        description="1 to {max_batch_files} shapes (setting max_batch_files); the collection "
+        "may hold {max_shapes_per_collection} in all (setting max_shapes_per_collection).",
+        json_schema_extra=bounds(maxItems="max_batch_files"),
+    )
 
 
 class BBox(BaseModel):
@@ -328,7 +329,9 @@ class TransformRequest(BaseModel):
     )
 
     points: Annotated[list[Point], Field(min_length=1)] = Field(
-        description="Points in the model shape's coordinates."
+        description="Points in the model shape's coordinates: 1 to {max_points_per_shape} "
+        "(setting max_points_per_shape).",
+        json_schema_extra=bounds(maxItems="max_points_per_shape"),
     )
 
     @field_validator("points")

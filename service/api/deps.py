@@ -6,7 +6,9 @@ from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import Depends, Header, Query, Request
+from fastapi.exceptions import RequestValidationError
 
+from service.api.limits import DEFAULT_PAGE_SIZE, bounds, default_page_size
 from service.core.config import Settings
 from service.db import Database
 from service.schemas import INT64_MAX
@@ -33,9 +35,37 @@ class Pagination:
 
 
 def get_pagination(
-    limit: Annotated[int, Query(ge=1, le=500, description="Page size.")] = 50,
+    request: Request,
+    settings: SettingsDep,
+    limit: Annotated[
+        int,
+        Query(
+            ge=1,
+            description="Page size: 1 to {max_page_size} (setting max_page_size); "
+            "{default_page_size} when not given.",
+            json_schema_extra=bounds(maximum="max_page_size", default="default_page_size"),
+        ),
+    ] = DEFAULT_PAGE_SIZE,
     offset: Annotated[int, Query(ge=0, le=INT64_MAX, description="Items to skip.")] = 0,
 ) -> Pagination:
+    """The page a list asks for; ``limit`` is bounded by the setting ``max_page_size``."""
+    if "limit" not in request.query_params:
+        limit = default_page_size(settings)
+    elif limit > settings.max_page_size:
+        # The same 422 as a bound in the signature would give (that bound is the setting's,
+        # so it is checked here, and the schema states it: service.api.limits).
+        raise RequestValidationError(
+            [
+                {
+                    "type": "less_than_equal",
+                    "loc": ("query", "limit"),
+                    "msg": f"Input should be less than or equal to {settings.max_page_size} "
+                    "(setting max_page_size)",
+                    "input": limit,
+                    "ctx": {"le": settings.max_page_size},
+                }
+            ]
+        )
     return Pagination(limit=limit, offset=offset)
 
 

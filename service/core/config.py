@@ -9,7 +9,7 @@ from __future__ import annotations
 from functools import lru_cache
 from typing import Literal
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -40,14 +40,29 @@ class Settings(BaseSettings):
     )
 
     # --- request limits --------------------------------------------------------------------
-    max_body_bytes: int = Field(default=32 * 1024 * 1024, ge=1024)
-    max_points_per_shape: int = Field(default=20_000, ge=3)
-    min_points: int = Field(default=3, ge=1)
+    # The OpenAPI document states the configured values (service.api.limits); a request past
+    # one is refused with a problem document naming the setting, and stores nothing.
+    max_body_bytes: int = Field(
+        default=32 * 1024 * 1024, ge=1024, description="Request body size, in bytes (413)."
+    )
+    max_points_per_shape: int = Field(
+        default=20_000,
+        ge=3,
+        description="Points in one shape, in an image's target_points and in one transform "
+        "request.",
+    )
+    min_points: int = Field(default=3, ge=1, description="Points a shape needs at least.")
     max_shapes_per_collection: int = Field(default=2_000, ge=1)
-    max_batch_files: int = Field(default=500, ge=1)
-    max_coordinate: float = Field(default=1e7, gt=0)
-    max_image_pixels: int = Field(default=25_000_000, ge=1)
-    max_page_size: int = Field(default=500, ge=1)
+    max_batch_files: int = Field(
+        default=500, ge=1, description="Files (multipart) or shapes (JSON batch) in one upload."
+    )
+    max_coordinate: float = Field(
+        default=1e7, gt=0, description="Largest absolute value of an uploaded coordinate."
+    )
+    max_image_pixels: int = Field(default=25_000_000, ge=1, description="Pixels of an image.")
+    max_page_size: int = Field(
+        default=500, ge=1, description="Items in one page of a list (`?limit=`); 50 by default."
+    )
 
     # --- job queue -------------------------------------------------------------------------
     worker_lease_seconds: float = Field(default=60.0, gt=0)
@@ -64,6 +79,16 @@ class Settings(BaseSettings):
     # --- logging ---------------------------------------------------------------------------
     log_level: str = "INFO"
     log_json: bool = True
+
+    @model_validator(mode="after")
+    def _consistent_limits(self) -> Settings:
+        # Checked at start-up: otherwise every upload would fail (service.ingest.Limits).
+        if self.min_points > self.max_points_per_shape:
+            raise ValueError(
+                f"min_points ({self.min_points}) must not exceed max_points_per_shape "
+                f"({self.max_points_per_shape})"
+            )
+        return self
 
 
 @lru_cache

@@ -16,24 +16,26 @@ file answers 422 naming the file, and nothing is stored.
 from __future__ import annotations
 
 import json
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Query, Request, Response, status
 from starlette.concurrency import run_in_threadpool
-from starlette.datastructures import UploadFile
+from starlette.datastructures import FormData, UploadFile
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service import ingest
 from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
+from service.api.limits import bounds, example
 from service.api.problems import ProblemError, not_found, problem_responses
 from service.api.routes.collections import get_collection_or_404
 from service.core.config import Settings
 from service.models import TERMINAL_STATUSES, Job, Shape, points_to_npy
 from service.schemas import (
-    MAX_POINTS,
-    MIN_POINTS,
     NO_NUL,
     DbInt,
     ImageMode,
@@ -45,10 +47,20 @@ from service.schemas import (
 
 router = APIRouter(prefix="/collections/{collection_id}/shapes", tags=["shapes"])
 
+#: The limits, as the operation's description states them (placeholders: service.api.limits).
+_LIMITS_DOC = """
+Limits of this server: a request body of at most {max_body_bytes} bytes (else 413);
+{min_points} to {max_points_per_shape} points per shape, each coordinate within
+±{max_coordinate:g}; images of at most {max_image_pixels} pixels; at most {max_batch_files}
+files (multipart) or shapes (JSON batch) in one upload; at most {max_shapes_per_collection}
+shapes in the collection (else 422, nothing stored).
+"""
+
 _TARGET_POINTS_DOC = (
-    "Upper bound on the points taken from an image; between the settings min_points and "
-    f"max_points_per_shape ({MIN_POINTS} and {MAX_POINTS} by default)."
+    "Upper bound on the points taken from an image: {min_points} to {max_points_per_shape} "
+    "(settings min_points and max_points_per_shape)."
 )
+_TARGET_POINTS_BOUNDS = bounds(minimum="min_points", maximum="max_points_per_shape")
 
 RAW_TYPES = {
     "text/csv": "csv",
@@ -73,16 +85,11 @@ _UPLOAD_OPENAPI: dict[str, Any] = {
                 "examples": {
                     "single": {
                         "summary": "One shape",
-                        "value": {"name": "tri", "points": [[0, 0], [1, 0], [0, 1]]},
+                        "value": {"name": "polygon", "points": example("points")},
                     },
                     "batch": {
                         "summary": "Several shapes, all or nothing",
-                        "value": {
-                            "shapes": [
-                                {"name": "a", "points": [[0, 0], [1, 0], [0, 1]]},
-                                {"name": "b", "points": [[0, 0], [2, 0], [0, 2]]},
-                            ]
-                        },
+                        "value": {"shapes": example("batch")},
                     },
                 },
             },
@@ -94,8 +101,10 @@ _UPLOAD_OPENAPI: dict[str, Any] = {
                         "files": {
                             "type": "array",
                             "items": {"type": "string", "format": "binary"},
-                            "description": "JSON, CSV/TXT, NPY, PNG or JPEG files; the file "
-                            "name (without extension) becomes the shape name.",
+                            **bounds(maxItems="max_batch_files"),
+                            "description": "JSON, CSV/TXT, NPY, PNG or JPEG files, 1 to "
+                            "{max_batch_files} (setting max_batch_files); the file name "
+                            "(without extension) becomes the shape name.",
                         },
                         "mode": {
                             "type": "string",
@@ -104,21 +113,26 @@ _UPLOAD_OPENAPI: dict[str, Any] = {
                         },
                         "target_points": {
                             "type": "integer",
-                            "minimum": MIN_POINTS,
-                            "maximum": MAX_POINTS,
+                            **_TARGET_POINTS_BOUNDS,
                             "description": _TARGET_POINTS_DOC,
                         },
                     },
                 }
             },
-            "text/csv": {"schema": {"type": "string"}, "example": "x,y\n0,0\n1,0\n0,1\n"},
-            "text/plain": {"schema": {"type": "string"}, "example": "0 0\n1 0\n0 1\n"},
+            "text/csv": {"schema": {"type": "string"}, "example": example("csv")},
+            "text/plain": {"schema": {"type": "string"}, "example": example("text")},
             "application/octet-stream": {
                 "schema": {"type": "string", "format": "binary"},
                 "description": "A `.npy` file holding an (n, 2) numeric array.",
             },
-            "image/png": {"schema": {"type": "string", "format": "binary"}},
-            "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
+            "image/png": {
+                "schema": {"type": "string", "format": "binary"},
+                "description": "At most {max_image_pixels} pixels (setting max_image_pixels).",
+            },
+            "image/jpeg": {
+                "schema": {"type": "string", "format": "binary"},
+                "description": "At most {max_image_pixels} pixels (setting max_image_pixels).",
+            },
         },
     }
 }
@@ -184,7 +198,7 @@ def _parse_target_points(raw: str | None) -> int | None:
 
 
 def _check_target_points(target: int | None, limits: ingest.Limits) -> int | None:
-    """The configured bounds, for every upload form (the schema states the defaults)."""
+    """The configured bounds, for every upload form (the schema states them too)."""
     if target is not None and not limits.min_points <= target <= limits.max_points:
         raise _invalid(
             f"target_points must be an integer between {limits.min_points} and "
@@ -200,7 +214,16 @@ def _parse_mode(raw: str | None) -> ImageMode:
     return mode  # type: ignore[return-value]
 
 
-def _decode_json_body(body: bytes, limits: ingest.Limits) -> tuple[list[Decoded], bool]:
+def _too_many_files(count: str, max_batch_files: int, what: str = "files") -> ProblemError:
+    return _invalid(
+        f"{count} {what} in one upload; at most {max_batch_files} are allowed "
+        "(setting max_batch_files)"
+    )
+
+
+def _decode_json_body(
+    body: bytes, limits: ingest.Limits, max_batch_files: int
+) -> tuple[list[Decoded], bool]:
     """Shapes from a JSON body, and whether it was a batch."""
     try:
         obj = json.loads(body)
@@ -210,6 +233,8 @@ def _decode_json_body(body: bytes, limits: ingest.Limits) -> tuple[list[Decoded]
         items = obj["shapes"]
         if not isinstance(items, list) or not items:
             raise _invalid('"shapes" must be a non-empty array of {"name", "points"} objects')
+        if len(items) > max_batch_files:
+            raise _too_many_files(str(len(items)), max_batch_files, "shapes")
         batch = True
     else:
         items = [obj]
@@ -341,6 +366,25 @@ def _store(
         return [shape_out(r) for r in rows]
 
 
+@asynccontextmanager
+async def _form(request: Request, max_batch_files: int) -> AsyncIterator[FormData]:
+    """The multipart form, with at most ``max_batch_files`` files.
+
+    The parser stops at the first file past the limit; Starlette would answer that with a
+    400 naming its own count, so it is the same 422 as any other upload past the limit.
+    """
+    try:
+        form = await request.form(max_files=max_batch_files, max_fields=100)
+    except StarletteHTTPException as e:
+        if e.status_code == 400 and str(e.detail).startswith("Too many files"):
+            raise _too_many_files(f"more than {max_batch_files}", max_batch_files) from e
+        raise
+    try:
+        yield form
+    finally:
+        await form.close()
+
+
 @router.post(
     "",
     status_code=status.HTTP_201_CREATED,
@@ -348,7 +392,7 @@ def _store(
     responses=problem_responses(401, 404, 413, 415, 422),
     openapi_extra=_UPLOAD_OPENAPI,
     summary="Upload one shape or a batch",
-    description=__doc__,
+    description=(__doc__ or "") + _LIMITS_DOC,
 )
 async def upload_shapes(
     collection_id: DbInt,
@@ -366,7 +410,7 @@ async def upload_shapes(
         int | None,
         Query(
             description=_TARGET_POINTS_DOC,
-            json_schema_extra={"minimum": MIN_POINTS, "maximum": MAX_POINTS},
+            json_schema_extra=_TARGET_POINTS_BOUNDS,
         ),
     ] = None,
 ) -> ShapeOut | ShapeBatchOut:
@@ -380,9 +424,11 @@ async def upload_shapes(
     if media_type == "application/json" or media_type.endswith("+json"):
         body = await request.body()
         request_hash = idempotency.hash_bytes(b"json", body)
-        decoded, batch = await run_in_threadpool(_decode_json_body, body, limits)
+        decoded, batch = await run_in_threadpool(
+            _decode_json_body, body, limits, settings.max_batch_files
+        )
     elif media_type == "multipart/form-data":
-        async with request.form(max_files=settings.max_batch_files + 1, max_fields=100) as form:
+        async with _form(request, settings.max_batch_files) as form:
             uploads = [
                 f
                 for key in ("files", "file")
@@ -392,10 +438,7 @@ async def upload_shapes(
             if not uploads:
                 raise _invalid('multipart upload has no file in the "files" field')
             if len(uploads) > settings.max_batch_files:
-                raise _invalid(
-                    f"{len(uploads)} files in one upload; at most {settings.max_batch_files} are "
-                    "allowed (setting max_batch_files)"
-                )
+                raise _too_many_files(str(len(uploads)), settings.max_batch_files)
             form_mode = form.get("mode")
             form_target = form.get("target_points")
             files = [(u.filename, u.content_type, await u.read()) for u in uploads]
