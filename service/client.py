@@ -88,6 +88,16 @@ _RETRY_STATUSES = frozenset({502, 503, 504})
 # --- errors ----------------------------------------------------------------------------------
 
 
+def _page_size_limit(error: RegtreeError) -> int | None:
+    """The largest page size a 422 on ``?limit=`` allows (the server's ``max_page_size``)."""
+    for item in error.errors or []:
+        if not isinstance(item, dict) or list(item.get("loc") or []) != ["query", "limit"]:
+            continue
+        le = str((item.get("ctx") or {}).get("le", ""))
+        return int(le) if le.isdigit() and int(le) >= 1 else None
+    return None
+
+
 class RegtreeError(Exception):
     """An error answer from the service, with its RFC 9457 problem document.
 
@@ -612,7 +622,14 @@ class RegtreeClient:
     def _paged(self, path: str, page_size: int = 500, **params: Any) -> Iterator[dict[str, Any]]:
         offset = 0
         while True:
-            page = self._get(path, params={**params, "limit": page_size, "offset": offset})
+            try:
+                page = self._get(path, params={**params, "limit": page_size, "offset": offset})
+            except ValidationError as e:
+                smaller = _page_size_limit(e)
+                if smaller is None or smaller >= page_size:
+                    raise
+                page_size = smaller  # the server's max_page_size is lower: ask for that
+                continue
             items = page.get("items") or []
             yield from items
             offset += len(items)
