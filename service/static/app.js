@@ -41,6 +41,8 @@
     job: null,             // the open job (JobOut)
     result: null,          // its result document
     subjectsById: new Map(),
+    namesById: new Map(),
+    fromTree: false,       // the selection was made by clicking the tree (no zoom to it)
     selected: null,        // selected shape id
     sort: { key: "shape_id", dir: 1 },
     jobTimer: null,
@@ -294,6 +296,7 @@
     state.job = null;
     state.result = null;
     state.selected = null;
+    resetTreeView();
     $("ui-job").hidden = true;
     $("ui-welcome").hidden = false;
   }
@@ -409,6 +412,8 @@
     if (token !== state.loadToken) return;
     state.result = result;
     state.subjectsById = new Map(result.subjects.map((s) => [s.shape_id, s]));
+    const ids = result.shape_ids || [];
+    state.namesById = new Map(ids.map((id, i) => [id, (result.names || [])[i] ?? `#${id}`]));
     $("ui-result").hidden = false;
     renderFacts();
     renderTable();
@@ -422,8 +427,7 @@
     if (!r) return `#${shapeId}`;
     const s = state.subjectsById.get(shapeId);
     if (s && s.name) return s.name;
-    const i = (r.shape_ids || []).indexOf(shapeId);
-    return i >= 0 && r.names ? r.names[i] : `#${shapeId}`;
+    return state.namesById.get(shapeId) ?? `#${shapeId}`;
   }
 
   // --- pictures -------------------------------------------------------------------------------
@@ -449,90 +453,586 @@
     }
   }
 
+  // --- the tree: zoom, pan, fit, search --------------------------------------------------------
+  // The server draws the tree (tree.svg, matplotlib); the page shows it in a fixed-size box and
+  // moves a viewBox over it: zoom with the wheel, the buttons or + and −, pan by dragging or with
+  // the arrow keys, 0 fits the whole tree. The picture's "unattached" box is taken out of it and
+  // listed as buttons under the tree, so those names stay readable at any zoom.
+  const TREE = {
+    MAX_SCALE: 4,          // 4x the picture's natural size
+    READABLE: 1,           // a found shape is shown at least at natural size (9 pt names)
+    LOCATOR_BELOW: 0.75,   // under this scale a ring marks the selected shape
+    PAD: 10,               // px kept free around the fitted tree
+    ANIMATE_MS: 180,
+  };
+  const tv = {
+    svg: null, box: null,
+    content: null,         // the tree's part of the picture, in SVG units {x, y, w, h}
+    unitPx: 1,             // CSS px per SVG unit at natural size (4/3 for a picture in pt)
+    boxW: 0, boxH: 0,
+    view: null,            // the visible part, in SVG units; view.w / view.h == boxW / boxH
+    fitted: true,          // the user has not moved the view since it was fitted
+    nodes: new Map(),      // shape id -> {g, box} of each node in the tree
+    frame: 0,              // pending requestAnimationFrame
+    still: 0,              // timer: the view has stopped moving
+    drag: null,
+    justDragged: false,
+    resize: null,
+  };
+  const reducedMotion = () => window.matchMedia && matchMedia("(prefers-reduced-motion: reduce)").matches;
+
   async function loadTree(token) {
     const box = $("ui-tree");
-    box.replaceChildren(el("p", { class: "hint", text: "drawing the tree…" }));
+    resetTreeView();
+    box.replaceChildren(el("p", { class: "hint tree-message", text: "drawing the tree…" }));
+    renderUnattached();
     let text;
     try {
       text = await api(`/v1/jobs/${state.job.id}/result/tree.svg`, { as: "text" });
     } catch (e) {
-      if (token === state.loadToken) box.replaceChildren(el("p", { class: "error", text: `No tree: ${e.message}` }));
+      if (token === state.loadToken) box.replaceChildren(el("p", { class: "error tree-message", text: `No tree: ${e.message}` }));
       return;
     }
     if (token !== state.loadToken) return;
+    const started = performance.now();
     const doc = new DOMParser().parseFromString(text, "image/svg+xml");
     const svg = doc.documentElement;
     if (!svg || svg.nodeName !== "svg") {
-      box.replaceChildren(el("p", { class: "error", text: "The tree picture could not be read." }));
+      box.replaceChildren(el("p", { class: "error tree-message", text: "The tree picture could not be read." }));
       return;
     }
     const imported = document.importNode(svg, true);
-    // draw at its natural size at most, narrower when the column is narrower
-    const naturalPx = parseFloat(svg.getAttribute("width") || "0") * (/pt$/.test(svg.getAttribute("width") || "") ? 4 / 3 : 1);
-    imported.removeAttribute("height");
-    imported.setAttribute("width", "100%");
-    if (naturalPx > 0) {
-      imported.style.maxWidth = `${Math.round(naturalPx)}px`;
-      // a big tree is not shrunk past legibility: the box scrolls sideways instead
-      imported.style.minWidth = `${Math.round(0.6 * naturalPx)}px`;
-    }
-    imported.setAttribute("role", "img");
+    const vb = (imported.getAttribute("viewBox") || "").split(/[\s,]+/).map(Number);
+    const widthAttr = imported.getAttribute("width") || "";
+    const natural = parseFloat(widthAttr) * (/pt$/.test(widthAttr) ? 4 / 3 : 1);
+    const full = vb.length === 4 && vb.every(Number.isFinite) && vb[2] > 0 && vb[3] > 0
+      ? { x: vb[0], y: vb[1], w: vb[2], h: vb[3] }
+      : { x: 0, y: 0, w: natural || 800, h: natural || 600 };
+    // drawn at its natural size and moved with a CSS transform: changing the viewBox instead
+    // would lay every name of the picture out again on each frame
+    imported.setAttribute("width", String(full.w * (natural > 0 ? natural / full.w : 1)));
+    imported.setAttribute("height", String(full.h * (natural > 0 ? natural / full.w : 1)));
+    imported.setAttribute("viewBox", `${full.x} ${full.y} ${full.w} ${full.h}`);
+    imported.setAttribute("role", "group");
     imported.setAttribute("aria-label", `registration tree of job ${state.job.id}`);
     imported.id = "ui-tree-svg";
-    box.replaceChildren(imported);
-    makeNodesClickable(imported);
-    $("ui-tree-hint").hidden = box.scrollWidth <= box.clientWidth + 1;
-    revealNode(state.route.subjectId ?? state.result.root_shape_id);
-  }
-
-  // scroll a wide tree sideways (only sideways: the page stays put) to centre a node
-  function revealNode(shapeId) {
-    const box = $("ui-tree");
-    const g = box.querySelector(`g.rt-node[data-shape-id="${shapeId}"]`);
-    if (!g || box.scrollWidth <= box.clientWidth) return;
-    const node = g.getBoundingClientRect();
-    const view = box.getBoundingClientRect();
-    if (node.left < view.left + 20 || node.right > view.right - 20) {
-      box.scrollLeft += node.left + node.width / 2 - (view.left + view.width / 2);
+    box.replaceChildren(imported, el("div", { id: "ui-tree-locator", class: "tree-locator", hidden: true }));
+    // the unattached shapes are listed under the tree instead (readable at any zoom)
+    let content = full;
+    const unattachedBox = imported.querySelector("g#unattached");
+    if (unattachedBox) {
+      const b = unattachedBox.getBBox();
+      if (b.height > 0 && b.y > full.y) content = { ...full, h: Math.max(b.y - 6 - full.y, 10) };
     }
+    tv.svg = imported;
+    tv.box = box;
+    tv.content = content;
+    tv.full = full;
+    tv.unitPx = natural > 0 ? natural / full.w : 1;
+    makeNodesClickable(imported);
+    if (unattachedBox) unattachedBox.remove();
+    // a wide tree takes more of the page's width (before the box is measured)
+    box.closest(".panes").classList.toggle("big-tree", content.w * tv.unitPx > 1200);
+    sizeTreeBox();
+    const first = Math.min(fitScale(), 1);
+    setView(viewAt(first, content.x + content.w / 2, content.y + content.h / 2));
+    tv.fitted = true;
+    tv.resize = new ResizeObserver(() => {
+      const w = box.clientWidth;
+      if (!tv.svg || Math.abs(w - tv.boxW) < 1) return;
+      const centre = viewCentre();
+      const scale = scaleOf();
+      sizeTreeBox();
+      setView(tv.fitted ? viewAt(Math.min(fitScale(), 1), ...contentCentre()) : viewAt(scale, ...centre));
+    });
+    tv.resize.observe(box);
+    const subject = state.route.subjectId;
+    if (subject !== null && subject !== undefined) revealNode(subject, { zoom: true, animate: false });
+    // the time from the picture's text to an interactive tree (for the page's own measurements)
+    box.dataset.renderMs = (performance.now() - started).toFixed(1);
+    box.dataset.nodes = String(tv.nodes.size);
   }
 
+  function resetTreeView() {
+    if (tv.resize) tv.resize.disconnect();
+    cancelAnimationFrame(tv.frame);
+    Object.assign(tv, { svg: null, content: null, view: null, fitted: true, nodes: new Map(), drag: null, resize: null });
+    const box = $("ui-tree");
+    box.style.height = "";
+    box.closest(".panes").classList.remove("big-tree");
+    delete box.dataset.scale;
+    delete box.dataset.view;
+    delete box.dataset.renderMs;
+    delete box.dataset.nodes;
+    $("ui-zoom-level").textContent = "";
+    clearSearch();
+  }
+
+  // the box: as wide as its column; as high as the tree at that width, within limits
+  function sizeTreeBox() {
+    const box = tv.box;
+    const c = tv.content;
+    tv.boxW = Math.max(box.clientWidth, 50);
+    const widthScale = Math.min(1, (tv.boxW - 2 * TREE.PAD) / (c.w * tv.unitPx));
+    const wanted = c.h * tv.unitPx * widthScale + 2 * TREE.PAD;
+    const tallest = Math.max(360, Math.round(0.72 * window.innerHeight));
+    // a tree shrunk a lot gets room to be zoomed into
+    const least = widthScale < 0.6 ? 360 : 160;
+    tv.boxH = Math.round(Math.min(tallest, Math.max(least, wanted)));
+    box.style.height = `${tv.boxH}px`;
+  }
+
+  const scaleOf = (v = tv.view) => tv.boxW / (v.w * tv.unitPx);
+  const viewCentre = (v = tv.view) => [v.x + v.w / 2, v.y + v.h / 2];
+  const contentCentre = () => [tv.content.x + tv.content.w / 2, tv.content.y + tv.content.h / 2];
+  function fitScale() {
+    const c = tv.content;
+    return Math.min((tv.boxW - 2 * TREE.PAD) / (c.w * tv.unitPx), (tv.boxH - 2 * TREE.PAD) / (c.h * tv.unitPx));
+  }
+  const minScale = () => Math.min(0.8 * fitScale(), 1);
+  const clampScale = (s) => Math.min(TREE.MAX_SCALE, Math.max(minScale(), s));
+  function viewAt(scale, cx, cy) {
+    const s = clampScale(scale);
+    const w = tv.boxW / (s * tv.unitPx);
+    const h = tv.boxH / (s * tv.unitPx);
+    return { x: cx - w / 2, y: cy - h / 2, w, h };
+  }
+  // keep the view's centre over the tree, so it cannot be lost by panning
+  function clampView(v) {
+    const c = tv.content;
+    const [cx, cy] = viewCentre(v);
+    const x = Math.min(c.x + c.w, Math.max(c.x, cx));
+    const y = Math.min(c.y + c.h, Math.max(c.y, cy));
+    return { ...v, x: v.x + (x - cx), y: v.y + (y - cy) };
+  }
+
+  function setView(v) {
+    if (!tv.svg) return;
+    tv.view = clampView(v);
+    const { x, y, w, h } = tv.view;
+    const scale = scaleOf();
+    const k = scale * tv.unitPx;
+    moving();
+    tv.svg.style.transform = `translate(${-(x - tv.full.x) * k}px, ${-(y - tv.full.y) * k}px) scale(${scale})`;
+    tv.box.dataset.scale = scale.toFixed(4);
+    tv.box.dataset.view = [x, y, w, h].map((n) => n.toFixed(1)).join(" ");  // in the picture's units
+    $("ui-zoom-level").textContent = `${Math.round(scale * 100)}%`;
+    $("ui-zoom-in").disabled = scale >= TREE.MAX_SCALE - 1e-6;
+    $("ui-zoom-out").disabled = scale <= minScale() + 1e-6;
+    placeLocator();
+  }
+
+  // mark the box as moving until the view has stood still for a moment
+  function moving() {
+    if (!tv.box) return;
+    tv.box.classList.add("moving");
+    clearTimeout(tv.still);
+    tv.still = setTimeout(() => tv.box && tv.box.classList.remove("moving"), 200);
+  }
+
+  // move to a view, in a few frames unless the user prefers no motion
+  function moveTo(target, animate = true) {
+    cancelAnimationFrame(tv.frame);
+    if (!animate || reducedMotion() || !tv.view) { setView(target); return; }
+    const from = tv.view;
+    const t0 = performance.now();
+    const step = (now) => {
+      const t = Math.min(1, (now - t0) / TREE.ANIMATE_MS);
+      const k = t * (2 - t);
+      // interpolate the centre and the scale (not the corners): zooming looks steady
+      const [fx, fy] = viewCentre(from);
+      const [tx, ty] = viewCentre(target);
+      const s = Math.exp(Math.log(scaleOf(from)) + k * (Math.log(scaleOf(target)) - Math.log(scaleOf(from))));
+      const w = tv.boxW / (s * tv.unitPx);
+      const h = tv.boxH / (s * tv.unitPx);
+      setView({ x: fx + k * (tx - fx) - w / 2, y: fy + k * (ty - fy) - h / 2, w, h });
+      if (t < 1) tv.frame = requestAnimationFrame(step);
+    };
+    tv.frame = requestAnimationFrame(step);
+  }
+
+  // zoom by `factor` about a point of the box (CSS px from its top left; default its centre)
+  function zoomBy(factor, px = tv.boxW / 2, py = tv.boxH / 2, animate = false) {
+    if (!tv.view) return;
+    const v = tv.view;
+    const ux = v.x + (px / tv.boxW) * v.w;
+    const uy = v.y + (py / tv.boxH) * v.h;
+    const s = clampScale(scaleOf() * factor);
+    const w = tv.boxW / (s * tv.unitPx);
+    const h = tv.boxH / (s * tv.unitPx);
+    tv.fitted = false;
+    moveTo({ x: ux - (px / tv.boxW) * w, y: uy - (py / tv.boxH) * h, w, h }, animate);
+  }
+  function zoomFit(animate = true) {
+    if (!tv.view) return;
+    tv.fitted = true;
+    moveTo(viewAt(fitScale(), ...contentCentre()), animate);
+  }
+  function zoomActual() {
+    if (!tv.view) return;
+    tv.fitted = false;
+    const sel = state.selected !== null ? tv.nodes.get(state.selected) : null;
+    moveTo(viewAt(1, ...(sel ? nodeCentre(sel.box) : viewCentre())));
+  }
+  function panBy(dxPx, dyPx) {
+    if (!tv.view) return;
+    const k = tv.view.w / tv.boxW;
+    tv.fitted = false;
+    setView({ ...tv.view, x: tv.view.x + dxPx * k, y: tv.view.y + dyPx * k });
+  }
+
+  const nodeCentre = (b) => [b.x + b.width / 2, b.y + b.height / 2];
+
+  // bring a node into view: centred when outside it; with zoom, at a readable scale at least
+  function revealNode(shapeId, { zoom = false, animate = true } = {}) {
+    const node = tv.nodes.get(shapeId);
+    if (!node || !tv.view) return;
+    const b = node.box;
+    const v = tv.view;
+    const scale = scaleOf();
+    if (zoom && scale < TREE.READABLE) {
+      tv.fitted = false;
+      moveTo(viewAt(TREE.READABLE, ...nodeCentre(b)), animate);
+    } else {
+      const m = Math.min(v.w, v.h) * 0.04;
+      const inside = b.x >= v.x + m && b.x + b.width <= v.x + v.w - m && b.y >= v.y + m && b.y + b.height <= v.y + v.h - m;
+      if (!inside) {
+        tv.fitted = false;
+        moveTo(viewAt(scale, ...nodeCentre(b)), animate);
+      }
+    }
+    if (zoom) flash(node.g);
+  }
+
+  function flash(g) {
+    g.classList.remove("rt-flash");
+    void g.getBBox(); // restart the animation
+    g.classList.add("rt-flash");
+    setTimeout(() => g.classList.remove("rt-flash"), 1600);
+  }
+
+  // a ring over the selected shape when the tree is drawn too small to see its highlight
+  function placeLocator() {
+    const ring = $("ui-tree-locator");
+    if (!ring) return;
+    const node = state.selected !== null ? tv.nodes.get(state.selected) : null;
+    if (!node || scaleOf() >= TREE.LOCATOR_BELOW) { ring.hidden = true; return; }
+    const b = node.box;
+    const v = tv.view;
+    // the shape's marker sits at the top of its name (at the bottom for the model's)
+    const isModel = state.result && state.selected === state.result.root_shape_id;
+    const ux = b.width > b.height ? b.x + b.width / 2 : b.x + Math.min(b.width, 8) / 2;
+    const uy = isModel ? b.y + b.height : b.y;
+    const px = ((ux - v.x) / v.w) * tv.boxW;
+    const py = ((uy - v.y) / v.h) * tv.boxH;
+    ring.hidden = px < -20 || py < -20 || px > tv.boxW + 20 || py > tv.boxH + 20;
+    ring.style.left = `${px}px`;
+    ring.style.top = `${py}px`;
+  }
+
+  // Each node gets a hit area over its name and its marker (above the name; below it for the
+  // model, whose name is on top), a tooltip and button semantics. All sizes are read first and
+  // the DOM written after: interleaving getBBox with writes would lay the picture out again
+  // for every node.
   function makeNodesClickable(svg) {
     const ns = "http://www.w3.org/2000/svg";
     const rootId = state.result.root_shape_id;
-    for (const g of svg.querySelectorAll("g[id]")) {
-      const m = /^(node|unattached)-(\d+)$/.exec(g.id);
-      if (!m) continue;
-      const shapeId = Number(m[2]);
+    tv.nodes = new Map();
+    const found = [];
+    for (const g of svg.querySelectorAll("g[id^='node-']")) {
+      const m = /^node-(\d+)$/.exec(g.id);
+      if (m) found.push({ g, shapeId: Number(m[1]), box: g.getBBox() });
+    }
+    for (const { g, shapeId, box } of found) {
+      const up = shapeId === rootId ? 3 : 11;
+      const down = shapeId === rootId ? 11 : 3;
+      const area = { x: box.x - 3, y: box.y - up, width: box.width + 6, height: box.height + up + down };
       g.classList.add("rt-node");
       g.setAttribute("data-shape-id", String(shapeId));
       g.setAttribute("tabindex", "0");
       g.setAttribute("role", "button");
       g.setAttribute("aria-label", `shape ${nameOf(shapeId)}`);
-      // a hit area over the name and the node's marker next to it (above the name; below it
-      // for the model, whose name is on top)
-      const box = g.getBBox();
       const hit = document.createElementNS(ns, "rect");
-      const up = shapeId === rootId ? 3 : 11;
-      const down = shapeId === rootId ? 11 : 3;
-      hit.setAttribute("x", String(box.x - 3));
-      hit.setAttribute("y", String(box.y - up));
-      hit.setAttribute("width", String(box.width + 6));
-      hit.setAttribute("height", String(box.height + up + down));
+      hit.setAttribute("x", String(area.x));
+      hit.setAttribute("y", String(area.y));
+      hit.setAttribute("width", String(area.width));
+      hit.setAttribute("height", String(area.height));
       hit.setAttribute("rx", "3");
       hit.setAttribute("class", "rt-hit");
       g.insertBefore(hit, g.firstChild);
       const title = document.createElementNS(ns, "title");
       title.textContent = `${nameOf(shapeId)} (shape ${shapeId})`;
       g.append(title);
-      g.addEventListener("click", () => go(`#/jobs/${state.job.id}/subjects/${shapeId}`));
-      g.addEventListener("keydown", (event) => {
-        if (event.key === "Enter" || event.key === " ") {
-          event.preventDefault();
-          go(`#/jobs/${state.job.id}/subjects/${shapeId}`);
-        }
-      });
+      tv.nodes.set(shapeId, { g, box: area });
     }
+  }
+
+  function openFromTree(shapeId) {
+    state.fromTree = true;
+    openSubject(shapeId);
+  }
+
+  // open a subject (route), or only bring it into view when it is open already
+  function openSubject(shapeId, { zoom = false } = {}) {
+    if (!state.job) return;
+    const hash = `#/jobs/${state.job.id}/subjects/${shapeId}`;
+    if (location.hash === hash) {
+      revealNode(shapeId, { zoom });
+      revealChip(shapeId);
+      return;
+    }
+    go(hash);  // selectSubject brings it into view, zoomed in
+  }
+
+  function setupTreeView() {
+    const box = $("ui-tree");
+    box.addEventListener("click", (event) => {
+      if (tv.justDragged) { event.stopPropagation(); event.preventDefault(); return; }
+      const g = event.target.closest && event.target.closest("g.rt-node");
+      if (g) openFromTree(Number(g.dataset.shapeId));
+    }, true);
+    box.addEventListener("wheel", (event) => {
+      if (!tv.view) return;
+      event.preventDefault();
+      const r = box.getBoundingClientRect();
+      const unit = event.deltaMode === 1 ? 16 : event.deltaMode === 2 ? r.height : 1;
+      if (event.shiftKey && !event.ctrlKey) { panBy(event.deltaY * unit, 0); return; }
+      if (Math.abs(event.deltaX) > Math.abs(event.deltaY)) { panBy(event.deltaX * unit, 0); return; }
+      // ctrl + wheel is a trackpad pinch: finer steps
+      const k = event.ctrlKey ? 0.01 : 0.0015;
+      zoomBy(Math.exp(-event.deltaY * unit * k), event.clientX - r.left, event.clientY - r.top);
+    }, { passive: false });
+    box.addEventListener("pointerdown", (event) => {
+      if (!tv.view || event.button !== 0) return;
+      tv.drag = { id: event.pointerId, x: event.clientX, y: event.clientY, moved: false };
+      tv.justDragged = false;
+    });
+    box.addEventListener("pointermove", (event) => {
+      const d = tv.drag;
+      if (!d || d.id !== event.pointerId) return;
+      const dx = event.clientX - d.x;
+      const dy = event.clientY - d.y;
+      if (!d.moved && Math.hypot(dx, dy) < 4) return;
+      if (!d.moved) {
+        d.moved = true;
+        box.setPointerCapture(event.pointerId);
+        box.classList.add("panning");
+      }
+      d.x = event.clientX;
+      d.y = event.clientY;
+      cancelAnimationFrame(tv.frame);
+      panBy(-dx, -dy);
+    });
+    const endDrag = (event) => {
+      const d = tv.drag;
+      if (!d || d.id !== event.pointerId) return;
+      tv.drag = null;
+      box.classList.remove("panning");
+      if (d.moved) {
+        tv.justDragged = true;  // the click that ends a drag opens nothing
+        setTimeout(() => { tv.justDragged = false; }, 0);
+      }
+    };
+    box.addEventListener("pointerup", endDrag);
+    box.addEventListener("pointercancel", endDrag);
+    box.addEventListener("keydown", (event) => {
+      if (!tv.view || event.altKey || event.ctrlKey || event.metaKey) return;
+      const g = event.target.closest && event.target.closest("g.rt-node");
+      const step = 0.15 * Math.min(tv.boxW, tv.boxH);
+      const keys = {
+        "+": () => zoomBy(1.4, undefined, undefined, true),
+        "=": () => zoomBy(1.4, undefined, undefined, true),
+        "-": () => zoomBy(1 / 1.4, undefined, undefined, true),
+        "_": () => zoomBy(1 / 1.4, undefined, undefined, true),
+        "0": () => zoomFit(),
+        "1": () => zoomActual(),
+        ArrowLeft: () => panBy(-step, 0),
+        ArrowRight: () => panBy(step, 0),
+        ArrowUp: () => panBy(0, -step),
+        ArrowDown: () => panBy(0, step),
+      };
+      if (g && (event.key === "Enter" || event.key === " ")) {
+        event.preventDefault();
+        openFromTree(Number(g.dataset.shapeId));
+      } else if (keys[event.key]) {
+        event.preventDefault();
+        keys[event.key]();
+      }
+    });
+    // the picture overflows the box (which never scrolls: the transform moves it), but the
+    // browser scrolls the box to show an element that gets focus; undo that
+    box.addEventListener("scroll", () => { box.scrollTop = 0; box.scrollLeft = 0; });
+    // a shape reached with Tab is brought into view
+    box.addEventListener("focusin", (event) => {
+      const g = event.target.closest && event.target.closest("g.rt-node");
+      if (g) revealNode(Number(g.dataset.shapeId));
+    });
+    $("ui-zoom-in").addEventListener("click", () => zoomBy(1.4, undefined, undefined, true));
+    $("ui-zoom-out").addEventListener("click", () => zoomBy(1 / 1.4, undefined, undefined, true));
+    $("ui-zoom-fit").addEventListener("click", () => zoomFit());
+    $("ui-zoom-actual").addEventListener("click", () => zoomActual());
+    setupSearch();
+  }
+
+  // --- unattached shapes, as buttons under the tree --------------------------------------------
+  const isAttached = (s) => s.attached !== false && s.layer !== null && s.layer !== undefined;
+
+  function renderUnattached() {
+    const section = $("ui-unattached");
+    const list = $("ui-unattached-list");
+    const shapes = state.result ? state.result.subjects.filter((s) => !isAttached(s)) : [];
+    section.hidden = !shapes.length;
+    $("ui-unattached-count").textContent = String(shapes.length);
+    list.replaceChildren(...shapes.map((s) => el("li", {},
+      el("button", {
+        type: "button",
+        class: `chip${s.shape_id === state.selected ? " selected" : ""}`,
+        "data-shape-id": String(s.shape_id),
+        title: `${s.name || `shape ${s.shape_id}`} (shape ${s.shape_id})${s.reason ? `: ${s.reason}` : ""}`,
+        text: s.name || `#${s.shape_id}`,
+        onclick: () => openSubject(s.shape_id),
+      }))));
+  }
+
+  function revealChip(shapeId) {
+    const chip = $("ui-unattached-list").querySelector(`button[data-shape-id="${shapeId}"]`);
+    if (chip) chip.scrollIntoView({ block: "nearest", inline: "nearest" });
+  }
+
+  // --- search by name ----------------------------------------------------------------------------
+  const SEARCH_SHOWN = 50;
+  const search = { matches: [], active: -1 };
+
+  function allShapes() {
+    const r = state.result;
+    if (!r) return [];
+    const out = [{ id: r.root_shape_id, name: nameOf(r.root_shape_id), where: "model" }];
+    for (const s of r.subjects) {
+      out.push({ id: s.shape_id, name: s.name || `#${s.shape_id}`, where: isAttached(s) ? `layer ${s.layer}` : "unattached" });
+    }
+    return out;
+  }
+
+  const fold = (text) => text.normalize("NFKC").toLocaleLowerCase();
+
+  function findShapes(query) {
+    const q = fold(query.trim());
+    if (!q) return [];
+    const found = [];
+    for (const shape of allShapes()) {
+      const at = fold(shape.name).indexOf(q);
+      if (at >= 0) found.push({ ...shape, at });
+    }
+    // names starting with the query first, then shorter names, then the document's order
+    return found.sort((a, b) => (b.at === 0) - (a.at === 0) || a.name.length - b.name.length);
+  }
+
+  function markMatches(ids) {
+    for (const [id, node] of tv.nodes) node.g.classList.toggle("rt-match", ids.has(id));
+    for (const chip of $("ui-unattached-list").querySelectorAll("button")) {
+      chip.classList.toggle("match", ids.has(Number(chip.dataset.shapeId)));
+    }
+  }
+
+  function highlighted(name, query) {
+    const q = fold(query.trim());
+    const at = fold(name).indexOf(q);
+    // NFKC may change lengths: fall back to the plain name when the fold does not line up
+    if (at < 0 || fold(name).length !== name.length) return [name];
+    return [name.slice(0, at), el("mark", { text: name.slice(at, at + q.length) }), name.slice(at + q.length)];
+  }
+
+  function renderMatches(query) {
+    const list = $("ui-tree-matches");
+    const input = $("ui-tree-search");
+    const shown = search.matches.slice(0, SEARCH_SHOWN);
+    list.replaceChildren(...shown.map((m, i) => el("li", {
+      id: `ui-match-${i}`,
+      role: "option",
+      class: i === search.active ? "active" : "",
+      "aria-selected": i === search.active ? "true" : "false",
+      "data-shape-id": String(m.id),
+      onmousedown: (event) => { event.preventDefault(); pickMatch(i); },
+    }, el("span", { class: "name" }, ...highlighted(m.name, query)), el("span", { class: "where", text: m.where }))));
+    if (search.matches.length > SEARCH_SHOWN) {
+      list.append(el("li", { class: "more", role: "presentation", text: `${search.matches.length - SEARCH_SHOWN} more: type more of the name` }));
+    }
+    const open = !!query.trim() && document.activeElement === input;
+    list.hidden = !open;
+    input.setAttribute("aria-expanded", open ? "true" : "false");
+    if (search.active >= 0) input.setAttribute("aria-activedescendant", `ui-match-${search.active}`);
+    else input.removeAttribute("aria-activedescendant");
+    const n = search.matches.length;
+    $("ui-tree-found").textContent = !query.trim() ? "" : n ? `${n} match${n === 1 ? "" : "es"}` : "no shape has that in its name";
+    const activeItem = list.children[search.active];
+    if (activeItem) activeItem.scrollIntoView({ block: "nearest" });
+  }
+
+  function onSearchInput() {
+    const query = $("ui-tree-search").value;
+    search.matches = findShapes(query);
+    search.active = search.matches.length ? 0 : -1;
+    markMatches(new Set(search.matches.map((m) => m.id)));
+    renderMatches(query);
+  }
+
+  function pickMatch(i) {
+    const m = search.matches[i];
+    if (!m) return;
+    search.active = i;
+    const list = $("ui-tree-matches");
+    list.hidden = true;
+    $("ui-tree-search").setAttribute("aria-expanded", "false");
+    openSubject(m.id, { zoom: true });
+  }
+
+  function clearSearch() {
+    const input = $("ui-tree-search");
+    input.value = "";
+    search.matches = [];
+    search.active = -1;
+    $("ui-tree-matches").hidden = true;
+    input.setAttribute("aria-expanded", "false");
+    $("ui-tree-found").textContent = "";
+    markMatches(new Set());
+  }
+
+  function setupSearch() {
+    const input = $("ui-tree-search");
+    input.addEventListener("input", onSearchInput);
+    input.addEventListener("focus", () => { if (input.value.trim()) renderMatches(input.value); });
+    input.addEventListener("blur", () => { $("ui-tree-matches").hidden = true; input.setAttribute("aria-expanded", "false"); });
+    input.addEventListener("keydown", (event) => {
+      const n = Math.min(search.matches.length, SEARCH_SHOWN);
+      if (event.key === "ArrowDown" || event.key === "ArrowUp") {
+        event.preventDefault();
+        if (!n) return;
+        search.active = (search.active + (event.key === "ArrowDown" ? 1 : n - 1)) % n;
+        renderMatches(input.value);
+        // the active match is shown in the tree as the user walks the list
+        revealNode(search.matches[search.active].id, { zoom: true });
+      } else if (event.key === "Enter") {
+        event.preventDefault();
+        if (search.matches.length) pickMatch(Math.max(search.active, 0));
+      } else if (event.key === "Escape") {
+        if (!$("ui-tree-matches").hidden) {
+          $("ui-tree-matches").hidden = true;
+          input.setAttribute("aria-expanded", "false");
+        } else {
+          clearSearch();
+        }
+      }
+    });
+    // "/" anywhere on the page (outside a field) goes to the search box
+    document.addEventListener("keydown", (event) => {
+      if (event.key !== "/" || event.ctrlKey || event.metaKey || event.altKey) return;
+      const t = event.target;
+      if (t && (t.isContentEditable || /^(INPUT|TEXTAREA|SELECT)$/.test(t.tagName))) return;
+      if ($("ui-result").hidden) return;
+      event.preventDefault();
+      input.focus();
+      input.select();
+    });
   }
 
   // --- subjects table -------------------------------------------------------------------------
@@ -595,16 +1095,22 @@
 
   function selectSubject(shapeId) {
     state.selected = shapeId ?? null;
-    const svg = $("ui-tree-svg");
-    if (svg) {
-      for (const g of svg.querySelectorAll(".rt-node")) {
-        g.classList.toggle("selected", Number(g.dataset.shapeId) === state.selected);
-      }
+    for (const [id, node] of tv.nodes) node.g.classList.toggle("selected", id === state.selected);
+    for (const chip of $("ui-unattached-list").querySelectorAll("button")) {
+      chip.classList.toggle("selected", Number(chip.dataset.shapeId) === state.selected);
     }
     for (const tr of $("ui-subjects").tBodies[0].rows) {
       tr.classList.toggle("selected", Number(tr.dataset.shapeId) === state.selected);
     }
-    if (state.selected !== null) revealNode(state.selected);
+    // a shape picked in the tree is where the user looks already; one picked elsewhere (search,
+    // table, a link) is brought into view at a readable size
+    const zoom = !state.fromTree;
+    state.fromTree = false;
+    if (state.selected !== null) {
+      revealNode(state.selected, { zoom });
+      if (zoom) revealChip(state.selected);
+    }
+    placeLocator();
     const empty = $("ui-subject-empty");
     const body = $("ui-subject-body");
     if (shapeId === null || shapeId === undefined || !state.result) {
@@ -735,6 +1241,7 @@
   function start() {
     setupKeyForm();
     setupTable();
+    setupTreeView();
     $("ui-job-cancel").addEventListener("click", async () => {
       if (!state.job || !confirm(`Cancel job ${state.job.id}?`)) return;
       try {
