@@ -68,6 +68,12 @@ class Settings(BaseSettings):
     worker_lease_seconds: float = Field(default=60.0, gt=0)
     worker_heartbeat_seconds: float = Field(default=10.0, gt=0)
     worker_poll_seconds: float = Field(default=1.0, gt=0)
+    cancel_poll_seconds: float = Field(
+        default=1.0,
+        gt=0,
+        description="How often a worker running a job looks for a cancel request (a read) "
+        "between heartbeats; a cancelled job stops within about this long.",
+    )
     max_attempts: int = Field(default=3, ge=1)
     progress_min_interval_seconds: float = Field(default=0.5, ge=0)
 

@@ -158,6 +158,27 @@ def _state(session: Session, claim: Claim, held: bool) -> LeaseState:
     return LeaseState(held=True, cancel_requested=bool(cancel))
 
 
+def peek(db: Database, claim: Claim) -> LeaseState:
+    """Whether we still hold the job and whether a cancel was requested: a read, no write.
+
+    Cheap enough to poll every second or so between heartbeats (one row by primary key).
+    """
+    with db.read() as session:
+        row = session.execute(
+            select(Job.status, Job.lease_owner, Job.attempts, Job.cancel_requested).where(
+                Job.id == claim.job_id
+            )
+        ).first()
+    if row is None:
+        return LeaseState(held=False)
+    held = (
+        row.status == JobStatus.running.value
+        and row.lease_owner == claim.owner
+        and row.attempts == claim.attempt
+    )
+    return LeaseState(held=held, cancel_requested=held and bool(row.cancel_requested))
+
+
 def heartbeat(
     db: Database,
     claim: Claim,
@@ -286,8 +307,9 @@ def release(db: Database, claim: Claim) -> bool:
 def request_cancel(session: Session, job: Job) -> bool:
     """Cancel a job inside the caller's write transaction; False if it already finished.
 
-    A queued job is cancelled at once; a running one gets ``cancel_requested`` and its worker
-    stops at its next progress report or heartbeat.
+    A queued job is cancelled at once; a running one gets ``cancel_requested``: its worker
+    sees it within ``cancel_poll_seconds``, stops the registrations in progress and ends the
+    job ``cancelled`` (:mod:`service.jobs.runner`).
     """
     now = utcnow()
     if job.status == JobStatus.queued.value:

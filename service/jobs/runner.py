@@ -1,9 +1,18 @@
 """Run one claimed registration job: load its shapes, call the library, store the result.
 
-The library reports progress through a callback, and propagates anything the callback
-raises; :class:`JobControl` uses that to stop a run that was cancelled, whose lease was lost,
-or whose worker is shutting down. A background thread heartbeats the lease meanwhile, and
-carries the latest progress so progress writes stay at a bounded rate.
+:class:`JobControl` stops a run that was cancelled, whose lease was lost, or whose worker is
+shutting down, by raising from :meth:`JobControl.check`. A background thread heartbeats the
+lease every ``worker_heartbeat_seconds`` (carrying the latest progress, so progress writes
+stay at a bounded rate) and in between looks for a cancel request every
+``cancel_poll_seconds``. ``check`` runs in the library's progress callback (after each
+completed task) and, with the process executor, every 0.1 s while the pool works
+(:mod:`service.jobs.executor`), whose processes are then killed: a cancel stops the job
+within about ``cancel_poll_seconds``, registrations in progress included, and frees the
+worker for its next job.
+
+A cancel accepted while the job runs always ends it ``cancelled``: whatever the run raises
+once a cancel was seen is taken as the cancel, and :func:`queue.complete` turns a late
+success into ``cancelled`` too.
 """
 
 from __future__ import annotations
@@ -20,6 +29,7 @@ from sqlalchemy import select
 from service.core.config import Settings
 from service.db import Database
 from service.jobs import queue
+from service.jobs.executor import InterruptibleProcessExecutor
 from service.models import Job, Shape
 
 logger = logging.getLogger("regtree.runner")
@@ -87,16 +97,27 @@ class JobControl:
             self.cancel.set()
 
     def _heartbeat_loop(self) -> None:
-        while not self._stop.wait(self.settings.worker_heartbeat_seconds):
+        """Heartbeat every ``worker_heartbeat_seconds``; in between, look for a cancel
+        request every ``cancel_poll_seconds`` (a read)."""
+        beat = self.settings.worker_heartbeat_seconds
+        poll = min(self.settings.cancel_poll_seconds, beat)
+        next_beat = time.monotonic() + beat
+        while not self._stop.wait(max(0.0, min(poll, next_beat - time.monotonic()))):
             try:
-                with self._lock:
-                    latest = self._latest
-                state = queue.heartbeat(
-                    self.db,
-                    self.claim,
-                    lease_seconds=self.settings.worker_lease_seconds,
-                    progress=latest,
-                )
+                if time.monotonic() >= next_beat - 1e-3:
+                    next_beat = time.monotonic() + beat
+                    with self._lock:
+                        latest = self._latest
+                    state = queue.heartbeat(
+                        self.db,
+                        self.claim,
+                        lease_seconds=self.settings.worker_lease_seconds,
+                        progress=latest,
+                    )
+                elif self.cancel.is_set():
+                    continue  # already seen: the run is stopping
+                else:
+                    state = queue.peek(self.db, self.claim)
             except Exception:
                 logger.exception("heartbeat failed", extra={"job_id": self.claim.job_id})
                 continue
@@ -113,13 +134,21 @@ class JobControl:
 
     # -- the library's progress callback --------------------------------------------------
 
-    def check(self) -> None:
+    def reason(self) -> JobInterrupted | None:
+        """Why the run must stop (lease lost, cancelled, shutting down), or None."""
         if self.lost.is_set():
-            raise LeaseLost(f"job {self.claim.job_id}: lease lost")
+            return LeaseLost(f"job {self.claim.job_id}: lease lost")
         if self.cancel.is_set():
-            raise Cancelled(f"job {self.claim.job_id}: cancelled")
+            return Cancelled(f"job {self.claim.job_id}: cancelled")
         if self.shutdown.is_set():
-            raise WorkerShutdown(f"job {self.claim.job_id}: worker shutting down")
+            return WorkerShutdown(f"job {self.claim.job_id}: worker shutting down")
+        return None
+
+    def check(self) -> None:
+        """Raise the reason to stop, if there is one; called from the running thread."""
+        reason = self.reason()
+        if reason is not None:
+            raise reason
 
     def progress(self, stage: str, done: int, total: int) -> None:
         self.check()
@@ -140,12 +169,12 @@ class JobControl:
             self.check()
 
 
-def _executor(settings: Settings) -> Any:
-    from registration import LocalProcessExecutor, SerialExecutor
-
+def _executor(settings: Settings, control: JobControl) -> Any:
     if settings.executor == "serial":
+        from registration import SerialExecutor
+
         return SerialExecutor()
-    return LocalProcessExecutor(max_workers=settings.executor_processes)
+    return InterruptibleProcessExecutor(control.check, max_workers=settings.executor_processes)
 
 
 def _index_to_id(value: Any, shape_ids: list[int]) -> int | None:
@@ -261,6 +290,28 @@ def run_registration(
     return doc
 
 
+def _stop(executor: Any) -> None:
+    """Stop an executor's tasks now, without waiting for them (a pool is killed)."""
+    terminate = getattr(executor, "terminate", None)
+    close = getattr(executor, "close", None)
+    try:
+        if callable(terminate):
+            terminate()
+        elif callable(close):
+            close()
+    except Exception:
+        logger.exception("could not stop the executor")
+
+
+def _interrupted(db: Database, claim: queue.Claim, interruption: JobInterrupted) -> str:
+    """Settle a job whose run was interrupted; the outcome for logs."""
+    if isinstance(interruption, Cancelled):
+        return "cancelled" if queue.finish_cancelled(db, claim) else "lost"
+    if isinstance(interruption, WorkerShutdown):
+        return "released" if queue.release(db, claim) else "lost"
+    return "lost"
+
+
 def run_claimed(
     db: Database, settings: Settings, claim: queue.Claim, shutdown: threading.Event | None = None
 ) -> str:
@@ -286,10 +337,11 @@ def run_claimed(
 
     started = time.monotonic()
     executor = None
+    completed = False
     with JobControl(db, claim, settings, shutdown) as control:
         try:
             control.check()
-            executor = _executor(settings)
+            executor = _executor(settings, control)
             doc = run_registration(
                 method,
                 shapes,
@@ -299,25 +351,33 @@ def run_claimed(
                 executor=executor,
                 progress=control.progress,
             )
+            completed = True
             control.check()
             document, subjects = to_api_document(claim.job_id, _json_safe(doc), shape_ids)
             outcome = queue.complete(db, claim, document, subjects, progress=control.latest)
-        except Cancelled:
-            outcome = "cancelled" if queue.finish_cancelled(db, claim) else "lost"
-        except LeaseLost:
-            outcome = "lost"
-        except WorkerShutdown:
-            outcome = "released" if queue.release(db, claim) else "lost"
+        except JobInterrupted as interruption:
+            _stop(executor)
+            outcome = _interrupted(db, claim, interruption)
         except Exception as exc:
-            logger.error("job failed", exc_info=exc, extra=log)
-            message = f"{type(exc).__name__}: {exc}"
-            if not str(exc):
-                message += "\n" + "".join(traceback.format_exception(exc)[-3:])
-            outcome = "failed" if queue.fail(db, claim, message) else "lost"
+            _stop(executor)
+            reason = control.reason()
+            if reason is not None:
+                # Stopping may surface as any error (a task whose process was killed, say):
+                # the reason is the interruption, never a failure of the job.
+                outcome = _interrupted(db, claim, reason)
+            else:
+                logger.error("job failed", exc_info=exc, extra=log)
+                message = f"{type(exc).__name__}: {exc}"
+                if not str(exc):
+                    message += "\n" + "".join(traceback.format_exception(exc)[-3:])
+                outcome = "failed" if queue.fail(db, claim, message) else "lost"
         finally:
-            close = getattr(executor, "close", None)
-            if callable(close):
-                close()
+            if completed:
+                close = getattr(executor, "close", None)
+                if callable(close):
+                    close()
+            else:
+                _stop(executor)
     logger.info(
         "job finished",
         extra={**log, "outcome": outcome, "seconds": round(time.monotonic() - started, 3)},

@@ -188,8 +188,10 @@ def get_job(job_id: DbInt, db: DbDep) -> JobOut:
     response_model=JobOut,
     responses=problem_responses(404, 409),
     summary="Cancel a job",
-    description="A queued job is cancelled at once. A running job gets `cancel_requested` and "
-    "ends `cancelled` at its worker's next progress report or heartbeat. A finished job: 409.",
+    description="A queued job is cancelled at once. A running job gets `cancel_requested`; its "
+    "worker sees the request within the setting `cancel_poll_seconds` (1 s by default), stops "
+    "the registrations in progress and ends the job `cancelled` (never `succeeded`). A "
+    "finished job: 409.",
 )
 def cancel_job(job_id: DbInt, db: DbDep) -> JobOut:
     with db.write() as session:
