@@ -15,7 +15,9 @@ import socket
 import subprocess
 import sys
 import time
+import uuid
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -140,6 +142,37 @@ class Service:
 
     def logs(self) -> str:
         return "\n".join(p.read_text(errors="replace")[-5000:] for p in self._logs if p.exists())
+
+
+#: A PostgreSQL database whose role may create databases (``.ci/postgres.sh`` prints one);
+#: the PostgreSQL tests are skipped without it.
+POSTGRES_URL = os.environ.get("REGTREE_TEST_POSTGRES_URL", "")
+POSTGRES_SKIP_REASON = (
+    "REGTREE_TEST_POSTGRES_URL is not set (run `bash .ci/postgres.sh` and export the URL it "
+    "prints to test the service on PostgreSQL)"
+)
+
+
+@contextmanager
+def postgres_scratch_database(base_url: str = POSTGRES_URL) -> Iterator[str]:
+    """The URL of a fresh, empty database on the server of ``base_url``, dropped afterwards."""
+    pytest.importorskip("psycopg", reason="the psycopg driver is not installed")
+    from sqlalchemy import create_engine, make_url, text
+
+    base = make_url(base_url)
+    assert base.get_backend_name() == "postgresql", f"not a PostgreSQL URL: {base_url}"
+    name = f"regtree_test_{uuid.uuid4().hex[:12]}"
+    admin = create_engine(base, isolation_level="AUTOCOMMIT")
+    try:
+        with admin.connect() as connection:
+            connection.execute(text(f'CREATE DATABASE "{name}"'))
+        try:
+            yield base.set(database=name).render_as_string(hide_password=False)
+        finally:
+            with admin.connect() as connection:
+                connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+    finally:
+        admin.dispose()
 
 
 @pytest.fixture

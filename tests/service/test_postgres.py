@@ -14,7 +14,6 @@ import subprocess
 import sys
 import threading
 import time
-import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -24,24 +23,21 @@ import numpy as np
 import pytest
 
 from tests.service.conftest import (
+    POSTGRES_SKIP_REASON,
+    POSTGRES_URL,
     REPO,
     Service,
     assert_problem,
     create_collection,
     family,
     npy_bytes,
+    postgres_scratch_database,
     submit_job,
     upload_family,
     wait_job,
 )
 
-BASE_URL = os.environ.get("REGTREE_TEST_POSTGRES_URL", "")
-
-pytestmark = pytest.mark.skipif(
-    not BASE_URL,
-    reason="REGTREE_TEST_POSTGRES_URL is not set (run `bash .ci/postgres.sh` and export the "
-    "URL it prints to test the service on PostgreSQL)",
-)
+pytestmark = pytest.mark.skipif(not POSTGRES_URL, reason=POSTGRES_SKIP_REASON)
 
 TABLES = {"collections", "shapes", "jobs", "results", "result_subjects", "idempotency_keys"}
 
@@ -49,21 +45,8 @@ TABLES = {"collections", "shapes", "jobs", "results", "result_subjects", "idempo
 @pytest.fixture
 def pg_url() -> Iterator[str]:
     """The URL of a fresh, empty database, dropped after the test."""
-    pytest.importorskip("psycopg", reason="the psycopg driver is not installed")
-    from sqlalchemy import create_engine, make_url, text
-
-    base = make_url(BASE_URL)
-    assert base.get_backend_name() == "postgresql", f"not a PostgreSQL URL: {BASE_URL}"
-    name = f"regtree_test_{uuid.uuid4().hex[:12]}"
-    admin = create_engine(base, isolation_level="AUTOCOMMIT")
-    try:
-        with admin.connect() as connection:
-            connection.execute(text(f'CREATE DATABASE "{name}"'))
-        yield base.set(database=name).render_as_string(hide_password=False)
-        with admin.connect() as connection:
-            connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-    finally:
-        admin.dispose()
+    with postgres_scratch_database() as url:
+        yield url
 
 
 @pytest.fixture

@@ -14,7 +14,9 @@ multipart, CSV/TXT, NPY, PNG and JPEG bodies). Every response is checked:
   response's (:func:`problem_json_for_errors`).
 
 The server is a ``regtree serve`` subprocess (see ``conftest.Service``) over a temporary
-SQLite file seeded with a collection of shapes, a finished job and a cancelled one, so that
+SQLite file, and again over a scratch PostgreSQL database when ``REGTREE_TEST_POSTGRES_URL``
+is set (every test here runs once per database: ``[sqlite]``, ``[postgresql]``). Each is
+seeded with a collection of shapes, a finished job and a cancelled one, so that
 path parameters (and the ids inside a job's body) hit existing resources too, not only 404s:
 schema hooks mix the known ids into what schemathesis generates, and valid files into the
 upload's bodies. DELETE operations get their own sacrificial resources so that the seeded
@@ -23,7 +25,7 @@ checks afterwards that every operation was reached with something other than a r
 
 The run is deterministic (fixed seed, derandomized Hypothesis, no example database) and
 bounded (``MAX_EXAMPLES`` per operation in the fuzzing phase) so that it takes about a minute
-on two cores. Set ``REGTREE_SCHEMATHESIS_EXAMPLES`` to fuzz longer locally.
+per database on two cores. Set ``REGTREE_SCHEMATHESIS_EXAMPLES`` to fuzz longer locally.
 
 The schema documents every error as ``application/problem+json``, including the 422 of
 request validation and the 400 of a body that cannot be parsed (``service.main``), and both
@@ -37,10 +39,11 @@ import io
 import itertools
 import os
 import re
-from collections import Counter
+from collections import Counter, defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
+from urllib.parse import urlsplit
 
 import pytest
 
@@ -49,12 +52,15 @@ schemathesis = pytest.importorskip("schemathesis", reason="schemathesis is not i
 from hypothesis import strategies as st  # noqa: E402
 
 from tests.service.conftest import (  # noqa: E402
+    POSTGRES_SKIP_REASON,
+    POSTGRES_URL,
     Service,
     assert_problem,
     circle,
     create_collection,
     family,
     npy_bytes,
+    postgres_scratch_database,
     submit_job,
     upload_family,
     wait_job,
@@ -106,9 +112,34 @@ class Known:
         return cid in (self.collection_id, self.victim_collection_id)
 
 
+@pytest.fixture(
+    scope="module",
+    params=[
+        "sqlite",
+        pytest.param(
+            "postgresql", marks=pytest.mark.skipif(not POSTGRES_URL, reason=POSTGRES_SKIP_REASON)
+        ),
+    ],
+)
+def database_url(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[str]:
+    """The database of the fuzzed server: a SQLite file, or a scratch PostgreSQL database."""
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path_factory.mktemp('schemathesis-db') / 'regtree.sqlite'}"
+        return
+    with postgres_scratch_database() as url:
+        yield url
+
+
 @pytest.fixture(scope="module")
-def seeded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Service, Known]]:
-    svc = Service(tmp_path_factory.mktemp("schemathesis"), workers=1).start()
+def seeded(
+    tmp_path_factory: pytest.TempPathFactory, database_url: str
+) -> Iterator[tuple[Service, Known]]:
+    svc = Service(
+        tmp_path_factory.mktemp("schemathesis"), workers=1, database_url=database_url
+    ).start()
+    SEEN.pop(urlsplit(svc.base_url).netloc, None)  # a port an earlier server had
     try:
         with svc.client() as client:
             cid = create_collection(client, "fuzz-keep")
@@ -308,13 +339,15 @@ schema = schemathesis.pytest.from_fixture("api_schema")
 
 # --- checks ------------------------------------------------------------------------------
 
-#: (operation label, request media type or "-", response status) -> number of responses.
-SEEN: Counter[tuple[str, str, int]] = Counter()
+#: Per fuzzed server (its host:port): (operation label, request media type or "-", response
+#: status) -> number of responses.
+SEEN: defaultdict[str, Counter[tuple[str, str, int]]] = defaultdict(Counter)
 
 
 def record(ctx: Any, response: Any, case: Any) -> bool | None:
     """Not a check: counts what the fuzz reached, for :func:`test_fuzz_reached_every_operation`."""
-    SEEN[(case.operation.label, case.media_type or "-", response.status_code)] += 1
+    server = urlsplit(response.request.url).netloc
+    SEEN[server][(case.operation.label, case.media_type or "-", response.status_code)] += 1
     return None
 
 
@@ -386,9 +419,10 @@ def test_openapi_fuzz(case: Any) -> None:
 def test_fuzz_reached_every_operation(seeded: tuple[Service, Known]) -> None:
     """The fuzz above really ran: every operation was called, most reached an existing
     resource (a status other than 404/422), and every upload form was sent."""
-    if not SEEN:
-        pytest.skip("test_openapi_fuzz did not run in this session")
     svc, _ = seeded
+    seen = SEEN.get(urlsplit(svc.base_url).netloc)
+    if not seen:
+        pytest.skip("test_openapi_fuzz did not run against this server in this session")
     with svc.client() as client:
         operations = {
             f"{method.upper()} {path}"
@@ -396,11 +430,11 @@ def test_fuzz_reached_every_operation(seeded: tuple[Service, Known]) -> None:
             for method in item
         }
     by_operation: dict[str, set[int]] = {}
-    for (label, _media, status), _n in SEEN.items():
+    for (label, _media, status), _n in seen.items():
         by_operation.setdefault(label, set()).add(status)
     report = "\n".join(
         f"{label:70s} {media:26s} {status} x{n}"
-        for (label, media, status), n in sorted(SEEN.items())
+        for (label, media, status), n in sorted(seen.items())
     )
     print(report)
     assert operations <= set(by_operation), (operations - set(by_operation), report)
@@ -408,7 +442,7 @@ def test_fuzz_reached_every_operation(seeded: tuple[Service, Known]) -> None:
     missed = sorted(op for op, statuses in by_operation.items() if statuses <= refusals)
     assert not missed, (missed, report)
     upload = "POST /v1/collections/{collection_id}/shapes"
-    media = {m for (label, m, status) in SEEN if label == upload and status == 201}
+    media = {m for (label, m, status) in seen if label == upload and status == 201}
     assert {"application/json", "multipart/form-data", "text/csv", "text/plain"} <= media, report
 
 
