@@ -417,8 +417,10 @@
     $("ui-result").hidden = false;
     renderFacts();
     renderTable();
+    // the tree is asked for first: the service draws one picture at a time
+    const tree = loadTree(token);
     loadSummary(token);
-    await loadTree(token);
+    await tree;
     if (token === state.loadToken) selectSubject(state.route.subjectId);
   }
 
@@ -508,10 +510,11 @@
     const full = vb.length === 4 && vb.every(Number.isFinite) && vb[2] > 0 && vb[3] > 0
       ? { x: vb[0], y: vb[1], w: vb[2], h: vb[3] }
       : { x: 0, y: 0, w: natural || 800, h: natural || 600 };
+    const unitPx = natural > 0 ? natural / full.w : 1;
     // drawn at its natural size and moved with a CSS transform: changing the viewBox instead
     // would lay every name of the picture out again on each frame
-    imported.setAttribute("width", String(full.w * (natural > 0 ? natural / full.w : 1)));
-    imported.setAttribute("height", String(full.h * (natural > 0 ? natural / full.w : 1)));
+    imported.setAttribute("width", String(full.w * unitPx));
+    imported.setAttribute("height", String(full.h * unitPx));
     imported.setAttribute("viewBox", `${full.x} ${full.y} ${full.w} ${full.h}`);
     imported.setAttribute("role", "group");
     imported.setAttribute("aria-label", `registration tree of job ${state.job.id}`);
@@ -528,7 +531,7 @@
     tv.box = box;
     tv.content = content;
     tv.full = full;
-    tv.unitPx = natural > 0 ? natural / full.w : 1;
+    tv.unitPx = unitPx;
     makeNodesClickable(imported);
     if (unattachedBox) unattachedBox.remove();
     // a wide tree takes more of the page's width (before the box is measured)
@@ -706,7 +709,7 @@
 
   function flash(g) {
     g.classList.remove("rt-flash");
-    void g.getBBox(); // restart the animation
+    void g.getBoundingClientRect(); // a style and layout pass in between restarts the animation
     g.classList.add("rt-flash");
     setTimeout(() => g.classList.remove("rt-flash"), 1600);
   }
