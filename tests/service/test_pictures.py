@@ -243,3 +243,19 @@ def test_page_files_are_public_and_pictures_need_the_key(
         paths = client.get("/openapi.json").json()["paths"]
         assert "/ui" not in paths and "/" not in paths
         assert "/v1/jobs/{job_id}/result/subjects/{shape_id}/overlay.png" in paths
+
+
+def test_a_name_no_font_can_draw_is_reported_in_a_header() -> None:
+    """Characters without any installed font come out as boxes: the response says which."""
+    from service.api.routes.pictures import _picture
+    from service.plots import render_tree
+    from tests.service.test_plots_cjk import document
+
+    doc = document()
+    doc["names"] = ["\U00013000" + n for n in doc["names"]]  # Egyptian hieroglyph A001
+    for s in doc["subjects"]:
+        s["name"] = "\U00013000" + s["name"]
+    rendered = render_tree(doc, fmt="png")
+    assert "\U00013000" in rendered.meta["missing_glyphs"]
+    response = _picture(rendered, '"tag"')
+    assert "U+13000" in response.headers["X-Missing-Glyphs"].split()

@@ -13,6 +13,7 @@ Nothing is cached on the server. ``Cache-Control: private, no-cache`` makes clie
 from __future__ import annotations
 
 import hashlib
+import logging
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request, Response
@@ -27,9 +28,10 @@ from service.plots import Rendered, render_subject, render_summary, render_tree
 from service.schemas import DbInt
 
 router = APIRouter(prefix="/jobs", tags=["pictures"])
+logger = logging.getLogger("regtree.pictures")
 
 #: Bump when a picture changes for the same input, so clients do not keep a stale copy.
-RENDER_VERSION = "1"
+RENDER_VERSION = "2"
 
 #: Image sources whose points are pixel coordinates (y grows downwards).
 _IMAGE_SOURCES = ("png:", "jpeg:", "image:")
@@ -42,7 +44,20 @@ WidthQuery = Annotated[
 
 def _image_responses(media_type: str, *statuses: int) -> dict[int | str, dict[str, Any]]:
     return {
-        200: {"content": {media_type: {}}, "description": "The picture."},
+        200: {
+            "content": {media_type: {}},
+            "description": "The picture.",
+            "headers": {
+                "ETag": {"schema": {"type": "string"}},
+                "X-Picture-Size": {"description": "Width x height in pixels.",
+                                   "schema": {"type": "string", "example": "900x640"}},
+                "X-Missing-Glyphs": {
+                    "description": "Only when some characters of the names have no installed "
+                    "font and are drawn as boxes: their code points.",
+                    "schema": {"type": "string", "example": "U+6C38"},
+                },
+            },
+        },
         304: {"description": "Not modified (the `If-None-Match` ETag matches)."},
         **problem_responses(*statuses),
     }
@@ -76,6 +91,14 @@ def _picture(rendered: Rendered, etag: str) -> Response:
     # an SVG opened on its own is a document: it may style itself, nothing more
     headers["Content-Security-Policy"] = "default-src 'none'; style-src 'unsafe-inline'"
     headers["X-Content-Type-Options"] = "nosniff"
+    missing = str(rendered.meta.get("missing_glyphs", ""))
+    if missing:
+        # no installed font has these characters: they are drawn as boxes. Say which (as
+        # code points: header values are Latin-1) and how to fix it.
+        codes = " ".join(f"U+{ord(ch):04X}" for ch in missing)
+        headers["X-Missing-Glyphs"] = codes
+        logger.warning("picture drawn without a font for %s; install a font that has them "
+                       "(CJK: Debian package fonts-noto-cjk)", codes)
     return Response(content=rendered.data, media_type=rendered.media_type, headers=headers)
 
 
