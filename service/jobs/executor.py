@@ -12,8 +12,15 @@ instead
 * kills its processes when the run stops early (interrupted, a task failed, or the consumer
   left), instead of waiting for the registrations in progress: their results are not wanted.
 
+It is built on plain ``multiprocessing`` processes, one pipe each and one task at a time
+per process, with nothing but the calling thread writing to the pipes. (Killing the
+processes of a ``concurrent.futures.ProcessPoolExecutor`` is not safe: its feeder thread can
+be blocked for ever writing a large task into a queue that nobody reads any more, and its
+shutdown then never returns.) A process that dies while running a task fails the run with
+:class:`WorkerProcessDied`.
+
 It implements the library's ``Executor`` protocol (``registration._executor``), like
-``LocalProcessExecutor``, whose internals it does not touch.
+``LocalProcessExecutor``.
 """
 
 from __future__ import annotations
@@ -21,8 +28,13 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import pickle
+import signal
+import traceback
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from multiprocessing.connection import Connection, wait
+from multiprocessing.process import BaseProcess
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -38,6 +50,43 @@ def available_cpus() -> int:
         return os.cpu_count() or 1
 
 
+class WorkerProcessDied(RuntimeError):
+    """A process of the pool ended while it ran a task (killed, out of memory, crashed)."""
+
+
+def _serve(connection: Connection) -> None:
+    """A pool process: run ``(fn, item)`` tasks until the pipe closes or a ``None`` comes."""
+    # Ctrl-C reaches the whole process group: the worker above decides what stops, and
+    # kills this process if it must.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    while True:
+        try:
+            task = connection.recv()
+        except (EOFError, OSError):
+            return
+        if task is None:
+            return
+        fn, item = task
+        try:
+            reply: tuple[bool, Any, str] = (True, fn(item), "")
+        except Exception as e:
+            reply = (False, e, "".join(traceback.format_exception(e)))
+        try:
+            connection.send(reply)
+        except (EOFError, OSError):
+            return
+        except Exception as e:  # a result or an exception that does not pickle
+            text = "".join(traceback.format_exception(e))
+            connection.send((False, RuntimeError(f"cannot send the task's outcome: {e}"), text))
+
+
+@dataclass
+class _Slot:
+    process: BaseProcess
+    connection: Connection
+    position: int | None = None  # the task it runs, if any
+
+
 class InterruptibleProcessExecutor:
     """A local process pool for one job, stopped at once when ``check`` raises.
 
@@ -50,9 +99,6 @@ class InterruptibleProcessExecutor:
         Processes; the CPUs available by default.
     poll_seconds : float
         Longest wait for a result between two calls of ``check``.
-    max_pending : int, optional
-        Tasks submitted ahead of completion (``2 * max_workers`` by default): few, so that
-        little is queued when the run stops.
     """
 
     def __init__(
@@ -61,89 +107,132 @@ class InterruptibleProcessExecutor:
         *,
         max_workers: int | None = None,
         poll_seconds: float = 0.1,
-        max_pending: int | None = None,
     ) -> None:
         self.max_workers = max_workers if max_workers is not None else available_cpus()
         if self.max_workers < 1:
             raise ValueError(f"max_workers must be at least 1; got {self.max_workers}")
         self.check = check
         self.poll_seconds = poll_seconds
-        self.max_pending = max_pending if max_pending is not None else 2 * self.max_workers
-        self._pool: ProcessPoolExecutor | None = None
+        self._slots: list[_Slot] = []
 
-    def _ensure_pool(self) -> ProcessPoolExecutor:
-        if self._pool is None:
-            # The worker runs threads (heartbeat, parent watch) and holds database
-            # connections, so no plain fork: a fork server with the library preloaded.
-            methods = multiprocessing.get_all_start_methods()
-            method = "forkserver" if "forkserver" in methods else "spawn"
-            context = multiprocessing.get_context(method)
-            if method == "forkserver":
-                context.set_forkserver_preload(["registration"])
-            self._pool = ProcessPoolExecutor(max_workers=self.max_workers, mp_context=context)
-        return self._pool
+    @property
+    def processes(self) -> list[BaseProcess]:
+        """The pool's processes (none before the first task, nor after it was stopped)."""
+        return [slot.process for slot in self._slots]
+
+    def _start(self) -> None:
+        if self._slots:
+            return
+        # The worker runs threads (heartbeat, parent watch) and holds database connections,
+        # so no plain fork: a fork server with the library preloaded, else spawn.
+        methods = multiprocessing.get_all_start_methods()
+        method = "forkserver" if "forkserver" in methods else "spawn"
+        context: Any = multiprocessing.get_context(method)  # a SpawnContext-like context
+        if method == "forkserver":
+            context.set_forkserver_preload(["registration"])
+        try:
+            for k in range(self.max_workers):
+                ours, theirs = context.Pipe(duplex=True)
+                process = context.Process(
+                    target=_serve, args=(theirs,), name=f"regtree-task-{k}", daemon=True
+                )
+                process.start()
+                theirs.close()
+                self._slots.append(_Slot(process, ours))
+        except BaseException:
+            self.terminate()
+            raise
 
     def map_unordered(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R]]:
         """``(position, fn(item))`` in completion order; see the library's ``Executor``."""
         self.check()
-        pool = self._ensure_pool()
-        pending: dict[Future[R], int] = {}
+        if not items:
+            return
+        self._start()
         next_item = 0
+        running = 0
         finished = False
         try:
-            while next_item < len(items) or pending:
-                while next_item < len(items) and len(pending) < self.max_pending:
-                    pending[pool.submit(fn, items[next_item])] = next_item
-                    next_item += 1
-                done, _ = wait(
-                    list(pending), timeout=self.poll_seconds, return_when=FIRST_COMPLETED
+            while next_item < len(items) or running:
+                for slot in self._slots:
+                    if slot.position is None and next_item < len(items):
+                        self._send(slot, (fn, items[next_item]), next_item)
+                        slot.position = next_item
+                        next_item += 1
+                        running += 1
+                busy = [slot for slot in self._slots if slot.position is not None]
+                ready = wait(
+                    [s.connection for s in busy] + [s.process.sentinel for s in busy],
+                    timeout=self.poll_seconds,
                 )
-                for future in done:
-                    position = pending.pop(future)
-                    yield position, future.result()
+                for slot in busy:
+                    if slot.connection in ready or slot.process.sentinel in ready:
+                        position, result = self._collect(slot)
+                        running -= 1
+                        yield position, result
                 self.check()
             finished = True
         finally:
             if not finished:
                 # Interrupted, a task failed, or the consumer stopped (its progress callback
                 # raised): nothing still running is wanted.
-                for future in pending:
-                    future.cancel()
                 self.terminate()
 
+    def _send(self, slot: _Slot, task: tuple[Any, Any], position: int) -> None:
+        try:
+            slot.connection.send(task)
+        except (BrokenPipeError, ConnectionResetError) as e:
+            slot.process.join(1.0)
+            raise WorkerProcessDied(
+                f"a pool process (pid {slot.process.pid}) ended with exit code "
+                f"{slot.process.exitcode} before it could take task {position}"
+            ) from e
+
+    def _collect(self, slot: _Slot) -> tuple[int, Any]:
+        """The outcome of the task ``slot`` runs: its result, or its exception raised."""
+        position, slot.position = slot.position, None
+        assert position is not None
+        try:
+            ok, value, remote = slot.connection.recv()
+        except (EOFError, OSError, pickle.UnpicklingError) as e:
+            slot.process.join(1.0)
+            raise WorkerProcessDied(
+                f"a pool process (pid {slot.process.pid}) ended with exit code "
+                f"{slot.process.exitcode} while it ran task {position}"
+            ) from e
+        if not ok:
+            if remote and isinstance(value, BaseException):
+                value.add_note(f"in the pool process:\n{remote}")
+            raise value
+        return position, value
+
     def terminate(self) -> None:
-        """Kill the pool's processes now (tasks in progress are lost) and release it."""
-        pool, self._pool = self._pool, None
-        if pool is None:
-            return
-        kill_workers = getattr(pool, "kill_workers", None)  # Python 3.14
-        if callable(kill_workers):
-            kill_workers()
-        else:
-            for process in _pool_processes(pool):
-                if process.is_alive():
-                    process.kill()
-        # With its processes gone the pool is broken: shutting it down fails what was
-        # queued and returns without waiting for any task.
-        pool.shutdown(wait=True, cancel_futures=True)
+        """Kill the pool's processes now; tasks in progress are lost."""
+        slots, self._slots = self._slots, []
+        for slot in slots:
+            if slot.process.is_alive():
+                slot.process.kill()
+        for slot in slots:
+            slot.process.join(5.0)
+            slot.connection.close()
+            if slot.process.is_alive():  # pragma: no cover - SIGKILL not delivered
+                logger.warning("pool process did not stop", extra={"pid": slot.process.pid})
 
     def close(self) -> None:
-        """Release the pool when the job is done (nothing runs any more)."""
-        pool, self._pool = self._pool, None
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+        """Stop the pool when the job is done: idle processes exit, busy ones are killed."""
+        slots, self._slots = self._slots, []
+        for slot in slots:
+            if slot.position is None:
+                try:
+                    slot.connection.send(None)
+                except (OSError, ValueError):
+                    pass
+        for slot in slots:
+            slot.process.join(0 if slot.position is not None else 5.0)
+            if slot.process.is_alive():
+                slot.process.kill()
+                slot.process.join(5.0)
+            slot.connection.close()
 
     def __repr__(self) -> str:
         return f"InterruptibleProcessExecutor(max_workers={self.max_workers})"
-
-
-def _pool_processes(pool: ProcessPoolExecutor) -> list[Any]:
-    """The pool's worker processes (``ProcessPoolExecutor`` keeps them in ``_processes``
-    until Python 3.14 gives it ``kill_workers``)."""
-    for _ in range(3):
-        try:
-            return list((getattr(pool, "_processes", None) or {}).values())
-        except RuntimeError:  # the pool's manager thread changed the dict meanwhile
-            continue
-    logger.warning("could not list the pool's processes; waiting for its tasks instead")
-    return []

@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from service.jobs.executor import InterruptibleProcessExecutor
+from service.jobs.executor import InterruptibleProcessExecutor, WorkerProcessDied
 from tests.service.conftest import (
     Service,
     assert_problem,
@@ -55,6 +55,17 @@ def _fail(value: int) -> int:
     raise ValueError(f"task {value} failed")
 
 
+def _sleep_with_payload(task: tuple[float, bytes]) -> int:
+    time.sleep(task[0])
+    return len(task[1])
+
+
+def _die(seconds: float) -> None:
+    time.sleep(seconds)
+    if seconds < 1:
+        os._exit(3)
+
+
 class Stop(BaseException):
     pass
 
@@ -68,19 +79,43 @@ def test_pool_stops_within_a_poll_and_kills_running_tasks() -> None:
 
     executor = InterruptibleProcessExecutor(check, max_workers=2, poll_seconds=0.05)
     assert dict(executor.map_unordered(_sleep, [0.0, 0.0])) == {0: 0.0, 1: 0.0}  # pool is up
-    pool = executor._pool
-    assert pool is not None
-    processes = list(pool._processes.values())
-    assert processes
+    processes = executor.processes
+    assert len(processes) == 2
     started = time.monotonic()
     deadline = started + 0.5
     with pytest.raises(Stop):
         list(executor.map_unordered(_sleep, [30.0] * 6))
     assert time.monotonic() - started < 5
-    assert executor._pool is None
+    assert executor.processes == []
     for process in processes:
-        process.join(5)
         assert not process.is_alive()
+
+
+def test_pool_stops_while_large_tasks_wait_to_be_read() -> None:
+    """The case that hangs a killed ProcessPoolExecutor: tasks far larger than a pipe's
+    buffer queued for processes that are busy. Here no task is queued: each process gets
+    the next one only once it is free, so stopping never waits on a pipe."""
+    deadline = float("inf")
+
+    def check() -> None:
+        if time.monotonic() > deadline:
+            raise Stop
+
+    executor = InterruptibleProcessExecutor(check, max_workers=2, poll_seconds=0.05)
+    big = [(30.0, b"x" * 4_000_000)] * 8
+    started = time.monotonic()
+    deadline = started + 1.0
+    with pytest.raises(Stop):
+        list(executor.map_unordered(_sleep_with_payload, big))
+    assert time.monotonic() - started < 10
+    assert executor.processes == []
+
+
+def test_a_pool_process_that_dies_fails_the_run() -> None:
+    executor = InterruptibleProcessExecutor(lambda: None, max_workers=2)
+    with pytest.raises(WorkerProcessDied, match="exit code"):
+        list(executor.map_unordered(_die, [0.2, 30.0]))
+    assert executor.processes == []
 
 
 def test_pool_passes_results_and_task_errors() -> None:
@@ -88,12 +123,16 @@ def test_pool_passes_results_and_task_errors() -> None:
     try:
         results = dict(executor.map_unordered(_sleep, [0.01 * i for i in range(8)]))
         assert results == {i: 0.01 * i for i in range(8)}
-        with pytest.raises(ValueError, match="task 3 failed"):
+        with pytest.raises(ValueError, match="task 3 failed") as failed:
             list(executor.map_unordered(_fail, [3]))
-        assert executor._pool is None  # killed, not waited for
+        assert "in the pool process" in "".join(getattr(failed.value, "__notes__", []))
+        assert executor.processes == []  # killed, not waited for
         assert dict(executor.map_unordered(_sleep, [0.0])) == {0: 0.0}  # a new pool
+        processes = executor.processes
     finally:
         executor.close()
+    for process in processes:
+        assert not process.is_alive() and process.exitcode == 0  # asked to exit, not killed
 
 
 def test_pool_stops_when_the_consumer_stops() -> None:
@@ -104,7 +143,7 @@ def test_pool_stops_when_the_consumer_stops() -> None:
     with pytest.raises(Stop):
         for _position, _value in executor.map_unordered(_sleep, [0.1, 30.0, 30.0, 30.0]):
             raise Stop
-    assert executor._pool is None
+    assert executor.processes == []
     assert time.monotonic() - started < 10
 
 
