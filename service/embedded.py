@@ -9,6 +9,8 @@ import signal
 import socket
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from multiprocessing.process import BaseProcess
 
 import uvicorn
@@ -72,15 +74,38 @@ def make_server(settings: Settings, host: str, port: int) -> uvicorn.Server:
     return uvicorn.Server(config)
 
 
+@contextmanager
+def _sigterm_returns() -> Iterator[None]:
+    """Let a SIGTERM that stops uvicorn return from ``Server.run`` instead of ending the
+    process.
+
+    uvicorn handles SIGTERM itself and, once shut down, raises it again for the handler that
+    was in place before; the default one ends the process on the spot, so the workers were
+    never told to stop (they noticed their parent was gone a second later). With this
+    handler in place instead, :func:`serve` goes on and stops them (``docker stop``).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, lambda _signum, _frame: None)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def serve(settings: Settings, *, host: str, port: int, workers: int, migrate_db: bool) -> None:
-    """Apply migrations, start workers, run the API in this process until a signal."""
+    """Apply migrations, start workers, run the API in this process until a signal; then
+    stop the workers (their running jobs go back to the queue)."""
     if migrate_db:
         migrate.upgrade(settings)
     processes = start_workers(settings, workers)
     try:
-        make_server(settings, host, port).run()
+        with _sigterm_returns():
+            make_server(settings, host, port).run()
     finally:
         stop_workers(processes)
+    logger.info("stopped")
 
 
 class BackgroundStack:

@@ -101,3 +101,34 @@ def test_sigterm_gives_the_running_job_back(make_service: Callable[..., Service]
         svc.start_worker()
         done = wait_job(client, job["id"], timeout=120)
         assert done["status"] == "succeeded" and done["attempts"] == 1
+
+
+def test_sigterm_to_serve_stops_its_workers_and_gives_jobs_back(
+    make_service: Callable[..., Service],
+) -> None:
+    """``docker stop``: SIGTERM to ``regtree serve`` stops the embedded workers the graceful
+    way (uvicorn raises the signal again once it has shut down: that must not end the
+    process before its workers are stopped), and the running job goes back to the queue."""
+    svc = make_service(workers=1, env={"REGTREE_LOG_LEVEL": "INFO"}).start()
+    assert svc.server is not None
+    with svc.client() as client:
+        cid = create_collection(client)
+        ids = upload_family(client, cid, family(n_chains=4, chain_length=5, n_points=100))
+        job = submit_job(client, cid, ids[0])
+        wait_job(
+            client,
+            job["id"],
+            until=lambda j: j["status"] == "running" and j["progress"]["done"] > 0,
+            timeout=60,
+        )
+        svc.server.send_signal(signal.SIGTERM)
+        assert svc.server.wait(20) == 0
+    logs = svc.logs()
+    assert '"signal received; finishing"' in logs and '"parent process gone' not in logs, logs
+    assert '"msg": "stopped"' in logs
+    restarted = make_service(workers=1, database_url=svc.database_url).start()
+    with restarted.client() as client:
+        requeued = client.get(f"/v1/jobs/{job['id']}").json()
+        assert requeued["attempts"] <= 1, requeued
+        done = wait_job(client, job["id"], timeout=120)
+        assert done["status"] == "succeeded" and done["attempts"] == 1, done
