@@ -1,8 +1,11 @@
-# regtree: the API server with embedded workers, SQLite in a volume.
+# regtree: the API server with embedded workers (`regtree serve`), SQLite in a volume.
 #   docker build -t regtree .
 #   docker run -p 8000:8000 -v regtree-data:/app/var regtree
 # Settings are REGTREE_* environment variables (service/core/config.py), e.g.
 #   -e REGTREE_API_KEY=... -e REGTREE_EMBEDDED_WORKERS=2
+#   -e REGTREE_DATABASE_URL=postgresql+psycopg://user:password@host/db   (PostgreSQL)
+# More workers (same database: PostgreSQL, or this volume on one host):
+#   docker run ... regtree regtree worker
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -12,12 +15,14 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 
 WORKDIR /app
 
-# Same install as the README: pip install of the project (here non-editable).
+# Same install as the README (pip install of the project; here not editable, and with the
+# postgres extra so that a PostgreSQL REGTREE_DATABASE_URL works too). The migrations are
+# not part of the package: they are copied beside it.
 COPY pyproject.toml README.md alembic.ini ./
 COPY registration ./registration
 COPY service ./service
 COPY migrations ./migrations
-RUN pip install . \
+RUN pip install '.[postgres]' \
     && useradd --create-home --uid 10001 regtree \
     && mkdir -p /app/var \
     && chown regtree /app/var
@@ -35,5 +40,6 @@ EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=20s \
     CMD python -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=3)"
 
-# Applies migrations, starts REGTREE_EMBEDDED_WORKERS worker processes, serves the API.
+# Applies migrations, starts REGTREE_EMBEDDED_WORKERS worker processes, serves the API. On
+# `docker stop` (SIGTERM) the workers give their running jobs back to the queue at once.
 CMD ["regtree", "serve", "--host", "0.0.0.0", "--port", "8000"]
