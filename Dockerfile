@@ -15,6 +15,11 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 
 WORKDIR /app
 
+# A CJK font, so that pictures draw CJK shape names (glyph archives) instead of boxes.
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends fonts-noto-cjk \
+    && rm -rf /var/lib/apt/lists/*
+
 # Same install as the README (pip install of the project; here not editable, and with the
 # postgres extra so that a PostgreSQL REGTREE_DATABASE_URL works too). The migrations are
 # not part of the package: they are copied beside it.
