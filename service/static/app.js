@@ -209,9 +209,22 @@
   }
 
   // --- sidebar --------------------------------------------------------------------------------
+  // The first `want` items of a list, in pages of the server's own default size (an
+  // operator may set max_page_size below `want`; asking for more would be refused).
+  async function listPage(path, want) {
+    const sep = path.includes("?") ? "&" : "?";
+    let page = await api(path);
+    const items = page.items.slice();
+    while (page.items.length && items.length < Math.min(want, page.total)) {
+      page = await api(`${path}${sep}offset=${items.length}`);
+      items.push(...page.items);
+    }
+    return { items: items.slice(0, want), total: page.total };
+  }
+
   async function loadCollections() {
     try {
-      const page = await api("/v1/collections?limit=500");
+      const page = await listPage("/v1/collections", 500);
       state.collections = page.items;
       state.collectionsTotal = page.total;
     } catch (e) {
@@ -245,10 +258,10 @@
 
   async function loadJobs() {
     const cid = state.collectionId;
-    const query = cid === null ? "" : `&collection_id=${cid}`;
+    const query = cid === null ? "" : `?collection_id=${cid}`;
     let page;
     try {
-      page = await api(`/v1/jobs?limit=100${query}`);
+      page = await listPage(`/v1/jobs${query}`, 100);
     } catch (e) {
       if (e.status !== 401) notice(`Could not list jobs: ${e.message}`);
       return;

@@ -146,7 +146,9 @@ def test_results_page_end_to_end(
     from playwright.sync_api import expect
 
     page = browser.page
-    svc = make_service(workers=0, env={"REGTREE_API_KEY": KEY}).start()
+    # a page size below what the page asks for (500): it must fall back to the default
+    env = {"REGTREE_API_KEY": KEY, "REGTREE_MAX_PAGE_SIZE": "40"}
+    svc = make_service(workers=0, env=env).start()
     with svc.client(headers={"X-API-Key": KEY}) as client:
         title, shapes = collection()
         collection_id = create_collection(client, title)
