@@ -34,6 +34,7 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from ._executor import checkpoint
 from ._points import as_points
 
 __all__ = ["CPDResult", "NonrigidTransform", "cpd_nonrigid"]
@@ -816,6 +817,7 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
     converged = False
     it = 0
     while it < max_iter:
+        checkpoint()  # a serial executor's cancellation check (no-op in pool processes)
         # ---- E-step
         est: _EStepOut | None = None
         if truncate is not False and (w > 0 or truncate):
@@ -889,6 +891,7 @@ def _run_pycpd(x: FloatArray, y: FloatArray, xd: FloatArray, xs: float, yd: Floa
                                  tolerance=tol, max_iterations=max_iter, sigma2=s2)
 
     def _cb(**kwargs: Any) -> None:
+        checkpoint()
         if callback is not None:
             callback(int(kwargs["iteration"]), float(reg.sigma2) * xs * xs, float(reg.diff))
 

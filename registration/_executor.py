@@ -14,6 +14,7 @@ import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from contextlib import contextmanager
+from contextvars import ContextVar
 from typing import Protocol, TypeVar
 
 T = TypeVar("T")
@@ -42,17 +43,52 @@ class Executor(Protocol):
         ...
 
 
+# The interruption check of the task running in this thread (see SerialExecutor).
+_CHECK: ContextVar[Callable[[], None] | None] = ContextVar("regtree_check", default=None)
+
+
+def checkpoint() -> None:
+    """Let the executor running the current task stop it here.
+
+    Long loops of the library (CPD's EM iterations) call this once per iteration. Under a
+    :class:`SerialExecutor` given a `check`, it calls that check, whose exception aborts
+    the task and propagates to the caller; elsewhere (pool processes) it does nothing.
+    """
+    check = _CHECK.get()
+    if check is not None:
+        check()
+
+
 class SerialExecutor:
-    """Runs every task in the calling process, in order."""
+    """Runs every task in the calling process, in order.
+
+    Parameters
+    ----------
+    check : callable, optional
+        Called before each task and at every :func:`checkpoint` inside it (each CPD
+        iteration); an exception it raises stops the run there and propagates. This is
+        how a caller cancels a serial run promptly, without waiting for the registration
+        in progress.
+    """
+
+    def __init__(self, check: Callable[[], None] | None = None) -> None:
+        self.check = check
 
     def map_unordered(
         self, fn: Callable[[T], R], items: Sequence[T]
     ) -> Iterator[tuple[int, R]]:
         for i, item in enumerate(items):
-            yield i, fn(item)
+            if self.check is not None:
+                self.check()
+            token = _CHECK.set(self.check)
+            try:
+                result = fn(item)
+            finally:
+                _CHECK.reset(token)
+            yield i, result
 
     def __repr__(self) -> str:
-        return "SerialExecutor()"
+        return "SerialExecutor()" if self.check is None else f"SerialExecutor(check={self.check!r})"
 
 
 class LocalProcessExecutor:

@@ -6,7 +6,8 @@ lease every ``worker_heartbeat_seconds`` (carrying the latest progress, so progr
 stay at a bounded rate) and in between looks for a cancel request every
 ``cancel_poll_seconds``. ``check`` runs in the library's progress callback (after each
 completed task) and, with the process executor, every 0.1 s while the pool works
-(:mod:`service.jobs.executor`), whose processes are then killed: a cancel stops the job
+(:mod:`service.jobs.executor`), whose processes are then killed; with the serial executor,
+at every CPD iteration (``SerialExecutor(check=...)``). Either way a cancel stops the job
 within about ``cancel_poll_seconds``, registrations in progress included, and frees the
 worker for its next job.
 
@@ -173,7 +174,8 @@ def _executor(settings: Settings, control: JobControl) -> Any:
     if settings.executor == "serial":
         from registration import SerialExecutor
 
-        return SerialExecutor()
+        # the check runs at every CPD iteration too: a cancel stops the registration in progress
+        return SerialExecutor(check=control.check)
     return InterruptibleProcessExecutor(control.check, max_workers=settings.executor_processes)
 
 

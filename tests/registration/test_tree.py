@@ -157,6 +157,36 @@ def test_direct_registers_everything_from_the_root(family):
     json.dumps(res.to_dict())
 
 
+def test_serial_executor_check_stops_a_registration_in_progress(family):
+    """A cancel need not wait for the CPD in progress: the executor's check runs at every
+    EM iteration, and its exception ends the run there."""
+    from registration import cpd_nonrigid
+
+    class Cancelled(Exception):
+        pass
+
+    iterations = []
+    armed = [False]
+
+    def check():
+        if armed[0] and len(iterations) >= 3:
+            raise Cancelled
+
+    def task(pair):
+        armed[0] = True
+        return cpd_nonrigid(pair[0], pair[1], tol=0.0, max_iter=150,
+                            callback=lambda it, s2, obj: iterations.append(it))
+
+    executor = SerialExecutor(check=check)
+    with pytest.raises(Cancelled):
+        list(executor.map_unordered(task, [(family.shapes[0], family.shapes[3])]))
+    assert iterations == [1, 2, 3]  # stopped at the 4th iteration, not after 150
+    # outside the executor the same CPD runs to the end: the check is scoped to its tasks
+    iterations.clear()
+    task((family.shapes[0], family.shapes[3]))
+    assert len(iterations) == 150
+
+
 def test_progress_exception_cancels_the_run(family):
     class Cancelled(Exception):
         pass

@@ -162,17 +162,24 @@ def _small_job(client: Any) -> dict[str, Any]:
     return submit_job(client, cid, ids[0], method="direct")
 
 
+SERIAL_ENV = {**PROCESS_ENV, "REGTREE_EXECUTOR": "serial"}
+
+
 @pytest.mark.parametrize(
-    ("workers", "method", "stage"),
+    ("workers", "method", "stage", "env"),
     [
-        ("embedded", "dynamic_tree", "layer"),
-        ("separate", "direct", "direct"),
+        ("embedded", "dynamic_tree", "layer", PROCESS_ENV),
+        ("separate", "direct", "direct", PROCESS_ENV),
+        # serial: the check also runs at every CPD iteration of the registration in progress
+        ("embedded", "direct", "direct", SERIAL_ENV),
     ],
+    ids=["embedded-pool-tree", "separate-pool-direct", "embedded-serial-direct"],
 )
 def test_cancel_of_a_running_job_is_prompt(
-    make_service: Callable[..., Service], workers: str, method: str, stage: str
+    make_service: Callable[..., Service], workers: str, method: str, stage: str,
+    env: dict[str, str],
 ) -> None:
-    svc = make_service(workers=1 if workers == "embedded" else 0, env=PROCESS_ENV).start()
+    svc = make_service(workers=1 if workers == "embedded" else 0, env=env).start()
     if workers == "separate":
         svc.start_worker()
     with svc.client() as client:
@@ -197,8 +204,9 @@ def test_cancel_of_a_running_job_is_prompt(
         cancel_seconds = time.monotonic() - started
         claimed = wait_job(client, following["id"], until=lambda j: j["status"] != "queued")
         free_seconds = time.monotonic() - started
-        print(f"{workers} {method}: cancelled after {cancel_seconds:.2f} s, next job claimed "
-              f"after {free_seconds:.2f} s (progress at cancel {running['progress']})")
+        print(f"{workers} {method} {env['REGTREE_EXECUTOR']}: cancelled after "
+              f"{cancel_seconds:.2f} s, next job claimed after {free_seconds:.2f} s "
+              f"(progress at cancel {running['progress']})")
 
         assert done["status"] == "cancelled", done
         assert done["finished_at"] is not None and done["error"] is None
