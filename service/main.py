@@ -11,7 +11,6 @@ from fastapi.openapi.utils import get_openapi
 from sqlalchemy import text
 
 from service import __version__
-from service.api.limits import limits_description, resolve_limits
 from service.api.middleware import (
     PUBLIC_PATHS,
     ApiKeyMiddleware,
@@ -21,6 +20,7 @@ from service.api.middleware import (
 from service.api.problems import Problem, ProblemError, install_problem_handlers
 from service.api.routes import collections, jobs, pages, pictures, shapes
 from service.core.config import Settings, get_settings
+from service.core.limits import limits_description, resolve_limits
 from service.db import Database
 from service.schemas import ShapeBatchJSON, ShapeJSON
 

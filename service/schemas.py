@@ -9,7 +9,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 from annotated_types import Interval
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from service.api.limits import bounds, example
+from service.core.limits import bounds, example
 
 T = TypeVar("T")
 
@@ -19,7 +19,7 @@ T = TypeVar("T")
 NO_NUL = r"^[^\x00]*$"
 
 # The upload limits are settings: the schema states them with placeholders that each app
-# fills in from its own settings (service.api.limits). These models document the JSON
+# fills in from its own settings (service.core.limits). These models document the JSON
 # upload; the server enforces the limits with the same settings (service.ingest).
 
 #: Largest value of SQLite's INTEGER (a signed 64-bit integer).

@@ -8,8 +8,8 @@ from typing import Annotated
 from fastapi import Depends, Header, Query, Request
 from fastapi.exceptions import RequestValidationError
 
-from service.api.limits import DEFAULT_PAGE_SIZE, bounds, default_page_size
 from service.core.config import Settings
+from service.core.limits import DEFAULT_PAGE_SIZE, bounds, default_page_size
 from service.db import Database
 from service.schemas import INT64_MAX
 
@@ -53,7 +53,7 @@ def get_pagination(
         limit = default_page_size(settings)
     elif limit > settings.max_page_size:
         # The same 422 as a bound in the signature would give (that bound is the setting's,
-        # so it is checked here, and the schema states it: service.api.limits).
+        # so it is checked here, and the schema states it: service.core.limits).
         raise RequestValidationError(
             [
                 {

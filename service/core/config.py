@@ -40,7 +40,7 @@ class Settings(BaseSettings):
     )
 
     # --- request limits --------------------------------------------------------------------
-    # The OpenAPI document states the configured values (service.api.limits); a request past
+    # The OpenAPI document states the configured values (service.core.limits); a request past
     # one is refused with a problem document naming the setting, and stores nothing.
     max_body_bytes: int = Field(
         default=32 * 1024 * 1024, ge=1024, description="Request body size, in bytes (413)."

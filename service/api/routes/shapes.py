@@ -30,10 +30,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from service import ingest
 from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
-from service.api.limits import bounds, example
 from service.api.problems import ProblemError, not_found, problem_responses
 from service.api.routes.collections import get_collection_or_404
 from service.core.config import Settings
+from service.core.limits import bounds, example
 from service.models import TERMINAL_STATUSES, Job, Shape, points_to_npy
 from service.schemas import (
     NO_NUL,
@@ -47,7 +47,7 @@ from service.schemas import (
 
 router = APIRouter(prefix="/collections/{collection_id}/shapes", tags=["shapes"])
 
-#: The limits, as the operation's description states them (placeholders: service.api.limits).
+#: The limits, as the operation's description states them (placeholders: service.core.limits).
 _LIMITS_DOC = """
 Limits of this server: a request body of at most {max_body_bytes} bytes (else 413);
 {min_points} to {max_points_per_shape} points per shape, each coordinate within
