@@ -114,3 +114,22 @@ def test_max_rotation_is_validated():
     x = base_outline(30)
     with pytest.raises(ValueError, match=r"max_rotation must be in \[0, 180\]"):
         affine_icp(x, x, max_rotation=200.0)
+
+
+@pytest.mark.parametrize("n, m", [(1000, 1000), (1000, 1500), (37, 2000)])
+def test_dense_full_distance_matches_kd_trees(n, m, monkeypatch):
+    """The similarity's D on the full sets (blocked float32 products) is eq. 9 computed
+    with KD-trees, to float32 rounding."""
+    import registration._icp as icp
+
+    rng = np.random.default_rng(n + m)
+    t = np.linspace(0, 2 * np.pi, max(n, m), endpoint=False)
+    x = np.c_[np.cos(t), 0.5 * np.sin(t)][rng.permutation(t.size)[:n]]
+    y = np.c_[np.cos(t), 0.6 * np.sin(t)][rng.permutation(t.size)[:m]] + 0.01 * rng.normal(
+        size=(m, 2))
+    px, py = icp.prepare_shape(x), icp.prepare_shape(y)
+    A, tt = np.array([[1.02, 0.05], [-0.03, 0.97]]), np.array([0.01, -0.02])
+    dense = icp._full_distance(px, py, A, tt)
+    assert dense == pytest.approx(bidirectional_distance(x @ A.T + tt, y), abs=1e-6)
+    monkeypatch.setattr(icp, "_DENSE_FULL_MAX", 0)
+    assert icp._full_distance(px, py, A, tt) == pytest.approx(dense, abs=1e-6)
