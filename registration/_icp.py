@@ -393,11 +393,9 @@ def pairwise_affine_icp(
     return out
 
 
-# Largest n * m for which D on the full sets uses one dense float32 product per direction
-# (4 bytes per entry); above it, KD-trees (O(n log m) but ~0.5 us per query here).
+# Largest n * m for which D on the full sets comes from one dense float32 product (4 bytes
+# per entry, in blocks); above it, KD-trees (O(n log m) but ~0.5 us per query here).
 _DENSE_FULL_MAX = 2_000_000
-
-
 
 
 def _full_distance(x: PreparedShape, y: PreparedShape, A: FloatArray, t: FloatArray) -> float:
