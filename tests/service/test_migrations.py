@@ -31,8 +31,8 @@ def _cli(tmp_path: Path, url: str, *args: str) -> str:
     return done.stdout.strip()
 
 
-def test_upgrade_downgrade_roundtrip(tmp_path: Path) -> None:
-    url = f"sqlite:///{tmp_path / 'm.sqlite'}"
+def assert_migration_roundtrip(tmp_path: Path, url: str) -> None:
+    """Upgrade from empty, schema == models, downgrade to base, upgrade again (any database)."""
     assert _cli(tmp_path, url, "upgrade") == "0002"
     engine = create_engine(url)
     try:
@@ -45,6 +45,10 @@ def test_upgrade_downgrade_roundtrip(tmp_path: Path) -> None:
         assert _cli(tmp_path, url, "current") == "0002"
     finally:
         engine.dispose()
+
+
+def test_upgrade_downgrade_roundtrip(tmp_path: Path) -> None:
+    assert_migration_roundtrip(tmp_path, f"sqlite:///{tmp_path / 'm.sqlite'}")
 
 
 def test_default_database_lands_under_var(tmp_path: Path) -> None:

@@ -8,10 +8,7 @@ end. The servers are conftest's, only pointed at that database.
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -25,7 +22,6 @@ import pytest
 from tests.service.conftest import (
     POSTGRES_SKIP_REASON,
     POSTGRES_URL,
-    REPO,
     Service,
     assert_problem,
     create_collection,
@@ -36,10 +32,9 @@ from tests.service.conftest import (
     upload_family,
     wait_job,
 )
+from tests.service.test_migrations import assert_migration_roundtrip
 
 pytestmark = pytest.mark.skipif(not POSTGRES_URL, reason=POSTGRES_SKIP_REASON)
-
-TABLES = {"collections", "shapes", "jobs", "results", "result_subjects", "idempotency_keys"}
 
 
 @pytest.fixture
@@ -59,39 +54,8 @@ def pg_service(make_service: Callable[..., Service], pg_url: str) -> Callable[..
     return make
 
 
-def _migrate(tmp_path: Path, url: str, *args: str) -> str:
-    env = {**os.environ, "REGTREE_DATABASE_URL": url, "PYTHONPATH": str(REPO)}
-    done = subprocess.run(
-        [sys.executable, "-m", "service.cli", "migrate", *args],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    assert done.returncode == 0, done.stderr
-    return done.stdout.strip()
-
-
 def test_migrations_upgrade_downgrade(tmp_path: Path, pg_url: str) -> None:
-    from alembic.autogenerate import compare_metadata
-    from alembic.migration import MigrationContext
-    from sqlalchemy import create_engine, inspect
-
-    from service.models import Base
-
-    assert _migrate(tmp_path, pg_url, "upgrade") == "0002"
-    engine = create_engine(pg_url)
-    try:
-        assert TABLES <= set(inspect(engine).get_table_names())
-        with engine.connect() as connection:
-            assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
-        assert _migrate(tmp_path, pg_url, "downgrade", "base") == "base"
-        assert set(inspect(engine).get_table_names()) <= {"alembic_version"}
-        assert _migrate(tmp_path, pg_url, "upgrade", "head") == "0002"
-        assert _migrate(tmp_path, pg_url, "current") == "0002"
-    finally:
-        engine.dispose()
+    assert_migration_roundtrip(tmp_path, pg_url)
 
 
 def test_uploads_job_and_result(pg_service: Callable[..., Service]) -> None:
@@ -238,7 +202,8 @@ def test_concurrent_workers_claim_each_job_once(pg_url: str) -> None:
     from service.core.config import Settings
     from service.db import Database
     from service.jobs import queue
-    from service.models import Collection, Job
+    from service.models import Collection
+    from tests.service.test_queue import direct_job
 
     settings = Settings(database_url=pg_url)
     migrate.upgrade(settings)
@@ -250,16 +215,7 @@ def test_concurrent_workers_claim_each_job_once(pg_url: str) -> None:
             session.add(collection)
             session.flush()
             for _ in range(n_jobs):
-                session.add(
-                    Job(
-                        collection_id=collection.id,
-                        model_shape_id=1,
-                        shape_ids=[1, 2],
-                        method="direct",
-                        params={},
-                        max_attempts=3,
-                    )
-                )
+                session.add(direct_job(collection.id))
         claimed: list[list[int]] = [[] for _ in range(n_workers)]
         barrier = threading.Barrier(n_workers)
 
@@ -281,16 +237,7 @@ def test_concurrent_workers_claim_each_job_once(pg_url: str) -> None:
 
         # An expired lease fences its old holder on PostgreSQL too.
         with db.write() as session:
-            session.add(
-                Job(
-                    collection_id=collection.id,
-                    model_shape_id=1,
-                    shape_ids=[1, 2],
-                    method="direct",
-                    params={},
-                    max_attempts=3,
-                )
-            )
+            session.add(direct_job(collection.id))
         old = queue.claim(db, "old", lease_seconds=0.05)
         assert old is not None
         time.sleep(0.1)

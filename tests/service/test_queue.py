@@ -25,17 +25,15 @@ def db(tmp_path: Path) -> Database:
         collection = Collection(name="c", description="")
         session.add(collection)
         session.flush()
-        session.add(
-            Job(
-                collection_id=collection.id,
-                model_shape_id=1,
-                shape_ids=[1, 2],
-                method="direct",
-                params={},
-                max_attempts=3,
-            )
-        )
+        session.add(direct_job(collection.id))
     return database
+
+
+def direct_job(collection_id: int) -> Job:
+    """A queued direct-CPD job of shapes 1 and 2, three attempts allowed (queue tests only:
+    the shapes need not exist)."""
+    return Job(collection_id=collection_id, model_shape_id=1, shape_ids=[1, 2],
+               method="direct", params={}, max_attempts=3)
 
 
 def _job(db: Database) -> Job:
