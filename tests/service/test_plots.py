@@ -49,20 +49,26 @@ def real() -> dict[str, Any]:
     }
 
 
+def document_subject(
+    sid: int, name: str, layer: int | None, parent: int | None, e: float | None,
+    *, direct_factor: float = 3.0,
+) -> dict[str, Any]:
+    """One subject of a hand-made result document (unattached when `layer` is None); its
+    direct CPD error is `direct_factor` times the tree's."""
+    return {
+        "shape_id": sid,
+        "name": name,
+        "layer": layer,
+        "attached": layer is not None,
+        "parent_shape_id": parent,
+        "error": e,
+        "direct_error": None if e is None else direct_factor * e,
+    }
+
+
 def handmade() -> dict[str, Any]:
     """A tree with known structure: 4 layers, two unattached shapes, awkward names."""
-
-    def subject(sid: int, name: str, layer: int | None, parent: int | None, e: float | None):
-        return {
-            "shape_id": sid,
-            "name": name,
-            "layer": layer,
-            "attached": layer is not None,
-            "parent_shape_id": parent,
-            "error": e,
-            "direct_error": None if e is None else 3 * e,
-        }
-
+    subject = document_subject
     return {
         "job_id": 5,
         "method": "dynamic_tree",

@@ -18,6 +18,7 @@ from PIL import Image
 
 from service.plots import render_subject, render_tree
 from service.plots._common import CJK_FONTS, cjk_font, font_families
+from tests.service.test_plots import document_subject
 
 NAMES = ["永_song", "永_kaishu", "東京_mincho", "글자_batang", "字_hei", "model"]
 
@@ -41,15 +42,7 @@ def document() -> dict[str, Any]:
     """A small tree whose names are CJK: the model, two layers and one unattached shape."""
 
     def subject(sid: int, layer: int | None, parent: int | None, e: float | None):
-        return {
-            "shape_id": sid,
-            "name": NAMES[sid - 1],
-            "layer": layer,
-            "attached": layer is not None,
-            "parent_shape_id": parent,
-            "error": e,
-            "direct_error": None if e is None else 2 * e,
-        }
+        return document_subject(sid, NAMES[sid - 1], layer, parent, e, direct_factor=2.0)
 
     return {
         "job_id": 3,
