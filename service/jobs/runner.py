@@ -358,10 +358,8 @@ def run_claimed(
             document, subjects = to_api_document(claim.job_id, _json_safe(doc), shape_ids)
             outcome = queue.complete(db, claim, document, subjects, progress=control.latest)
         except JobInterrupted as interruption:
-            _stop(executor)
             outcome = _interrupted(db, claim, interruption)
         except Exception as exc:
-            _stop(executor)
             reason = control.reason()
             if reason is not None:
                 # Stopping may surface as any error (a task whose process was killed, say):
@@ -374,11 +372,11 @@ def run_claimed(
                     message += "\n" + "".join(traceback.format_exception(exc)[-3:])
                 outcome = "failed" if queue.fail(db, claim, message) else "lost"
         finally:
-            if completed:
+            if completed:  # the pool is idle: close it the ordinary way
                 close = getattr(executor, "close", None)
                 if callable(close):
                     close()
-            else:
+            else:  # interrupted or failed: its tasks are not wanted, kill them
                 _stop(executor)
     logger.info(
         "job finished",
