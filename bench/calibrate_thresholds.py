@@ -1,40 +1,60 @@
-"""Measure how CPD's success depends on D (eq. 9) and how e (eq. 10) separates good from
-bad registrations, on data with ground-truth correspondences. This is the evidence behind
-the automatic thresholds of `build_dynamic_tree`.
+"""Calibrate what decides a registration's fate on data with ground-truth correspondences.
 
-Pairs: the Chui & Rangarajan fish and Chinese-character deformation series (model to
-targets of deformation levels 1-5), when ../shared/data is present, and pairs at growing
-chain distance in generated chained families (always). For every pair: affine-ICP D, CPD
-(after the affine pre-alignment, as the tree does it), e, the subject's point spacing h
-(RMS nearest-neighbour distance within the subject, normalised), the minimum Jacobian
-determinant, and the RMS ground-truth correspondence error (relative to RMS radius).
+Two things come from here:
 
-    .venv/bin/python bench/calibrate_thresholds.py
+1. The automatic thresholds of `build_dynamic_tree` (how CPD's success depends on D of
+   eq. 9; how e of eq. 10 separates good from bad registrations): the first tables.
+2. The confidence model of `registration._quality`: a logistic fit of P(good | checks),
+   "good" meaning an RMS ground-truth correspondence error below ``GOOD_ERROR`` (0.15) of
+   the subject's RMS radius. Its coefficients are printed at the end, ready to paste into
+   `_quality.py`, with the held-out quality of the fit (leave one data set out).
+
+Registrations measured, each exactly as the tree runs them (`registration._tree`):
+from every start the pose option offers (the pose as given, a rotated one when ICP finds
+it, a mirrored one under ``pose="affine"``) and without pre-alignment (plain CPD), on
+
+- chained smooth deformations of real glyphs (the 永 designs of ../shared/data, edges and
+  skeletons; `registration.synthetic.deformation_chains`), root and mid-chain models;
+- the same with the subject turned by 90 degrees (a pose the pose as given cannot reach:
+  what a wrong pose looks like after CPD);
+- the Chui & Rangarajan fish and Chinese-character deformation series;
+- generated chained families (always, also without ../shared).
+
+    .venv/bin/python bench/calibrate_thresholds.py [--quick]
 """
 
 from __future__ import annotations
 
+import argparse
 import itertools
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.optimize import minimize
 
 from registration import LocalProcessExecutor, normalise
-from registration._icp import affine_icp
-from registration._tree import CPDOptions, _register_task, _RegTask
-from registration.synthetic import chained_family
+from registration._icp import pairwise_affine_icp, prepare_shape
+from registration._pose import PoseSpec
+from registration._quality import _FEATURES, GOOD_ERROR
+from registration._similarity import Similarity
+from registration._tree import (
+    CPDOptions,
+    _register_from,
+    _RegTask,
+    _spacing2,
+    _Start,
+    _starts,
+)
+from registration.synthetic import chained_family, deformation_chains
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-GOOD = 0.05  # a registration is "good" when its RMS correspondence error < 5% of radius
+GLYPHS = DATA / "glyphs_yong"
+
+Pair = tuple[str, np.ndarray, np.ndarray, np.ndarray]  # set, model, subject, truth
 
 
-def spacing2(p: np.ndarray) -> float:
-    d, _ = cKDTree(p).query(p, k=2)
-    return float(np.mean(d[:, 1] ** 2))
-
-
-def pairs_chui(kind: str, trials: int):
+def pairs_chui(kind: str, trials: int) -> Iterator[Pair]:
     for lvl in range(1, 6):
         f = DATA / "chui_rangarajan" / f"{kind}_def_{lvl}.npz"
         if not f.exists():
@@ -47,61 +67,172 @@ def pairs_chui(kind: str, trials: int):
             yield f"chui-{kind}", d["X"][t], d["Y"][t], truth
 
 
-def pairs_generated(seeds: int, resample: bool):
-    label = "generated-resampled" if resample else "generated-same-sampling"
+def pairs_generated(seeds: int) -> Iterator[Pair]:
     for seed in range(seeds):
-        fam = chained_family(n_chains=2, chain_length=6, n_points=200, step=0.35, seed=seed,
-                             resample=resample)
+        fam = chained_family(n_chains=2, chain_length=6, n_points=200, step=0.35, seed=seed)
         for k in range(1, len(fam.shapes)):
-            yield label, fam.shapes[0], fam.shapes[k], fam.root_images[k]
+            yield "generated", fam.shapes[0], fam.shapes[k], fam.root_images[k]
 
 
-def measure(item):
+def _rotate(p: np.ndarray, deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    c = p.mean(axis=0)
+    return (p - c) @ R.T + c
+
+
+def pairs_glyphs(kind: str, designs: int, seeds: int, turned: bool) -> Iterator[Pair]:
+    if not GLYPHS.exists():
+        return
+    ids = sorted(p.name[: -len(f"_{kind}.txt")] for p in (GLYPHS / "points").glob(f"*_{kind}.txt"))
+    # designs spread over the list, away from the ones bench_groundtruth uses first
+    picks = [ids[(7 + 23 * k) % len(ids)] for k in range(designs)]
+    for did, seed in itertools.product(picks, range(seeds)):
+        fam = deformation_chains(np.loadtxt(GLYPHS / "points" / f"{did}_{kind}.txt"), seed=seed)
+        # models: the undeformed shape and a mid-chain one
+        for root in (0, 3):
+            truths = fam.root_images(root)
+            for k in range(len(fam.shapes)):
+                if k == root or (turned and k % 3):
+                    continue
+                y, tr = fam.shapes[k], truths[k]
+                label = f"glyph-{kind}"
+                if turned:
+                    y, tr = _rotate(y, 90.0), _rotate(tr, 90.0)
+                    label += "-turned"
+                yield label, fam.shapes[root], y, tr
+
+
+def measure(item: Pair) -> list[tuple[object, ...]]:
+    """Every registration the tree could make of this pair: (set, start, D, e, h^2, GT
+    error, features...)."""
     name, x, y, truth = item
     xn, _ = normalise(x)
     yn, ny = normalise(y)
-    icp = affine_icp(xn, yn)
-    out = _register_task(_RegTask(subject=1, member=0, layer=2, similarity=icp.distance,
-                                  q=xn, y=yn, A0=icp.A, t0=icp.t, cpd=CPDOptions(),
-                                  prealign=True))
-    diff = out.warped - ny.apply(truth)
-    ce = float(np.sqrt((diff**2).sum(axis=1).mean()))
-    return name, icp.distance, out.error, spacing2(yn), out.min_jacobian, ce
+    h2 = _spacing2(yn)
+    truth_n = ny.apply(truth)
+    rows = []
+    for mode in ("rotation", "affine"):
+        spec = PoseSpec.resolve(mode, None)
+        sim = Similarity.empty([xn, yn], pose=spec)
+        (r,) = pairwise_affine_icp({0: prepare_shape(xn), 1: prepare_shape(yn)}, [(0, 1)],
+                                   pose=spec, tol=1e-3)
+        sim.D[0, 1], sim.A[0, 1], sim.t[0, 1] = r.D, r.A, r.t
+        sim.D_given[0, 1], sim.A_given[0, 1], sim.t_given[0, 1] = r.D_given, r.A_given, r.t_given
+        starts: list[_Start | None] = list(_starts(sim, 0, 1))
+        if mode == "affine":
+            starts = [s for s in starts if s is not None and s.label == "rotated"]
+            if not starts or np.linalg.det(sim.A[0, 1]) > 0:
+                continue  # only the mirrored poses are new under "affine"
+        else:
+            starts.append(None)  # plain CPD
+        task = _RegTask(subject=1, member=0, layer=2, similarity=r.D, q=xn, y=yn,
+                        starts=(), cpd=CPDOptions(), prealign=True, pose=spec, spacing2=h2)
+        for st in starts:
+            out = _register_from(task, st)
+            diff = out.warped - truth_n
+            ce = float(np.sqrt((diff**2).sum(axis=1).mean()))
+            label = "plain" if st is None else f"{mode}:{st.label}"
+            rows.append((name, label, r.D, out.error, h2, ce, out.min_jacobian,
+                         *out.quality.features()))
+    return rows
+
+
+def _logistic_fit(X: np.ndarray, y: np.ndarray, l2: float = 1e-2) -> np.ndarray:
+    def loss(w: np.ndarray) -> tuple[float, np.ndarray]:
+        z = w[0] + X @ w[1:]
+        p = 1.0 / (1.0 + np.exp(-np.clip(z, -50, 50)))
+        eps = 1e-12
+        f = -np.mean(y * np.log(p + eps) + (1 - y) * np.log(1 - p + eps)) + l2 * np.sum(w[1:] ** 2)
+        g = np.concatenate([[np.mean(p - y)], X.T @ (p - y) / len(y) + 2 * l2 * w[1:]])
+        return float(f), g
+
+    res = minimize(loss, np.zeros(X.shape[1] + 1), jac=True, method="L-BFGS-B")
+    return np.asarray(res.x)
+
+
+def _auc(score: np.ndarray, y: np.ndarray) -> float:
+    pos, neg = score[y == 1], score[y == 0]
+    if not len(pos) or not len(neg):
+        return float("nan")
+    ranks = np.argsort(np.argsort(np.concatenate([pos, neg]))) + 1
+    return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
 
 
 def main() -> None:
-    items = list(pairs_chui("fish", 20)) + list(pairs_chui("chinese", 20))
-    if not items:
-        print(f"NOTE: {DATA / 'chui_rangarajan'} is missing: generated pairs only")
-    items += list(pairs_generated(6, True)) + list(pairs_generated(6, False))
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer pairs (a smoke run)")
+    args = ap.parse_args()
+    q = args.quick
+    items: list[Pair] = []
+    items += list(pairs_chui("fish", 3 if q else 8)) + list(pairs_chui("chinese", 3 if q else 8))
+    for kind in ("edge", "skel"):
+        items += list(pairs_glyphs(kind, 1 if q else 3, 1, turned=False))
+        items += list(pairs_glyphs(kind, 1 if q else 2, 1, turned=True))
+    if not GLYPHS.exists():
+        print(f"NOTE: {DATA} is missing: generated pairs only")
+    items += list(pairs_generated(2 if q else 6))
     with LocalProcessExecutor() as ex:
-        rows = [r for _, r in ex.map_unordered(measure, items)]
-    names = sorted({r[0] for r in rows})
-    arr = {n: np.array([r[1:] for r in rows if r[0] == n]) for n in names}
-    allr = np.array([r[1:] for r in rows])
-    print(f"{len(rows)} pairs; 'good' = RMS correspondence error < {GOOD}\n")
-    print("CPD success by affine-ICP distance D (all sets):")
-    print(f"{'D bin':>20s} {'pairs':>6s} {'good %':>7s} {'median corr.err':>16s}")
-    edges = [0, 0.002, 0.005, 0.01, 0.02, 0.04, 0.08, np.inf]
-    for lo, hi in itertools.pairwise(edges):
-        m = (allr[:, 0] >= lo) & (allr[:, 0] < hi)
+        rows = [r for _, rr in ex.map_unordered(measure, items) for r in rr]
+    sets = np.array([r[0] for r in rows])
+    starts = np.array([r[1] for r in rows])
+    num = np.array([r[2:] for r in rows], dtype=np.float64)
+    D, e, h2, ce, minjac = num[:, 0], num[:, 1], num[:, 2], num[:, 3], num[:, 4]
+    feats = num[:, 5:]
+    good = (ce < GOOD_ERROR).astype(float)
+    print(f"{len(items)} pairs, {len(rows)} registrations; good = RMS correspondence error "
+          f"< {GOOD_ERROR} of the subject's RMS radius\n")
+
+    print("Per set and start: registrations, good %, median correspondence error, median e/h^2")
+    for s_name in sorted(set(sets)):
+        for st in sorted(set(starts[sets == s_name])):
+            m = (sets == s_name) & (starts == st)
+            print(f"  {s_name:22s} {st:18s} n={m.sum():4d} good={100 * good[m].mean():5.1f}%"
+                  f" ce={np.median(ce[m]):.3f} e/h2={np.median(e[m] / h2[m]):.2f}")
+
+    print("\nCPD success by affine-ICP distance D (pose as given and plain excluded):")
+    sel = starts == "rotation:as given"
+    for lo, hi in itertools.pairwise([0, 0.002, 0.005, 0.01, 0.02, 0.04, 0.08, np.inf]):
+        m = sel & (D >= lo) & (D < hi)
         if m.any():
-            print(f"{f'[{lo:g}, {hi:g})':>20s} {m.sum():6d} {100 * np.mean(allr[m, 4] < GOOD):7.1f}"
-                  f" {np.median(allr[m, 4]):16.4f}")
-    print("\nSeparation of good and bad registrations by e / h^2 (h: subject's point spacing):")
-    print(f"{'e/h^2 bin':>20s} {'pairs':>6s} {'good %':>7s} {'folded %':>9s}")
-    ratio = allr[:, 1] / allr[:, 2]
-    edges = [0, 0.5, 1, 2, 4, 8, 16, 32, np.inf]
-    for lo, hi in itertools.pairwise(edges):
-        m = (ratio >= lo) & (ratio < hi)
+            print(f"  D in [{lo:g}, {hi:g}): {m.sum():5d} pairs, good {100 * good[m].mean():5.1f}%,"
+                  f" median corr. err. {np.median(ce[m]):.4f}")
+
+    print("\nHow well each check alone separates good from bad (AUC; 0.5 = no better than chance):")
+    usable = minjac > 0
+    for k, f in enumerate(_FEATURES):
+        sign = -1.0 if f in ("log_error_ratio", "distortion", "anisotropy", "cpd_rotation") else 1
+        print(f"  {f:16s} AUC {_auc(sign * feats[usable, k], good[usable]):.3f}")
+
+    # the confidence model: standardised features, logistic fit; held out by data set
+    Xs = feats[usable]
+    ys = good[usable]
+    groups = sets[usable]
+    mean, scale = Xs.mean(axis=0), Xs.std(axis=0) + 1e-12
+    Z = (Xs - mean) / scale
+    print("\nConfidence model, leave one data set out (fit on the others, scored on it):")
+    for g in sorted(set(groups)):
+        tr, te = groups != g, groups == g
+        w = _logistic_fit(Z[tr], ys[tr])
+        p = 1.0 / (1.0 + np.exp(-(w[0] + Z[te] @ w[1:])))
+        hi = p >= 0.5
+        acc = 100 * ys[te][hi].mean() if hi.any() else float("nan")
+        rej = 100 * ys[te][~hi].mean() if (~hi).any() else float("nan")
+        print(f"  {g:22s} n={te.sum():4d} AUC {_auc(p, ys[te]):.3f}  accepted (p>=0.5) good"
+              f" {acc:5.1f}% of {hi.sum()}, rejected good {rej:5.1f}% of {(~hi).sum()}")
+    w = _logistic_fit(Z, ys)
+    p = 1.0 / (1.0 + np.exp(-(w[0] + Z @ w[1:])))
+    print(f"\nall sets: AUC {_auc(p, ys):.3f}")
+    for lo, hi_ in itertools.pairwise([0, 0.2, 0.5, 0.8, 0.95, 1.0001]):
+        m = (p >= lo) & (p < hi_)
         if m.any():
-            print(f"{f'[{lo:g}, {hi:g})':>20s} {m.sum():6d} {100 * np.mean(allr[m, 4] < GOOD):7.1f}"
-                  f" {100 * np.mean(allr[m, 3] <= 0):9.1f}")
-    print("\nPer set: median D, e, h^2 and share good")
-    for n in names:
-        a = arr[n]
-        print(f"{n:16s} pairs={len(a):4d} D={np.median(a[:, 0]):.4g} e={np.median(a[:, 1]):.4g}"
-              f" h2={np.median(a[:, 2]):.4g} good={100 * np.mean(a[:, 4] < GOOD):.0f}%")
+            print(f"  confidence [{lo:.2f}, {hi_:.2f}): {m.sum():5d} registrations, "
+                  f"good {100 * ys[m].mean():5.1f}%")
+    print("\nPaste into registration/_quality.py:")
+    print(f"_INTERCEPT = {w[0]:.4f}")
+    print(f"_WEIGHTS = ({', '.join(f'{v:.4f}' for v in w[1:])})")
+    print(f"_MEAN = ({', '.join(f'{v:.4f}' for v in mean)})")
+    print(f"_SCALE = ({', '.join(f'{v:.4f}' for v in scale)})")
 
 
 if __name__ == "__main__":

@@ -17,17 +17,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from ._points import as_points
+from ._pose import PoseSpec
 
 FloatArray = NDArray[np.float64]
 
 __all__ = [
     "AffineICPResult",
+    "PairPose",
     "PreparedShape",
     "affine_icp",
     "bidirectional_distance",
@@ -172,6 +175,8 @@ def _principal_frame(p: FloatArray) -> tuple[FloatArray, FloatArray]:
     cov = c.T @ c / p.shape[0]
     evals, evecs = np.linalg.eigh(cov)
     evals = np.maximum(evals, 1e-12 * max(float(evals.max()), 1e-300))
+    if np.linalg.det(evecs) < 0:  # a proper frame: starts built on it keep det(A) > 0
+        evecs = evecs * np.array([1.0, -1.0])
     whiten = (evecs / np.sqrt(evals)).T  # rows: scaled principal axes
     return mean, whiten
 
@@ -215,7 +220,7 @@ def _cols(p0: FloatArray, p1: FloatArray) -> NDArray[np.float32]:
 
 def _batch_icp(
     x: FloatArray, y: FloatArray, A: FloatArray, t: FloatArray, iterations: int,
-    tol: float = 0.0,
+    tol: float = 0.0, proper: bool = False,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Affine ICP for B problems at once by dense distances (small point sets).
 
@@ -225,7 +230,8 @@ def _batch_icp(
     all are. Nearest neighbours are found in float32 (half the memory traffic; ties
     aside, the same neighbours); D and the eq. 8 fit are computed in float64 from
     moment sums of the coordinates, centred per problem so that the sums keep their
-    precision in any user coordinates.
+    precision in any user coordinates. With `proper`, an update that would give
+    ``det(A) <= 0`` (a reflection) freezes the problem at its previous map.
     """
     n_b = A.shape[0]
     x0, x1 = _as_components(x, n_b)
@@ -294,7 +300,7 @@ def _batch_icp(
         t_new = np.stack([s0, s1], axis=1) - np.einsum("bij,bj->bi", A_new,
                                                         np.stack([r0, r1], axis=1))
         det = A_new[:, 0, 0] * A_new[:, 1, 1] - A_new[:, 0, 1] * A_new[:, 1, 0]
-        good = ok & np.isfinite(det) & (np.abs(det) > _MIN_ABS_DET)
+        good = ok & np.isfinite(det) & ((det if proper else np.abs(det)) > _MIN_ABS_DET)
         idx = g[good]
         A_prev[idx], t_prev[idx] = A[idx], t[idx]
         A[idx], t[idx] = A_new[good], t_new[good]
@@ -305,91 +311,143 @@ def _batch_icp(
     return A, t, dist
 
 
+class PairPose(NamedTuple):
+    """Affine ICP of one (model i, subject j) pair: the best pose and the pose as given.
+
+    ``D, A, t``: the map with the smallest D (eq. 9) over every start the pose mode
+    allows. ``D_given, A_given, t_given``: the local optimum reached from the shapes as
+    given (the identity on size-normalised shapes), always computed so that a rotated
+    pose can be weighed against it.
+    """
+
+    i: int
+    j: int
+    D: float
+    A: FloatArray
+    t: FloatArray
+    D_given: float
+    A_given: FloatArray
+    t_given: FloatArray
+
+
+def _start_rotations(pose: PoseSpec, n_rotations: int) -> FloatArray:
+    """Rotation (and reflection) matrices of the starts other than the pose as given."""
+    if pose.mode == "as_given":
+        return np.zeros((0, 2, 2))
+    if pose.mode == "upright":
+        assert pose.max_rotation is not None
+        k = int(np.ceil(pose.max_rotation / _UPRIGHT_STEP_DEG))
+        angles = np.deg2rad(np.linspace(-pose.max_rotation, pose.max_rotation, 2 * k + 1))
+        angles = angles[np.abs(angles) > 1e-12]  # 0 is the pose as given, start 0
+    else:
+        angles = np.arange(n_rotations) * (2.0 * np.pi / n_rotations)
+    cos, sin = np.cos(angles), np.sin(angles)
+    rots = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
+    if pose.allow_reflection:
+        rots = np.concatenate([rots, rots @ np.diag([1.0, -1.0])], axis=0)
+    return rots
+
+
 def pairwise_affine_icp(
     shapes: dict[int, PreparedShape],
     pairs: list[tuple[int, int]],
     *,
     n_rotations: int = 8,
-    allow_reflection: bool = True,
-    max_rotation: float | None = None,
+    pose: PoseSpec | None = None,
     coarse_iterations: int = 12,
     refine_iterations: int = 40,
     tol: float = 1e-4,
-) -> list[tuple[int, int, float, FloatArray, FloatArray]]:
-    """Affine ICP for many (model, subject) pairs at once; returns ``(i, j, D, A, t)``.
+) -> list[PairPose]:
+    """Affine ICP for many (model, subject) pairs at once.
 
     All pairs go through the same vectorised stages: every start of every pair on the
-    coarse subsamples, the best few starts per pair continued, refined on the mid
-    subsamples, the best of them refined on the medium subsamples, and D (eq. 9)
-    evaluated on the full point sets. When both (i, j) and (j, i) are asked for, the
-    second starts from the inverse of the first's map instead of a multi-start search.
-    Starts: see :func:`affine_icp` (`n_rotations`, `allow_reflection`, `max_rotation`).
+    coarse subsamples, the best few starts per pair (and always the pose as given)
+    continued, refined on the mid subsamples; the best of them and the pose as given are
+    refined on the medium subsamples, and D (eq. 9) evaluated on the full point sets.
+    When both (i, j) and (j, i) are asked for, the second starts from the inverses of the
+    first's maps instead of a multi-start search.
+
+    Starts: start 0 is the pose as given (isotropic scale from the covariances, no
+    rotation); the others depend on `pose` (see :mod:`registration._pose`): rotations
+    within +-max_rotation of it ("upright"), `n_rotations` rotations of the principal-axes
+    alignment ("rotation"), and their reflections too ("affine"). Outside "affine", ICP
+    keeps ``det(A) > 0``.
     """
     if not pairs:
         return []
-    forward = [p for p in pairs if (p[1], p[0]) not in pairs or p[0] < p[1]]
-    reverse = [p for p in pairs if p not in set(forward)]
-    if max_rotation is None:
-        angles = np.arange(n_rotations) * (2.0 * np.pi / n_rotations)
-    else:
-        # upright shapes: rotations of the shapes as given, within +-max_rotation
-        k = int(np.ceil(max_rotation / _UPRIGHT_STEP_DEG))
-        angles = np.deg2rad(np.linspace(-max_rotation, max_rotation, 2 * k + 1))
-    cos, sin = np.cos(angles), np.sin(angles)
-    rots = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
-    if allow_reflection and max_rotation is None:
-        rots = np.concatenate([rots, rots @ np.diag([1.0, -1.0])], axis=0)
-    n_s = rots.shape[0]
-    # stage 1: every start of every forward pair
+    pose = pose if pose is not None else PoseSpec()
+    proper = not pose.allow_reflection
+    pair_set = set(pairs)
+    forward = [p for p in pairs if (p[1], p[0]) not in pair_set or p[0] < p[1]]
+    fwd_set = set(forward)
+    reverse = [p for p in pairs if p not in fwd_set]
+    rots = _start_rotations(pose, n_rotations)
+    n_s = 1 + rots.shape[0]
+    nf = len(forward)
+    # stage 1: every start of every forward pair; start 0 is the pose as given
     A_l, t_l, xs, ys = [], [], [], []
     for i, j in forward:
         x, y = shapes[i], shapes[j]
-        if max_rotation is None:
-            A_s = np.linalg.inv(y.whiten)[None] @ rots @ x.whiten[None]
+        scale = np.sqrt(abs(np.linalg.det(x.whiten) / np.linalg.det(y.whiten)))
+        if pose.mode in ("rotation", "affine"):
+            A_rot = np.linalg.inv(y.whiten)[None] @ rots @ x.whiten[None]
         else:  # isotropic scale from the covariances, then the rotation
-            scale = np.sqrt(abs(np.linalg.det(x.whiten) / np.linalg.det(y.whiten)))
-            A_s = scale * rots
+            A_rot = scale * rots
+        A_s = np.concatenate([scale * np.eye(2)[None], A_rot])
         A_l.append(A_s)
         t_l.append(y.mean[None, :] - np.einsum("sij,j->si", A_s, x.mean))
         xs.append(np.broadcast_to(x.coarse, (n_s, *x.coarse.shape)))
         ys.append(np.broadcast_to(y.coarse, (n_s, *y.coarse.shape)))
     xc, yc = np.concatenate(xs), np.concatenate(ys)
     first = max(1, coarse_iterations // 4)
-    A_b, t_b, d_b = _batch_icp(xc, yc, np.concatenate(A_l), np.concatenate(t_l), first)
-    # stage 2: the best starts of each pair
-    keep = np.argsort(d_b.reshape(len(forward), n_s), axis=1, kind="stable")[:, :_KEEP_STARTS]
-    sel = (keep + n_s * np.arange(len(forward))[:, None]).ravel()
-    A_b, t_b, d_b = _batch_icp(xc[sel], yc[sel], A_b[sel], t_b[sel],
-                               max(1, coarse_iterations - first))
-    # stage 3: the surviving starts on finer subsamples, each pair's best on finer still
+    A_b, t_b, d_b = _batch_icp(xc, yc, np.concatenate(A_l), np.concatenate(t_l), first,
+                               proper=proper)
+    # stage 2: the pose as given and the best other starts of each pair
+    others = d_b.reshape(nf, n_s)[:, 1:]
+    best = 1 + np.argsort(others, axis=1, kind="stable")[:, :_KEEP_STARTS]
+    keep = np.concatenate([np.zeros((nf, 1), dtype=np.intp), best], axis=1)
     n_keep = keep.shape[1]
+    sel = (keep + n_s * np.arange(nf)[:, None]).ravel()
+    A_b, t_b, d_b = _batch_icp(xc[sel], yc[sel], A_b[sel], t_b[sel],
+                               max(1, coarse_iterations - first), proper=proper)
+    # stage 3: the surviving starts on finer subsamples; then, on finer still, each
+    # pair's best and its pose as given (column 0)
     A_f, t_f, d_f = _batch_icp(
         np.stack([shapes[i].mid for i, _ in forward for _ in range(n_keep)]),
         np.stack([shapes[j].mid for _, j in forward for _ in range(n_keep)]),
-        A_b, t_b, refine_iterations, tol,
+        A_b, t_b, refine_iterations, tol, proper=proper,
     )
-    pick = d_f.reshape(len(forward), n_keep).argmin(axis=1) + n_keep * np.arange(len(forward))
+    base = n_keep * np.arange(nf)
+    pick = np.stack([d_f.reshape(nf, n_keep).argmin(axis=1) + base, base], axis=1).ravel()
     A_f, t_f = _batch_icp(
-        np.stack([shapes[i].medium for i, _ in forward]),
-        np.stack([shapes[j].medium for _, j in forward]),
-        A_f[pick], t_f[pick], refine_iterations, tol,
+        np.stack([shapes[i].medium for i, _ in forward for _ in range(2)]),
+        np.stack([shapes[j].medium for _, j in forward for _ in range(2)]),
+        A_f[pick], t_f[pick], refine_iterations, tol, proper=proper,
     )[:2]
-    found = {p: (A_f[k], t_f[k]) for k, p in enumerate(forward)}
+    found = {p: (A_f[2 * k], t_f[2 * k], A_f[2 * k + 1], t_f[2 * k + 1])
+             for k, p in enumerate(forward)}
     if reverse:
-        A_r = np.stack([np.linalg.inv(found[(j, i)][0]) for i, j in reverse])
-        t_r = -np.einsum("sij,sj->si", A_r, np.stack([found[(j, i)][1] for i, j in reverse]))
+        inv = [np.linalg.inv(found[(j, i)][a]) for i, j in reverse for a in (0, 2)]
+        A_r = np.stack(inv)
+        t_r = -np.einsum("sij,sj->si", A_r,
+                         np.stack([found[(j, i)][a] for i, j in reverse for a in (1, 3)]))
         A_r, t_r = _batch_icp(
-            np.stack([shapes[i].medium for i, _ in reverse]),
-            np.stack([shapes[j].medium for _, j in reverse]),
-            A_r, t_r, refine_iterations, tol,
+            np.stack([shapes[i].medium for i, _ in reverse for _ in range(2)]),
+            np.stack([shapes[j].medium for _, j in reverse for _ in range(2)]),
+            A_r, t_r, refine_iterations, tol, proper=proper,
         )[:2]
-        found.update({p: (A_r[k], t_r[k]) for k, p in enumerate(reverse)})
-    # stage 4: D of eq. 9 on the full point sets
+        found.update({p: (A_r[2 * k], t_r[2 * k], A_r[2 * k + 1], t_r[2 * k + 1])
+                      for k, p in enumerate(reverse)})
+    # stage 4: D of eq. 9 on the full point sets, for the best map and the pose as given
     out = []
     for i, j in pairs:
-        A, t = found[(i, j)]
-        A, t = np.array(A), np.array(t)
-        out.append((i, j, _full_distance(shapes[i], shapes[j], A, t), A, t))
+        A, t, A_g, t_g = (np.array(v) for v in found[(i, j)])
+        d = _full_distance(shapes[i], shapes[j], A, t)
+        same = np.allclose(A, A_g, atol=1e-9) and np.allclose(t, t_g, atol=1e-9)
+        d_g = d if same else _full_distance(shapes[i], shapes[j], A_g, t_g)
+        if d_g <= d:  # the pose as given is also the best: one map
+            A, t, d = A_g, t_g, d_g
+        out.append(PairPose(i, j, d, A, t, d_g, A_g, t_g))
     return out
 
 
@@ -446,10 +504,12 @@ def _refine(
     t: FloatArray,
     max_iter: int,
     tol: float,
+    proper: bool = False,
 ) -> tuple[FloatArray, FloatArray, float, int, bool]:
     """Affine ICP on the full sets from one start (eqs. 3-4 iterated, eq. 9 returned).
 
-    Keeps the best map seen, so the returned D never exceeds the start's.
+    Keeps the best map seen, so the returned D never exceeds the start's. With `proper`,
+    an update with ``det(A) <= 0`` stops the iteration at the previous map.
     """
 
     def evaluate(A: FloatArray, t: FloatArray) -> tuple[float, FloatArray, FloatArray]:
@@ -465,7 +525,8 @@ def _refine(
         r = np.concatenate([x, x[d]])
         s = np.concatenate([y[c], y])
         A_new, t_new = _fit_affine_batch(r[None], s[None])
-        if not np.isfinite(A_new).all() or abs(np.linalg.det(A_new[0])) <= _MIN_ABS_DET:
+        det = float(np.linalg.det(A_new[0])) if np.isfinite(A_new).all() else 0.0
+        if (det if proper else abs(det)) <= _MIN_ABS_DET:
             converged = True  # degenerate correspondences: det(A) must stay away from 0
             break
         dist_new, c, d = evaluate(A_new[0], t_new[0])
@@ -523,9 +584,10 @@ def affine_icp(
     subject: ArrayLike,
     *,
     init: tuple[ArrayLike, ArrayLike] | None = None,
-    n_rotations: int = 8,
-    allow_reflection: bool = True,
+    pose: str | None = None,
     max_rotation: float | None = None,
+    n_rotations: int = 8,
+    allow_reflection: bool | None = None,
     coarse_points: int = 48,
     coarse_iterations: int = 12,
     max_iter: int = 100,
@@ -540,20 +602,21 @@ def affine_icp(
     subject : array_like, shape (M, 2)
         Y, the fixed point set.
     init : (A, t), optional
-        A single starting map. When omitted, ``n_rotations`` rotations of the principal-
-        axes alignment (times two with reflections) are run on coarse subsamples, the
-        best few continued, and the best of those refined on the full sets.
+        A single starting map. When omitted, the pose as given and the starts of `pose`
+        are run on coarse subsamples, the best few continued, and the best of those
+        refined on the full sets.
+    pose : {"rotation", "as_given", "upright", "affine"}, optional
+        Which poses the starts cover (see :mod:`registration._pose`): any rotation
+        (default), only the shapes as given, rotations within +-`max_rotation` of them,
+        or any affine map including reflections (the paper's ``det(A) != 0``). Outside
+        "affine" the map keeps ``det(A) > 0``: it never mirrors.
+    max_rotation : float, optional
+        Half-width in degrees of the "upright" mode (default 30); given alone, it
+        selects that mode.
     n_rotations : int
         Rotations tried in the whitened frame (8 = every 45 degrees).
-    allow_reflection : bool
-        Also try reflected starts. The paper only requires ``det(A) != 0``, so a
-        reflection is a valid affine map; set False where mirror images must differ.
-    max_rotation : float, optional
-        For shapes given upright (glyph scans, aligned outlines): start only from
-        rotations of the shapes as given within +-`max_rotation` degrees (every 15
-        degrees), with no reflection, instead of every orientation of the principal-
-        axes alignment. Measured on shapes with large deformations, the best D over all
-        orientations often belongs to a wrong pose (bench/calibrate_thresholds.py).
+    allow_reflection : bool, optional
+        Deprecated spelling of the pose: True means ``pose="affine"``.
     coarse_points : int
         Points per shape in the multi-start stage.
     coarse_iterations : int
@@ -585,8 +648,11 @@ def affine_icp(
         raise ValueError(f"tol must be positive; got {tol}")
     if coarse_iterations < 1:
         raise ValueError(f"coarse_iterations must be at least 1; got {coarse_iterations}")
-    if max_rotation is not None and not 0 <= max_rotation <= 180:
-        raise ValueError(f"max_rotation must be in [0, 180] degrees; got {max_rotation}")
+    if allow_reflection:
+        if pose not in (None, "affine"):
+            raise ValueError(f"allow_reflection=True contradicts pose={pose!r}")
+        pose = "affine"
+    spec = PoseSpec.resolve(pose, max_rotation)
     px = prepare_shape(model, coarse_points=coarse_points, name="model")
     py = prepare_shape(subject, coarse_points=coarse_points, name="subject")
     if init is not None:
@@ -598,11 +664,17 @@ def affine_icp(
             raise ValueError("init has non-finite entries")
         if abs(np.linalg.det(A0)) <= _MIN_ABS_DET:
             raise ValueError("init A is singular: the paper requires det(A) != 0")
+        if not spec.allow_reflection and np.linalg.det(A0) < 0:
+            raise ValueError(
+                f"init A is a reflection (det(A) < 0), which pose={spec.mode!r} excludes; "
+                "use pose='affine' to allow mirror images"
+            )
     else:
-        (_, _, _, A0, t0), = pairwise_affine_icp(
-            {0: px, 1: py}, [(0, 1)], n_rotations=n_rotations,
-            allow_reflection=allow_reflection, max_rotation=max_rotation,
+        res = pairwise_affine_icp(
+            {0: px, 1: py}, [(0, 1)], n_rotations=n_rotations, pose=spec,
             coarse_iterations=coarse_iterations,
-        )
-    A, t, dist, it, conv = _refine(px.points, py.points, py.tree, A0, t0, max_iter, tol)
+        )[0]
+        A0, t0 = res.A, res.t
+    A, t, dist, it, conv = _refine(px.points, py.points, py.tree, A0, t0, max_iter, tol,
+                                   proper=not spec.allow_reflection)
     return AffineICPResult(A=A, t=t, distance=dist, iterations=it, converged=conv)

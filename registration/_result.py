@@ -75,6 +75,17 @@ class SubjectResult:
     reason : str
         Why it is attached or not (for unattached subjects, the last rejection).
     attempts : list of Attempt
+    confidence : float or None
+        Estimated probability that the correspondences are right: the smallest
+        calibrated confidence of the registrations on the path from the root (see
+        `registration._quality`). Sort and filter by it.
+    leaf : bool
+        Attached after the tree stopped growing, from its best registration, without
+        being accepted by the tree's rule: a low-confidence leaf, never a parent.
+    quality : dict or None
+        The checks of the last registration on the path (e/h^2, distortion, anisotropy,
+        CPD rotation, coverage, min Jacobian), the pose it started from and the e every
+        pose reached.
     """
 
     index: int
@@ -90,6 +101,9 @@ class SubjectResult:
     transform: ChainTransform | None = None
     reason: str = ""
     attempts: list[Attempt] = field(default_factory=list)
+    confidence: float | None = None
+    leaf: bool = False
+    quality: dict[str, Any] | None = None
 
     @property
     def attached(self) -> bool:
@@ -105,7 +119,10 @@ class SubjectResult:
             "similarity": self.similarity,
             "error": self.error,
             "attached": self.attached,
+            "confidence": self.confidence,
+            "leaf": self.leaf,
             "reason": self.reason,
+            "quality": self.quality,
             "attempts": [a.to_dict() for a in self.attempts],
         }
         if include_points:
@@ -195,6 +212,7 @@ class CollectionResult:
         out: dict[str, Any] = {
             "subjects": len(self.subjects),
             "attached": len(attached),
+            "leaves": sum(1 for s in attached if s.leaf),
             "unattached": len(self.subjects) - len(attached),
             "depth": max(layers) if layers else 1,
             "layer_ge_3": error_statistics([s.error for s in deep if s.error is not None]),

@@ -9,8 +9,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ._executor import Executor, owned_executor
-from ._icp import pairwise_affine_icp, prepare_shape
+from ._icp import PairPose, pairwise_affine_icp, prepare_shape
 from ._points import normalise
+from ._pose import PoseSpec
 
 FloatArray = NDArray[np.float64]
 ProgressCallback = Callable[[str, int, int], None]
@@ -35,30 +36,43 @@ class Similarity:
     ----------
     D : ndarray, shape (n, n)
     A : ndarray, shape (n, n, 2, 2)
-        Linear part of the affine map of each computed pair.
+        Linear part of the affine map of each computed pair (the map that gives D).
     t : ndarray, shape (n, n, 2)
+    D_given, A_given, t_given : ndarray
+        The same for the local optimum reached from the shapes as given (identity start);
+        equal to D, A, t where the pose as given is also the best.
     computed : int
         Number of ICP runs done so far.
+    pose : PoseSpec
+        Which poses the ICP starts covered.
     """
 
     D: FloatArray
     A: FloatArray
     t: FloatArray
+    D_given: FloatArray
+    A_given: FloatArray
+    t_given: FloatArray
     computed: int = 0
-    max_rotation: float | None = None
+    pose: PoseSpec = field(default_factory=PoseSpec)
     _shapes: list[FloatArray] = field(default_factory=list, repr=False)
 
     @classmethod
     def empty(
-        cls, normalised_shapes: Sequence[FloatArray], *, max_rotation: float | None = None
+        cls, normalised_shapes: Sequence[FloatArray], *, pose: PoseSpec | None = None
     ) -> Similarity:
         n = len(normalised_shapes)
         D = np.full((n, n), np.nan)
         np.fill_diagonal(D, 0.0)
         A = np.zeros((n, n, 2, 2))
         A[:] = np.eye(2)
-        return cls(D=D, A=A, t=np.zeros((n, n, 2)), max_rotation=max_rotation,
+        return cls(D=D, A=A, t=np.zeros((n, n, 2)), D_given=D.copy(), A_given=A.copy(),
+                   t_given=np.zeros((n, n, 2)), pose=pose if pose is not None else PoseSpec(),
                    _shapes=list(normalised_shapes))
+
+    @property
+    def max_rotation(self) -> float | None:
+        return self.pose.max_rotation
 
     def ensure(
         self,
@@ -86,7 +100,7 @@ class Similarity:
             chunk = todo[k:end]
             tasks.append(
                 _PairTask(pairs=chunk, shapes={idx: self._shapes[idx] for p in chunk for idx in p},
-                          max_rotation=self.max_rotation)
+                          pose=self.pose)
             )
             k = end
         with owned_executor(executor, len(todo)) as ex:
@@ -94,10 +108,11 @@ class Similarity:
             if progress is not None:
                 progress(stage, 0, len(todo))
             for _, rows in ex.map_unordered(_icp_task, tasks):
-                for i, j, d, a, t in rows:
-                    self.D[i, j] = d
-                    self.A[i, j] = a
-                    self.t[i, j] = t
+                for r in rows:
+                    i, j = r.i, r.j
+                    self.D[i, j], self.A[i, j], self.t[i, j] = r.D, r.A, r.t
+                    self.D_given[i, j], self.A_given[i, j], self.t_given[i, j] = (
+                        r.D_given, r.A_given, r.t_given)
                 done += len(rows)
                 self.computed += len(rows)
                 if progress is not None:
@@ -114,14 +129,13 @@ class Similarity:
 class _PairTask:
     pairs: list[tuple[int, int]]
     shapes: dict[int, FloatArray]
-    max_rotation: float | None = None
+    pose: PoseSpec
 
 
-def _icp_task(task: _PairTask) -> list[tuple[int, int, float, FloatArray, FloatArray]]:
+def _icp_task(task: _PairTask) -> list[PairPose]:
     """Affine ICP for a chunk of pairs, vectorised across the chunk."""
     prepared = {k: prepare_shape(v) for k, v in task.shapes.items()}
-    return pairwise_affine_icp(prepared, task.pairs, tol=_SIMILARITY_TOL,
-                               max_rotation=task.max_rotation)
+    return pairwise_affine_icp(prepared, task.pairs, tol=_SIMILARITY_TOL, pose=task.pose)
 
 
 def shape_descriptor(normalised: FloatArray, *, bins: int = 16) -> FloatArray:
@@ -158,6 +172,7 @@ def similarity_matrix(
     *,
     candidates: int | None = None,
     pairs: Iterable[tuple[int, int]] | None = None,
+    pose: str | None = None,
     max_rotation: float | None = None,
     executor: Executor | None = None,
     progress: ProgressCallback | None = None,
@@ -173,9 +188,11 @@ def similarity_matrix(
         cheap descriptor (both directions). Default: all ordered pairs.
     pairs : iterable of (int, int), optional
         Explicit (model, subject) pairs to compute; overrides `candidates`.
+    pose : {"rotation", "as_given", "upright", "affine"}, optional
+        Which poses the ICP starts cover (see :func:`affine_icp`); default any rotation
+        without reflection. The pose as given is always computed too (``D_given``).
     max_rotation : float, optional
-        For upright shapes: ICP starts only within +-`max_rotation` degrees of the
-        shapes as given (see :func:`affine_icp`). Default: every orientation.
+        Half-width in degrees of the "upright" mode; given alone, it selects it.
     executor : Executor, optional
         Where ICP runs; default: serial for small collections, else a local process pool.
     progress : callable(stage, done, total), optional
@@ -186,6 +203,7 @@ def similarity_matrix(
     -------
     Similarity
     """
+    spec = PoseSpec.resolve(pose, max_rotation)
     normed = [normalise(s, name=f"shapes[{k}]")[0] for k, s in enumerate(shapes)]
     n = len(normed)
     if n < 2:
@@ -201,6 +219,6 @@ def similarity_matrix(
         todo = candidate_pairs(normed, candidates)
     else:
         todo = [(i, j) for i in range(n) for j in range(n) if i != j]
-    sim = Similarity.empty(normed, max_rotation=max_rotation)
+    sim = Similarity.empty(normed, pose=spec)
     sim.ensure(todo, executor=executor, progress=progress)
     return sim

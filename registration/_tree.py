@@ -23,7 +23,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, ParamSpec, TypeVar
 
 import numpy as np
@@ -35,9 +35,11 @@ from ._error import registration_error
 from ._executor import Executor, owned_executor
 from ._icp import affine_icp
 from ._points import Normalization, normalise
+from ._pose import PoseSpec, angle_between, rotation_angle
+from ._quality import RegistrationQuality, measure_quality
 from ._result import Attempt, CollectionResult, SubjectResult
 from ._similarity import ProgressCallback, Similarity, candidate_pairs
-from ._transform import AffineTransform, ChainTransform, PointTransform, jacobian_determinants
+from ._transform import AffineTransform, ChainTransform, PointTransform
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -58,6 +60,16 @@ ERROR_FACTOR = 3.0
 SPACING_FACTOR = 0.5
 MAX_EXHAUSTIVE_SHAPES = 64
 DEFAULT_CANDIDATES = 12
+# A start whose pose differs from the pose as given by more than this (degrees, or in
+# handedness) is registered too; it replaces the pose as given only when its e is below
+# POSE_MARGIN times the pose as given's (see `_register_task`).
+POSE_DISTINCT_DEG = 20.0
+POSE_MARGIN = 0.5
+# A registration is accepted into the tree only with at least this confidence (the
+# calibrated probability that its correspondences are right; `_quality`). Measured in
+# bench/calibrate_thresholds.py: 1.4% of the registrations scored below 0.2 were good
+# (141 of 1027, mostly turned, mirrored and slid ones that e alone accepts).
+MIN_CONFIDENCE = 0.2
 
 
 @dataclass(frozen=True)
@@ -95,6 +107,15 @@ class CPDOptions:
 
 
 @dataclass(frozen=True)
+class _Start:
+    """A pose to start a registration's affine pre-alignment from."""
+
+    label: str  # "as given" or "rotated"
+    A: FloatArray
+    t: FloatArray
+
+
+@dataclass(frozen=True)
 class _RegTask:
     subject: int
     member: int
@@ -102,10 +123,11 @@ class _RegTask:
     similarity: float
     q: FloatArray  # root model warped onto the member, normalised coordinates
     y: FloatArray  # subject, normalised coordinates
-    A0: FloatArray
-    t0: FloatArray
+    starts: tuple[_Start, ...]  # the pose as given first
     cpd: CPDOptions
     prealign: bool
+    pose: PoseSpec
+    spacing2: float  # the subject's squared point spacing h^2
 
 
 @dataclass(frozen=True)
@@ -120,35 +142,80 @@ class _RegOutcome:
     correspondence: IntArray
     probability: FloatArray
     steps: tuple[PointTransform, ...]
+    pose: str  # which start was kept: "as given", "rotated" or "none" (no pre-alignment)
+    pose_angle: float  # rotation of the pre-alignment, degrees (0 without one)
+    pose_errors: dict[str, float]  # e reached from every start tried
+    quality: RegistrationQuality
 
 
-def _register_task(task: _RegTask) -> _RegOutcome:
-    """Pre-align the member's warped model to the subject by affine ICP, then CPD."""
+def _register_from(task: _RegTask, start: _Start | None) -> _RegOutcome:
     steps: list[PointTransform] = []
     q = task.q
-    if task.prealign:
-        icp = affine_icp(q, task.y, init=(task.A0, task.t0))
+    angle = 0.0
+    if start is not None:
+        icp = affine_icp(q, task.y, init=(start.A, start.t), pose=task.pose.mode,
+                         max_rotation=task.pose.max_rotation)
         affine = AffineTransform(A=icp.A, t=icp.t)
         steps.append(affine)
         q = affine.apply(q)
+        angle = rotation_angle(icp.A)
     o = task.cpd
     res = cpd_nonrigid(q, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter, tol=o.tol,
                        dtype=o.dtype)
     steps.append(res.transform)
-    e = registration_error(res.warped, task.y)
-    jac = jacobian_determinants(res.transform, q)
+    warped = np.asarray(res.warped, dtype=np.float64)
+    e = registration_error(warped, task.y)
+    quality = measure_quality(q, warped, task.y, res.transform, e, task.spacing2)
+    label = "none" if start is None else start.label
     return _RegOutcome(
         subject=task.subject,
         member=task.member,
         layer=task.layer,
         similarity=task.similarity,
-        warped=np.asarray(res.warped, dtype=np.float64),
+        warped=warped,
         error=e,
-        min_jacobian=float(jac.min()),
+        min_jacobian=quality.min_jacobian,
         correspondence=np.asarray(res.correspondence, dtype=np.intp),
         probability=np.asarray(res.probability, dtype=np.float64),
         steps=tuple(steps),
+        pose=label,
+        pose_angle=angle,
+        pose_errors={label: e},
+        quality=quality,
     )
+
+
+def _register_task(task: _RegTask) -> _RegOutcome:
+    """Pre-align the member's warped model to the subject by affine ICP, then CPD.
+
+    Every start is registered; the pose as given (the first) is kept unless another
+    start's registration does not fold and reaches an e below ``POSE_MARGIN`` times the
+    pose as given's (or the pose as given folds and it does not). A rotated pose thus
+    earns its place by the registration it leads to, not by D alone.
+    """
+    if not task.prealign:
+        return _register_from(task, None)
+    outs = [_register_from(task, st) for st in task.starts]
+    chosen = outs[0]
+    for other in outs[1:]:
+        if not other.min_jacobian > 0:
+            continue
+        if not chosen.min_jacobian > 0 or other.error < POSE_MARGIN * chosen.error:
+            chosen = other
+    errors = {o.pose: o.error for o in outs}
+    return replace(chosen, pose_errors=errors)
+
+
+def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
+    """The pose as given, and the best pose when it is a different one."""
+    given = _Start("as given", sim.A_given[member, subject], sim.t_given[member, subject])
+    A = sim.A[member, subject]
+    A_g = sim.A_given[member, subject]
+    distinct = (np.sign(np.linalg.det(A)) != np.sign(np.linalg.det(A_g))
+                or angle_between(rotation_angle(A), rotation_angle(A_g)) > POSE_DISTINCT_DEG)
+    if not distinct:
+        return (given,)
+    return (given, _Start("rotated", A, sim.t[member, subject]))
 
 
 # ----------------------------------------------------------------------------- setup
@@ -160,6 +227,7 @@ class _Collection:
     norms: list[Normalization]
     names: list[str]
     root: int
+    spacing2: list[float]  # each shape's mean squared nearest-neighbour spacing h^2
 
     @classmethod
     def prepare(
@@ -179,7 +247,8 @@ class _Collection:
             normed.append(p)
             norms.append(nm)
         label = list(names) if names is not None else [f"shape-{k}" for k in range(len(shapes))]
-        return cls(normed=normed, norms=norms, names=label, root=root)
+        return cls(normed=normed, norms=norms, names=label, root=root,
+                   spacing2=[_spacing2(p) for p in normed])
 
     @property
     def n(self) -> int:
@@ -195,18 +264,22 @@ class _Node:
     q: FloatArray  # root model warped onto this member (normalised coords of the member)
     chain: ChainTransform
     layer: int
+    confidence: float = 1.0  # the weakest registration on the path from the root
 
 
 def _subject_from_outcome(
-    coll: _Collection, out: _RegOutcome, parent_chain: ChainTransform
+    coll: _Collection, out: _RegOutcome, parent: _Node, *, layer: int | None = None,
+    leaf: bool = False,
 ) -> tuple[SubjectResult, _Node]:
     s = out.subject
-    chain = parent_chain.extended(out.steps, coll.norms[s], s)
+    chain = parent.chain.extended(out.steps, coll.norms[s], s)
+    layer = out.layer if layer is None else layer
+    confidence = min(parent.confidence, out.quality.confidence)
     res = SubjectResult(
         index=s,
         name=coll.names[s],
         parent=out.member,
-        layer=out.layer,
+        layer=layer,
         path=list(chain.path),
         similarity=out.similarity,
         error=out.error,
@@ -214,8 +287,12 @@ def _subject_from_outcome(
         correspondence=out.correspondence,
         probability=out.probability,
         transform=chain,
+        confidence=confidence,
+        leaf=leaf,
+        quality={**out.quality.to_dict(), "pose": out.pose, "pose_angle": out.pose_angle,
+                 "pose_errors": dict(out.pose_errors)},
     )
-    return res, _Node(q=out.warped, chain=chain, layer=out.layer)
+    return res, _Node(q=out.warped, chain=chain, layer=layer, confidence=confidence)
 
 
 def _owns_executor(fn: Callable[P, R]) -> Callable[P, R]:
@@ -255,10 +332,10 @@ def _run_tasks(
 
 
 def _options_dict(
-    cpd: CPDOptions, prealign: bool, max_candidates: int, max_rotation: float | None
+    cpd: CPDOptions, prealign: bool, max_candidates: int, pose: PoseSpec
 ) -> dict[str, Any]:
     return {"cpd": asdict(cpd), "affine_prealign": prealign, "max_candidates": max_candidates,
-            "max_rotation": max_rotation}
+            **pose.to_dict()}
 
 
 # ----------------------------------------------------------------------------- thresholds
@@ -343,7 +420,13 @@ def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:
     return ERROR_FACTOR * float(np.percentile(errs, 25))
 
 
-def _spacing_floor(normalised: FloatArray) -> float:
+def _spacing2(normalised: FloatArray) -> float:
+    """Mean squared nearest-neighbour spacing h^2 of a shape's points."""
+    d, _ = cKDTree(normalised).query(normalised, k=2)
+    return float(np.mean(d[:, 1] ** 2))
+
+
+def _spacing_floor(spacing2: float) -> float:
     """``SPACING_FACTOR`` times the subject's mean squared nearest-neighbour spacing h^2.
 
     An e below it means the warped model lies on the subject as closely as the sampling
@@ -353,8 +436,7 @@ def _spacing_floor(normalised: FloatArray) -> float:
     exactly (synthetic deformations of the same points) gets an error threshold so small
     that even correct registrations of its harder subjects are refused.
     """
-    d, _ = cKDTree(normalised).query(normalised, k=2)
-    return SPACING_FACTOR * float(np.mean(d[:, 1] ** 2))
+    return SPACING_FACTOR * spacing2
 
 
 def _prepare_similarity(
@@ -363,13 +445,13 @@ def _prepare_similarity(
     candidates: int | None,
     executor: Executor | None,
     progress: ProgressCallback | None,
-    max_rotation: float | None,
+    pose: PoseSpec,
 ) -> tuple[Similarity, set[tuple[int, int]] | None]:
     """Build the similarity store; compute up front what the automatic threshold needs.
 
     Returns the store and the allowed pairs (None: any pair, computed lazily).
     """
-    sim = Similarity.empty(coll.normed, max_rotation=max_rotation)
+    sim = Similarity.empty(coll.normed, pose=pose)
     allowed: set[tuple[int, int]] | None = None
     if candidates is None and coll.n > MAX_EXHAUSTIVE_SHAPES:
         candidates = DEFAULT_CANDIDATES
@@ -408,6 +490,74 @@ def _check_threshold(name: str, value: float | None) -> None:
         raise ValueError(f"{name} must be a positive finite number or None; got {value}")
 
 
+def _attach_leaves(
+    coll: _Collection,
+    sim: Similarity,
+    nodes: dict[int, _Node],
+    results: dict[int, SubjectResult],
+    waiting: set[int],
+    rejected: dict[int, list[_RegOutcome]],
+    tried: set[tuple[int, int]],
+    allowed: set[tuple[int, int]] | None,
+    cpd: CPDOptions,
+    prealign: bool,
+    pose: PoseSpec,
+    max_candidates: int,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+) -> None:
+    """Give every subject the tree could not take its best registration, as a leaf.
+
+    When the tree stops growing, each waiting subject is registered from the root and
+    from its most similar members not yet tried (up to `max_candidates`); with the
+    registrations rejected while the tree grew, the one with the highest confidence
+    (then the lowest e) that does not fold is kept. The subject is attached as a leaf:
+    never a parent, its confidence and the reason it was not accepted reported. It stays
+    unattached only when every registration folds.
+    """
+    pairs = [(m, s) for s in waiting for m in nodes
+             if (m, s) not in tried and (allowed is None or (m, s) in allowed)]
+    sim.ensure(pairs, executor=executor, progress=progress, stage="similarity leaves")
+    tasks: list[_RegTask] = []
+    for s in sorted(waiting):
+        untried = sorted((float(sim.D[m, s]), m) for m in nodes
+                         if (m, s) not in tried and np.isfinite(sim.D[m, s]))
+        chosen = [m for _, m in untried[:max_candidates]]
+        if (coll.root, s) not in tried and coll.root not in chosen:
+            chosen.append(coll.root)
+        for m in chosen:
+            tried.add((m, s))
+            tasks.append(_RegTask(
+                subject=s, member=m, layer=nodes[m].layer + 1, similarity=float(sim.D[m, s]),
+                q=nodes[m].q, y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
+                prealign=prealign, pose=pose, spacing2=coll.spacing2[s],
+            ))
+    for out in _run_tasks(tasks, executor, progress, "leaves"):
+        rejected.setdefault(out.subject, []).append(out)
+    for s in sorted(waiting):
+        pool = rejected.get(s, [])
+        usable = [o for o in pool if o.min_jacobian > 0]
+        r = results[s]
+        if not usable:
+            r.reason = (
+                f"unattached: all {len(pool)} registrations fold the model" if pool
+                else "unattached: no registration could be tried"
+            )
+            continue
+        best = max(usable, key=lambda o: (
+            min(nodes[o.member].confidence, o.quality.confidence), -o.error))
+        parent = nodes[best.member]
+        res, _ = _subject_from_outcome(coll, best, parent, layer=parent.layer + 1, leaf=True)
+        why = next((a.reason for a in reversed(r.attempts) if a.member == best.member), None)
+        res.attempts = r.attempts
+        res.reason = (
+            f"low-confidence leaf: best of {len(pool)} registrations, from "
+            f"{coll.names[best.member]}; not accepted into the tree"
+            + (f" ({why})" if why else " (the tree stopped growing before reaching it)")
+        )
+        results[s] = res
+
+
 # ----------------------------------------------------------------------------- methods
 
 
@@ -422,6 +572,7 @@ def build_dynamic_tree(
     max_candidates: int = 3,
     candidates: int | None = None,
     prealign: bool = True,
+    pose: str | None = None,
     max_rotation: float | None = None,
     fold_check: bool = True,
     compare_direct: bool = False,
@@ -457,10 +608,16 @@ def build_dynamic_tree(
         shapes, 12 nearest beyond.
     prealign : bool
         Affine-ICP pre-alignment before each CPD (initialised from the similarity's map).
+    pose : {"rotation", "as_given", "upright", "affine"}, optional
+        Which poses the affine pre-alignment may take (see :mod:`registration._pose`):
+        any rotation (default), the shapes as given only, rotations within
+        +-`max_rotation` of them, or any affine map including reflections (the paper's
+        ``det(A) != 0``). Outside "affine" it never mirrors. In every mode the pose as
+        given is registered too, and a different pose replaces it only when CPD from it
+        reaches less than half the pose as given's e.
     max_rotation : float, optional
-        For collections given upright (glyph scans, aligned outlines): affine ICP only
-        starts within +-`max_rotation` degrees of the shapes as given, without
-        reflections. Default: every orientation (the paper's det(A) != 0).
+        Half-width in degrees of the "upright" mode (default 30); given alone, it
+        selects that mode (glyph scans, aligned outlines).
     fold_check : bool
         Also reject registrations whose displacement field folds the model (Jacobian
         determinant <= 0 at a model point): e can be small while correspondences are wrong.
@@ -486,14 +643,15 @@ def build_dynamic_tree(
     if max_candidates < 1:
         raise ValueError(f"max_candidates must be at least 1; got {max_candidates}")
     cpd = cpd if cpd is not None else CPDOptions()
+    spec = PoseSpec.resolve(pose, max_rotation)
     coll = _Collection.prepare(shapes, root, names)
     sim, allowed = _prepare_similarity(
-        coll, similarity_threshold, candidates, executor, progress, max_rotation
+        coll, similarity_threshold, candidates, executor, progress, spec
     )
     subjects_idx = [k for k in range(coll.n) if k != root]
     sim_rule = _SimilarityRule.build(sim, similarity_threshold)
     tau_err = error_threshold
-    floors = {s: _spacing_floor(coll.normed[s]) for s in subjects_idx}
+    floors = {s: _spacing_floor(coll.spacing2[s]) for s in subjects_idx}
 
     nodes: dict[int, _Node] = {root: _Node(q=coll.normed[root], chain=coll.root_chain(), layer=1)}
     results: dict[int, SubjectResult] = {
@@ -501,6 +659,7 @@ def build_dynamic_tree(
     }
     waiting = set(subjects_idx)
     tried: set[tuple[int, int]] = set()
+    rejected: dict[int, list[_RegOutcome]] = {}
     frontier = [root]
     layer = 1
     while waiting and frontier:
@@ -518,8 +677,8 @@ def build_dynamic_tree(
                 tasks.append(
                     _RegTask(
                         subject=s, member=m, layer=layer, similarity=d, q=nodes[m].q,
-                        y=coll.normed[s], A0=sim.A[m, s], t0=sim.t[m, s], cpd=cpd,
-                        prealign=prealign,
+                        y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
+                        prealign=prealign, pose=spec, spacing2=coll.spacing2[s],
                     )
                 )
         if not tasks:
@@ -531,12 +690,17 @@ def build_dynamic_tree(
         for out in outcomes:
             folded = fold_check and not out.min_jacobian > 0
             limit = tau_err if error_threshold is not None else max(tau_err, floors[out.subject])
-            ok = out.error < limit and not folded
+            confident = out.quality.confidence >= MIN_CONFIDENCE
+            ok = out.error < limit and not folded and confident
             reason = (
                 "accepted candidate" if ok
                 else "folded (Jacobian determinant <= 0)" if folded
                 else f"e={out.error:.4g} >= error threshold {limit:.4g}"
+                if out.error >= limit
+                else f"confidence {out.quality.confidence:.2f} < {MIN_CONFIDENCE}"
             )
+            if not ok:
+                rejected.setdefault(out.subject, []).append(out)
             results[out.subject].attempts.append(
                 Attempt(member=out.member, layer=layer, similarity=out.similarity,
                         error=out.error, limit=limit, min_jacobian=out.min_jacobian,
@@ -547,7 +711,7 @@ def build_dynamic_tree(
                 best[out.subject] = out
         new_frontier = []
         for s, out in sorted(best.items()):
-            res, node = _subject_from_outcome(coll, out, nodes[out.member].chain)
+            res, node = _subject_from_outcome(coll, out, nodes[out.member])
             res.attempts = [
                 Attempt(**{**asdict(a), "accepted": a.member == out.member and a.layer == layer})
                 for a in results[s].attempts
@@ -558,12 +722,9 @@ def build_dynamic_tree(
             waiting.discard(s)
             new_frontier.append(s)
         frontier = new_frontier
-    for s in waiting:
-        r = results[s]
-        r.reason = (
-            f"rejected: {r.attempts[-1].reason}" if r.attempts
-            else "no similar member (no tree member's D to it within the similarity rule)"
-        )
+    if waiting:
+        _attach_leaves(coll, sim, nodes, results, waiting, rejected, tried, allowed, cpd,
+                       prealign, spec, max_candidates, executor, progress)
     out_subjects = [results[s] for s in subjects_idx]
     direct = (
         _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None
@@ -581,7 +742,7 @@ def build_dynamic_tree(
             f"{SPACING_FACTOR} x the subject's squared point spacing)",
             "fold_check": fold_check,
         },
-        options=_options_dict(cpd, prealign, max_candidates, max_rotation),
+        options=_options_dict(cpd, prealign, max_candidates, spec),
         direct=direct,
         similarity_pairs=sim.computed,
     )
@@ -597,6 +758,7 @@ def build_static_tree(
     cpd: CPDOptions | None = None,
     candidates: int | None = None,
     prealign: bool = True,
+    pose: str | None = None,
     max_rotation: float | None = None,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
@@ -614,7 +776,7 @@ def build_static_tree(
 
     Parameters
     ----------
-    shapes, root, similarity_threshold, candidates, cpd, prealign, max_rotation, names,
+    shapes, root, similarity_threshold, candidates, cpd, prealign, pose, max_rotation, names,
     compare_direct, executor, progress
         As for :func:`build_dynamic_tree`.
     error_threshold : float, optional
@@ -633,9 +795,10 @@ def build_static_tree(
     _check_threshold("similarity_threshold", similarity_threshold)
     del error_threshold
     cpd = cpd if cpd is not None else CPDOptions()
+    spec = PoseSpec.resolve(pose, max_rotation)
     coll = _Collection.prepare(shapes, root, names)
     sim, allowed = _prepare_similarity(
-        coll, similarity_threshold, candidates, executor, progress, max_rotation
+        coll, similarity_threshold, candidates, executor, progress, spec
     )
     subjects_idx = [k for k in range(coll.n) if k != root]
     sim_rule = _SimilarityRule.build(sim, similarity_threshold)
@@ -663,12 +826,12 @@ def build_static_tree(
         tasks = [
             _RegTask(subject=s, member=parent[s], layer=depth,
                      similarity=float(sim.D[parent[s], s]), q=nodes[parent[s]].q,
-                     y=coll.normed[s], A0=sim.A[parent[s], s], t0=sim.t[parent[s], s],
-                     cpd=cpd, prealign=prealign)
+                     y=coll.normed[s], starts=_starts(sim, parent[s], s),
+                     cpd=cpd, prealign=prealign, pose=spec, spacing2=coll.spacing2[s])
             for s in members
         ]
         for out in _run_tasks(tasks, executor, progress, f"layer {depth}"):
-            res, node = _subject_from_outcome(coll, out, nodes[out.member].chain)
+            res, node = _subject_from_outcome(coll, out, nodes[out.member])
             res.reason = f"static edge from {coll.names[out.member]}"
             results[out.subject] = res
             nodes[out.subject] = node
@@ -687,7 +850,7 @@ def build_static_tree(
             "error": None,
             "error_rule": "none: the static tree does not reject",
         },
-        options=_options_dict(cpd, prealign, 1, max_rotation),
+        options=_options_dict(cpd, prealign, 1, spec),
         direct=direct,
         similarity_pairs=sim.computed,
     )
@@ -708,14 +871,14 @@ def _direct_results(
                    stage="similarity direct")
     tasks = [
         _RegTask(subject=s, member=r, layer=2, similarity=float(sim.D[r, s]),
-                 q=coll.normed[r], y=coll.normed[s], A0=sim.A[r, s], t0=sim.t[r, s],
-                 cpd=cpd, prealign=prealign)
+                 q=coll.normed[r], y=coll.normed[s], starts=_starts(sim, r, s),
+                 cpd=cpd, prealign=prealign, pose=sim.pose, spacing2=coll.spacing2[s])
         for s in subjects_idx
     ]
-    chain = coll.root_chain()
+    root_node = _Node(q=coll.normed[r], chain=coll.root_chain(), layer=1)
     out_by_subject = {}
     for out in _run_tasks(tasks, executor, progress, "direct"):
-        res, _ = _subject_from_outcome(coll, out, chain)
+        res, _ = _subject_from_outcome(coll, out, root_node)
         res.reason = "direct CPD from the root"
         out_by_subject[out.subject] = res
     return [out_by_subject[s] for s in subjects_idx]
@@ -730,6 +893,7 @@ def register_direct(
     error_threshold: float | None = None,
     cpd: CPDOptions | None = None,
     prealign: bool = True,
+    pose: str | None = None,
     max_rotation: float | None = None,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
@@ -753,9 +917,8 @@ def register_direct(
     cpd : CPDOptions, optional
     prealign : bool
         Affine-ICP pre-alignment (multi-start) before each CPD.
-    max_rotation : float, optional
-        Restrict the pre-alignment's starts to +-`max_rotation` degrees of the shapes as
-        given, without reflections (see :func:`build_dynamic_tree`).
+    pose, max_rotation
+        As for :func:`build_dynamic_tree`.
     names : sequence of str, optional
     executor : Executor, optional
     progress : callable(stage, done, total), optional
@@ -772,8 +935,9 @@ def register_direct(
     """
     del similarity_threshold, error_threshold, compare_direct
     cpd = cpd if cpd is not None else CPDOptions()
+    spec = PoseSpec.resolve(pose, max_rotation)
     coll = _Collection.prepare(shapes, root, names)
-    sim = Similarity.empty(coll.normed, max_rotation=max_rotation)
+    sim = Similarity.empty(coll.normed, pose=spec)
     subjects = _direct_results(coll, sim, cpd, prealign, executor, progress)
     return CollectionResult(
         method="direct",
@@ -781,7 +945,7 @@ def register_direct(
         names=coll.names,
         subjects=subjects,
         thresholds={"similarity": None, "error": None, "error_rule": "none"},
-        options=_options_dict(cpd, prealign, 1, max_rotation),
+        options=_options_dict(cpd, prealign, 1, spec),
         direct=None,
         similarity_pairs=sim.computed,
     )

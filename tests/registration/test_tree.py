@@ -126,22 +126,32 @@ def test_a_foreign_executor_plugs_in_and_order_of_completion_does_not_matter(fam
     assert json.dumps(serial.to_dict()) == json.dumps(remote.to_dict())
 
 
-def test_explicit_tiny_thresholds_leave_subjects_unattached_not_forced(family):
+def test_explicit_tiny_thresholds_give_low_confidence_leaves_not_tree_members(family):
+    # Nothing passes the tree's rule: no subject joins the tree, yet every subject still
+    # gets its best registration (here from the root, the only member), marked as a
+    # leaf with the reason it was not accepted, and no subject is anyone's parent.
     res = build_dynamic_tree(family.shapes[:5], 0, similarity_threshold=1e-9,
                              error_threshold=1e-9, cpd=FAST_CPD, executor=SerialExecutor())
-    assert all(not s.attached for s in res.subjects)
-    assert all(s.reason for s in res.subjects)
-    assert res.summary()["unattached"] == 4
-    with pytest.raises(ValueError, match="not attached"):
-        res.transform_for(1)
+    assert all(s.leaf and s.parent == 0 and s.layer == 2 for s in res.subjects)
+    assert all("low-confidence leaf" in s.reason for s in res.subjects)
+    assert all(s.warped is not None and s.confidence is not None for s in res.subjects)
+    summary = res.summary()
+    assert summary["unattached"] == 0 and summary["leaves"] == 4
+    doc = res.to_dict()["subjects"]
+    assert all(d["leaf"] and d["parent"] == 0 for d in doc)
+    # a leaf's registration is the root's direct one: transform reproduces it
+    s = res.subject(1)
+    assert np.allclose(res.transform_for(1).apply(family.shapes[0]), s.warped, atol=1e-6)
 
 
 def test_error_threshold_rejects_and_retries_from_later_members(family):
     res = build_dynamic_tree(family.shapes, 0, similarity_threshold=1.0, error_threshold=1e-9,
                              cpd=FAST_CPD, max_candidates=1, executor=SerialExecutor())
-    assert not any(s.attached for s in res.subjects)
+    assert all(s.leaf for s in res.subjects)  # none joined the tree
     assert all(a.reason.startswith("e=") or "folded" in a.reason
                for s in res.subjects for a in s.attempts)
+    # the root was the only member: one attempt each while the tree grew
+    assert all(len(s.attempts) == 1 and s.parent == 0 for s in res.subjects)
 
 
 def test_static_tree_never_rejects(family):

@@ -1,0 +1,103 @@
+"""The pose option: four documented modes, no mirror unless asked, the pose as given
+always a candidate, and a rotated pose kept only when its registration earns it."""
+
+import numpy as np
+import pytest
+
+from registration import CPDOptions, SerialExecutor, affine_icp, build_dynamic_tree, register_direct
+from registration._pose import PoseSpec, angle_between, rotation_angle
+from registration.synthetic import base_outline, chained_family, correspondence_error
+
+FAST_CPD = CPDOptions(max_iter=60)
+
+
+def _rot(deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+
+@pytest.mark.parametrize(
+    ("pose", "max_rotation", "mode", "half_width"),
+    [
+        (None, None, "rotation", None),
+        (None, 20.0, "upright", 20.0),
+        ("upright", None, "upright", 30.0),
+        ("as_given", None, "as_given", None),
+        ("affine", None, "affine", None),
+    ],
+)
+def test_pose_spec_resolves_modes(pose, max_rotation, mode, half_width):
+    spec = PoseSpec.resolve(pose, max_rotation)
+    assert (spec.mode, spec.max_rotation) == (mode, half_width)
+    assert spec.allow_reflection == (mode == "affine")
+
+
+@pytest.mark.parametrize(
+    ("pose", "max_rotation", "match"),
+    [
+        ("sideways", None, "pose must be one of"),
+        ("rotation", 30.0, "only applies to pose='upright'"),
+        ("upright", 200.0, r"\[0, 180\]"),
+        (None, float("nan"), r"\[0, 180\]"),
+    ],
+)
+def test_pose_spec_refuses_bad_combinations(pose, max_rotation, match):
+    with pytest.raises(ValueError, match=match):
+        PoseSpec.resolve(pose, max_rotation)
+
+
+def test_rotation_angle_and_difference():
+    assert rotation_angle(2.0 * _rot(75.0)) == pytest.approx(75.0)
+    assert angle_between(170.0, -170.0) == pytest.approx(20.0)
+
+
+def test_default_never_mirrors_but_affine_may():
+    x = base_outline(150)
+    mirrored = x @ np.diag([-1.0, 1.0])
+    default = affine_icp(x, mirrored)
+    assert np.linalg.det(default.A) > 0
+    paper = affine_icp(x, mirrored, pose="affine")
+    assert np.linalg.det(paper.A) < 0
+    assert paper.distance < 0.1 * default.distance  # the mirror fits; it is just not allowed
+
+
+def test_as_given_stays_near_the_pose_given_and_rotation_finds_a_turn():
+    x = base_outline(150)
+    turned = x @ _rot(120.0).T
+    as_given = affine_icp(x, turned, pose="as_given")
+    assert angle_between(rotation_angle(as_given.A), 0.0) < 60.0
+    anywhere = affine_icp(x, turned)
+    assert angle_between(rotation_angle(anywhere.A), 120.0) < 5.0
+    upright = affine_icp(x, turned, max_rotation=30)
+    assert angle_between(rotation_angle(upright.A), 0.0) < 60.0
+
+
+def test_init_reflection_refused_outside_affine():
+    x = base_outline(60)
+    with pytest.raises(ValueError, match="reflection"):
+        affine_icp(x, x, init=(np.diag([-1.0, 1.0]), np.zeros(2)))
+
+
+def test_a_turned_subject_is_registered_through_the_rotated_pose():
+    fam = chained_family(n_chains=1, chain_length=3, n_points=120, step=0.2, pose=False, seed=3)
+    shapes = list(fam.shapes)
+    truth = fam.root_images[2] @ _rot(120.0).T
+    shapes[2] = shapes[2] @ _rot(120.0).T
+    res = register_direct(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+    s = res.subject(2)
+    assert s.quality is not None and s.quality["pose"] == "rotated"
+    assert s.quality["pose_errors"]["rotated"] < 0.5 * s.quality["pose_errors"]["as given"]
+    assert correspondence_error(s.warped, truth, shapes[2]) < 0.15
+    # the others, given upright, keep the pose as given
+    assert res.subject(1).quality["pose"] == "as given"
+
+
+def test_pose_is_reported_in_options_and_each_subject_has_a_confidence():
+    fam = chained_family(n_chains=1, chain_length=3, n_points=100, step=0.2, seed=2)
+    res = build_dynamic_tree(fam.shapes, 0, cpd=FAST_CPD, max_rotation=20,
+                             executor=SerialExecutor())
+    assert res.options["pose"] == "upright" and res.options["max_rotation"] == 20
+    for s in res.subjects:
+        assert 0.0 <= s.confidence <= 1.0
+        assert s.to_dict()["confidence"] == s.confidence
+        assert {"error_ratio", "distortion", "coverage", "pose"} <= set(s.quality)

@@ -1,0 +1,56 @@
+"""Checks that see what e (eq. 10) cannot: folds, slides, turns, uncovered parts."""
+
+import numpy as np
+
+from registration import AffineTransform, cpd_nonrigid, registration_error
+from registration._quality import measure_quality
+from registration.synthetic import base_outline
+
+
+def _spacing2(p: np.ndarray) -> float:
+    d = np.sqrt(((p[:, None] - p[None]) ** 2).sum(-1))
+    np.fill_diagonal(d, np.inf)
+    return float(np.mean(d.min(axis=1) ** 2))
+
+
+def test_identity_registration_is_perfect_on_every_check():
+    x = base_outline(120)
+    q = measure_quality(x, x, x, AffineTransform(A=np.eye(2), t=np.zeros(2)), 0.0, _spacing2(x))
+    assert abs(q.min_jacobian - 1.0) < 1e-9 and q.distortion < 1e-9 and q.anisotropy < 1e-9
+    assert abs(q.cpd_rotation) < 1e-9 and q.coverage == 1.0
+    assert q.confidence > 0.9
+
+
+def test_a_turn_that_lies_on_the_subject_keeps_e_small_but_loses_confidence():
+    # a circle turned by 90 degrees lies on itself (small e) with every correspondence a
+    # quarter of the way round: only the map's checks can see that
+    x = base_outline(200)
+    h2 = _spacing2(x)
+    y = x @ np.diag([1.05, 0.95])
+    good = cpd_nonrigid(x, y)
+    q_good = measure_quality(x, good.warped, y, good.transform, registration_error(good.warped, y),
+                             h2)
+    # a rotated copy of the model lying on itself: small e, turned correspondences
+    turn = np.array([[0.0, -1.0], [1.0, 0.0]])
+    turned = AffineTransform(A=turn, t=np.zeros(2))
+    circle = np.c_[np.cos(np.linspace(0, 2 * np.pi, 120, endpoint=False)),
+                   np.sin(np.linspace(0, 2 * np.pi, 120, endpoint=False))]
+    q_turned = measure_quality(circle, turned.apply(circle), circle, turned,
+                               registration_error(turned.apply(circle), circle), _spacing2(circle))
+    assert q_turned.error < 1e-3 and abs(q_turned.cpd_rotation) > 80
+    assert q_turned.confidence < q_good.confidence
+
+
+def test_folded_map_has_zero_confidence():
+    x = base_outline(80)
+    fold = AffineTransform(A=np.diag([1.0, -1.0]), t=np.zeros(2))
+    q = measure_quality(x, fold.apply(x), fold.apply(x), fold, 0.0, _spacing2(x))
+    assert q.min_jacobian < 0 and q.confidence == 0.0
+
+
+def test_part_of_the_subject_left_uncovered_lowers_coverage():
+    x = base_outline(200)
+    half = x[:100]
+    ident = AffineTransform(A=np.eye(2), t=np.zeros(2))
+    q = measure_quality(half, half, x, ident, registration_error(half, x), _spacing2(x))
+    assert 0.4 < q.coverage < 0.65
