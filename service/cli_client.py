@@ -51,6 +51,7 @@ EXIT_INTERRUPTED = 130
 DEFAULT_URL = "http://127.0.0.1:8000"
 METHODS = ("dynamic_tree", "static_tree", "direct")
 IMAGE_MODES = ("contour", "edges", "skeleton")
+POSES = ("as_given", "upright", "rotation", "affine")
 
 
 class CLIError(Exception):
@@ -211,11 +212,21 @@ def add_commands(sub: Any) -> None:
         help="largest registration error e to accept (default: automatic)",
     )
     run.add_argument(
+        "--pose",
+        choices=POSES,
+        help="which poses the affine pre-alignment may give a shape: as_given = only the "
+        "shapes as uploaded; upright = rotations within +-DEG (--max-rotation, 30 by "
+        "default) of them, no mirror images (glyph scans, aligned outlines); rotation = any "
+        "rotation, no mirror images; affine = any affine map, mirror images included. "
+        "Default: the service's, upright if every shape of the collection was uploaded as an "
+        "image, else rotation",
+    )
+    run.add_argument(
         "--max-rotation",
         type=float,
         metavar="DEG",
-        help="upright collections (glyph scans): consider only poses within +-DEG degrees "
-        "of the uploaded ones, no mirror images (default: every orientation; 30 suits glyphs)",
+        help="with --pose upright (or alone, which means upright): consider only rotations "
+        "within +-DEG degrees of the uploaded shapes (default 30)",
     )
     run.add_argument(
         "--no-compare-direct",
@@ -485,6 +496,19 @@ def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
 # --- run and watch -------------------------------------------------------------------------
 
 
+def _pose_text(params: Mapping[str, Any]) -> str:
+    """What a job's params say about its pose, e.g. ", pose upright +-30 deg (request)"."""
+    pose = params.get("pose")
+    if not pose:
+        return ""
+    text = f", pose {pose}"
+    if isinstance(params.get("max_rotation"), int | float):
+        text += f" +-{params['max_rotation']:g} deg"
+    if params.get("pose_source"):
+        text += f" ({params['pose_source']})"
+    return text
+
+
 def cmd_run(args: argparse.Namespace, rt: RegtreeClient) -> int:
     collection = find_collection(rt, args.collection)
     model = find_shape(rt, collection, args.model)
@@ -494,6 +518,7 @@ def cmd_run(args: argparse.Namespace, rt: RegtreeClient) -> int:
         method=args.method,
         similarity_threshold=args.similarity_threshold,
         error_threshold=args.error_threshold,
+        pose=args.pose,
         max_rotation=args.max_rotation,
         compare_direct=args.compare_direct,
     )
@@ -503,7 +528,7 @@ def cmd_run(args: argparse.Namespace, rt: RegtreeClient) -> int:
         _out(
             f"job {job.id} {job.status}: {job.method} on collection {collection.name!r} "
             f"(id {collection.id}, {job.n_shapes or collection.n_shapes} shapes), model "
-            f"{model.name!r} (id {model.id})"
+            f"{model.name!r} (id {model.id}){_pose_text(job.params)}"
         )
         if not args.wait:
             _out(f"follow it: regtree watch {job.id}")

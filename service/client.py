@@ -66,6 +66,8 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 ImageMode = Literal["contour", "edges", "skeleton"]
 Method = Literal["dynamic_tree", "static_tree", "direct"]
+#: How the affine pre-alignment may pose a shape: see :meth:`RegtreeClient.start_job`.
+Pose = Literal["as_given", "upright", "rotation", "affine"]
 
 #: Point files, and images, that :meth:`RegtreeClient.upload_folder` sends (by suffix).
 POINT_SUFFIXES: dict[str, str] = {
@@ -816,16 +818,31 @@ class RegtreeClient:
         error_threshold: float | None = None,
         compare_direct: bool = True,
         cpd: Mapping[str, Any] | None = None,
+        pose: Pose | None = None,
         max_rotation: float | None = None,
         idempotency_key: str | None = None,
     ) -> JobStatus:
         """Queue a job registering ``model_shape_id`` onto every shape of the collection.
 
         Thresholds left None are chosen automatically by the service. ``cpd`` may set
-        ``beta``, ``lmbda``, ``w``, ``max_iter``, ``tol``. ``max_rotation`` (degrees) is for
-        upright collections such as glyph scans: poses within that rotation only, no
-        mirror images. Give ``idempotency_key`` to make a resubmission (e.g. after a crash of
-        your script) return the same job.
+        ``beta``, ``lmbda``, ``w``, ``max_iter``, ``tol``.
+
+        ``pose`` is which poses the affine pre-alignment may give a shape:
+
+        * ``"as_given"``: only the shapes as uploaded (no rotation search);
+        * ``"upright"``: rotations within +-``max_rotation`` degrees (30 unless given) of
+          the shapes as uploaded, no mirror images: glyph scans, aligned outlines;
+        * ``"rotation"``: any rotation, no mirror images;
+        * ``"affine"``: any affine map, mirror images included (the paper's).
+
+        Left None (and ``max_rotation`` too), the service decides, as for any HTTP client:
+        ``"upright"`` when every shape of the collection was uploaded as an image, else
+        ``"rotation"``; ``max_rotation`` alone means ``"upright"``. The job's ``params``
+        record the pose used and ``pose_source``. ``max_rotation`` with another pose is
+        refused (:class:`ValidationError`).
+
+        Give ``idempotency_key`` to make a resubmission (e.g. after a crash of your script)
+        return the same job.
         """
         body: dict[str, Any] = {
             "collection_id": collection_id,
@@ -835,6 +852,8 @@ class RegtreeClient:
             "error_threshold": error_threshold,
             "compare_direct": compare_direct,
         }
+        if pose is not None:
+            body["pose"] = pose
         if max_rotation is not None:
             body["max_rotation"] = max_rotation
         if cpd is not None:

@@ -7,7 +7,7 @@ from datetime import datetime
 from typing import Annotated, Any, Generic, Literal, TypeVar
 
 from annotated_types import Interval
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from service.core.limits import bounds, example
 
@@ -32,6 +32,25 @@ DbInt = Annotated[int, Interval(ge=-(2**63), le=INT64_MAX)]
 Method = Literal["dynamic_tree", "static_tree", "direct"]
 JobStatusName = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 ImageMode = Literal["contour", "edges", "skeleton"]
+#: The pose modes of the affine pre-alignment: ``registration._pose.POSE_MODES`` (a test
+#: checks that they agree; the library is not imported here, so the API starts fast).
+PoseName = Literal["as_given", "upright", "rotation", "affine"]
+
+POSE_DESCRIPTION = (
+    "Which poses the affine pre-alignment (before the non-rigid registration) may give a "
+    "shape. "
+    "as_given: only the shapes as uploaded (no rotation search; matched on position and size). "
+    "upright: rotations within +-max_rotation degrees of the shapes as uploaded (30 unless "
+    "max_rotation says otherwise), never a mirror image; for upright collections such as "
+    "glyph scans and aligned outlines. "
+    "rotation: any rotation, never a mirror image. "
+    "affine: any affine map, mirror images included (the paper's method). "
+    "In every mode the pose as uploaded is tried too, and a rotated pose is only kept when "
+    "the registration from it is clearly better. "
+    "Default (null): upright (30 degrees) when every shape of the collection was uploaded as "
+    "a PNG or JPEG image, rotation otherwise; max_rotation alone means upright. The job's "
+    "params record the pose used (pose, max_rotation) and why (pose_source)."
+)
 
 
 class Page(BaseModel, Generic[T]):
@@ -226,19 +245,31 @@ class JobCreate(BaseModel):
     compare_direct: bool = Field(
         default=False, description="Also register every subject directly from the model."
     )
+    pose: PoseName | None = Field(default=None, description=POSE_DESCRIPTION)
     max_rotation: float | None = Field(
         default=None,
         ge=0,
         le=180,
-        description="For upright collections (glyph scans, aligned outlines): the affine "
-        "pre-alignment only considers poses within +-max_rotation degrees of the shapes as "
-        "uploaded, without mirror images. null = every orientation. 30 is a good value for "
-        "glyphs: see bench/RESULTS.md.",
+        description="Half-width in degrees of the upright pose: the pre-alignment only "
+        "considers rotations within +-max_rotation of the shapes as uploaded, without mirror "
+        "images. Only with pose upright or without pose (then it means upright); with another "
+        "pose it is refused (422). null = 30 for upright. 30 suits glyphs: see "
+        "bench/RESULTS.md.",
     )
     cpd: CPDParams = Field(default_factory=CPDParams)
 
     _check_similarity = field_validator("similarity_threshold")(_finite_positive)
     _check_error = field_validator("error_threshold")(_finite_positive)
+
+    @model_validator(mode="after")
+    def _check_pose(self) -> JobCreate:
+        # The library's own rule (registration._pose.PoseSpec.resolve); imported here, not at
+        # module level, so that the API starts without the numerical stack.
+        if self.pose is not None or self.max_rotation is not None:
+            from registration._pose import PoseSpec
+
+            PoseSpec.resolve(self.pose, self.max_rotation)  # a ValueError is a 422
+        return self
 
 
 class Progress(BaseModel):
@@ -266,6 +297,9 @@ class JobOut(BaseModel):
                         "similarity_threshold": None,
                         "error_threshold": None,
                         "compare_direct": True,
+                        "pose": "upright",
+                        "max_rotation": 30.0,
+                        "pose_source": "default for image collections",
                         "cpd": {"beta": 2.0, "lmbda": 3.0, "w": 0.1, "max_iter": 150, "tol": 1e-5},
                     },
                     "n_shapes": 73,
@@ -293,7 +327,12 @@ class JobOut(BaseModel):
     collection_id: int
     model_shape_id: int
     method: Method
-    params: dict[str, Any]
+    params: dict[str, Any] = Field(
+        description="The job's options as it runs them: the thresholds, compare_direct, cpd, "
+        "and the pose of the pre-alignment resolved from the request (pose, max_rotation) "
+        "with pose_source saying where it came from: request, default for image "
+        "collections, or default."
+    )
     n_shapes: int
     status: JobStatusName
     progress: Progress

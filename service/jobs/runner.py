@@ -286,6 +286,9 @@ def run_registration(
         executor=executor,
         progress=progress,
         compare_direct=bool(params.get("compare_direct", False)),
+        # Jobs queued before pose existed have only max_rotation: the library reads a
+        # number as "upright" and None as its default.
+        pose=params.get("pose"),
         max_rotation=params.get("max_rotation"),
     )
     doc: dict[str, Any] = result.to_dict()

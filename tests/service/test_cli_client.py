@@ -277,6 +277,51 @@ def test_failures_exit_codes(service: Service, tmp_path: Path) -> None:
     assert_error(regtree("results", str(job_id), "--out", str(tmp_path), url=url), 1, "HTTP 409")
 
 
+def test_run_pose(service: Service, tmp_path: Path) -> None:
+    from service.cli import _parser
+
+    parse = _parser().parse_args
+    base = ["run", "--collection", "c", "--model", "m"]
+    # Nothing sent unless given: the service's default applies, as for any HTTP client.
+    assert (parse(base).pose, parse(base).max_rotation) == (None, None)
+    assert parse([*base, "--pose", "as_given"]).pose == "as_given"
+    with pytest.raises(SystemExit) as usage:
+        parse([*base, "--pose", "sideways"])
+    assert usage.value.code == 2
+
+    url = service.base_url
+    for name, width in (("a", 90), ("b", 80)):
+        image = Image.new("L", (width, 70), 255)
+        ImageDraw.Draw(image).ellipse((10, 12, width - 10, 58), fill=0)
+        image.save(tmp_path / f"{name}.png")
+    with RegtreeClient(url) as rt:
+        scans = rt.create_collection("cli-pose-scans")
+        rt.upload_files(scans.id, [tmp_path / "a.png", tmp_path / "b.png"], target_points=30)
+        points = rt.create_collection("cli-pose-points")
+        for k in (1.0, 2.0):
+            ring = np.c_[np.cos(np.arange(20)), k * np.sin(np.arange(20))]
+            rt.upload_points(points.id, f"s{k:g}", ring)
+
+    default = regtree("run", "--collection", "cli-pose-scans", "--model", "a", url=url)
+    assert default.returncode == 0, default.stderr
+    assert "pose upright +-30 deg (default for image collections)" in default.stdout
+    given = regtree(
+        "run", "--collection", "cli-pose-points", "--model", "s1", "--method", "direct",
+        "--pose", "affine", "-q", url=url,
+    )  # fmt: skip
+    assert given.returncode == 0, given.stderr
+    with RegtreeClient(url) as rt:
+        params = rt.wait(int(given.stdout.strip()), timeout=60).params
+    assert [params["pose"], params["max_rotation"], params["pose_source"]] == [
+        "affine", None, "request",
+    ]  # fmt: skip
+    wrong = regtree(
+        "run", "--collection", "cli-pose-points", "--model", "s1", "--pose", "rotation",
+        "--max-rotation", "10", url=url,
+    )  # fmt: skip
+    assert_error(wrong, 1, "HTTP 422", "max_rotation")
+
+
 def test_interrupt_cancel_and_api_key(make_service: Callable[..., Service]) -> None:
     svc = make_service(workers=0, env={"REGTREE_API_KEY": "k3y"}).start()  # jobs stay queued
     url = svc.base_url

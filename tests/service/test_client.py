@@ -167,6 +167,38 @@ def test_folder_upload_job_progress_result_and_transform(rt: RegtreeClient, tmp_
         rt.get_collection(broken.id)
 
 
+def test_start_job_pose(rt: RegtreeClient, tmp_path: Path) -> None:
+    for name, width in (("a", 90), ("b", 80)):
+        image = Image.new("L", (width, 70), 255)
+        ImageDraw.Draw(image).ellipse((10, 12, width - 10, 58), fill=0)
+        image.save(tmp_path / f"{name}.png")
+    scans = rt.create_collection("client-pose-scans")
+    a, _ = rt.upload_folder(scans.id, tmp_path, pattern="*.png", target_points=30)
+    points = rt.create_collection("client-pose-points")
+    t = np.arange(20)
+    s1 = rt.upload_points(points.id, "s1", np.c_[np.cos(t), np.sin(t)])
+    rt.upload_points(points.id, "s2", np.c_[np.cos(t), 2 * np.sin(t)])
+
+    def pose(job: JobStatus) -> tuple[str, float | None, str]:
+        return job.params["pose"], job.params["max_rotation"], job.params["pose_source"]
+
+    # No pose sent unless given: the server's default, as for any HTTP client.
+    image_default = ("upright", 30, "default for image collections")
+    assert pose(rt.start_job(scans.id, a.id, method="direct")) == image_default
+    assert pose(rt.start_job(points.id, s1.id, method="direct")) == ("rotation", None, "default")
+    job = rt.start_job(points.id, s1.id, method="direct", pose="as_given")
+    assert pose(job) == ("as_given", None, "request")
+    assert rt.wait(job.id, timeout=60).status == "succeeded"
+    assert rt.result(job.id).document["options"]["pose"] == "as_given"
+    narrow = rt.start_job(scans.id, a.id, method="direct", pose="upright", max_rotation=5)
+    assert pose(narrow) == ("upright", 5, "request")
+    alone = rt.start_job(scans.id, a.id, method="direct", max_rotation=45)
+    assert pose(alone) == ("upright", 45, "request")  # max_rotation alone means upright
+    with pytest.raises(ValidationError) as wrong:
+        rt.start_job(points.id, s1.id, pose="rotation", max_rotation=10)
+    assert wrong.value.status == 422 and "max_rotation" in (wrong.value.detail or "")
+
+
 def test_api_key_wait_timeout_and_cancel(make_service) -> None:  # type: ignore[no-untyped-def]
     svc = make_service(workers=0, env={"REGTREE_API_KEY": "s3cret"}).start()
     with RegtreeClient(svc.base_url) as anonymous, pytest.raises(Unauthorized) as denied:

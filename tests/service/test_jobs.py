@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import io
 import threading
 from collections.abc import Callable
+from typing import Any, get_args
 
 import httpx
 import numpy as np
@@ -109,13 +111,132 @@ def test_job_validation(client: httpx.Client) -> None:
     done = wait_job(client, first.json()["id"])
     assert done["status"] == "succeeded", done
     # Upright collections: max_rotation reaches the library and is bounded to [0, 180].
+    # max_rotation alone means pose "upright" (see test_pose_option_and_defaults).
     upright = submit_job(client, a, ids_a[0], method="direct", max_rotation=30)
     assert upright["params"]["max_rotation"] == 30
+    assert upright["params"]["pose"] == "upright"
+    assert upright["params"]["pose_source"] == "request"
     assert wait_job(client, upright["id"])["status"] == "succeeded"
-    assert client.get(f"/v1/jobs/{upright['id']}/result").json()["options"]["max_rotation"] == 30
+    options = client.get(f"/v1/jobs/{upright['id']}/result").json()["options"]
+    assert options["max_rotation"] == 30 and options["pose"] == "upright"
     assert_problem(client.post("/v1/jobs", json={**body, "max_rotation": 200}), 422)
     # A finished job cannot be cancelled; a result of an unfinished one is a 409 problem.
     assert_problem(client.post(f"/v1/jobs/{done['id']}/cancel"), 409)
+
+
+def png_ellipse(width: int = 90, height: int = 70, fmt: str = "PNG") -> bytes:
+    from PIL import Image, ImageDraw
+
+    image = Image.new("L", (width, height), 255)
+    ImageDraw.Draw(image).ellipse((10, 12, width - 10, height - 12), fill=0)
+    buffer = io.BytesIO()
+    image.save(buffer, fmt)
+    return buffer.getvalue()
+
+
+def test_pose_modes_agree_with_the_library() -> None:
+    from registration._pose import POSE_MODES
+    from service.cli_client import POSES
+    from service.client import Pose
+    from service.schemas import PoseName
+
+    assert get_args(PoseName) == get_args(Pose) == POSES == POSE_MODES
+
+
+@pytest.mark.parametrize(
+    ("params", "expected"),
+    [
+        ({"max_rotation": 20.0}, ("upright", 20.0)),  # a job queued before pose existed
+        ({"max_rotation": None}, ("rotation", None)),
+        ({"pose": "affine", "max_rotation": None, "pose_source": "request"}, ("affine", None)),
+    ],
+)
+def test_runner_passes_the_pose_to_the_library(
+    params: dict[str, Any], expected: tuple[str, float | None]
+) -> None:
+    from registration import SerialExecutor
+    from service.jobs.runner import run_registration
+
+    doc = run_registration(
+        "direct", [circle(20), circle(20, 2.0)], ["a", "b"], 0, params,
+        executor=SerialExecutor(), progress=None,
+    )  # fmt: skip
+    assert (doc["options"]["pose"], doc["options"]["max_rotation"]) == expected
+
+
+def test_pose_option_and_defaults(client: httpx.Client) -> None:
+    points = create_collection(client, "pose-points")
+    ids = upload_family(client, points, [("x", circle(20)), ("y", circle(20, 2.0))])
+    images = create_collection(client, "pose-images")
+    files = [
+        ("files", ("a.png", png_ellipse(90, 70), "image/png")),
+        ("files", ("b.jpg", png_ellipse(80, 70, "JPEG"), "image/jpeg")),
+    ]
+    uploaded = client.post(
+        f"/v1/collections/{images}/shapes", files=files, data={"target_points": "30"}
+    )
+    assert uploaded.status_code == 201, uploaded.text
+    image_ids = [item["id"] for item in uploaded.json()["items"]]
+
+    def pose_of(job: dict[str, Any]) -> tuple[str, float | None, str]:
+        p = job["params"]
+        return p["pose"], p["max_rotation"], p["pose_source"]
+
+    # Defaults: the library's "rotation" for points, "upright" (30 degrees) when every
+    # shape was made from an image. The job says which and why, and the library gets it.
+    jobs = {
+        "points": submit_job(client, points, ids[0], method="direct"),
+        "images": submit_job(client, images, image_ids[0], method="direct"),
+        "affine": submit_job(client, points, ids[0], method="direct", pose="affine"),
+        "as_given": submit_job(client, images, image_ids[0], method="direct", pose="as_given"),
+        "upright": submit_job(client, points, ids[0], method="direct", pose="upright"),
+        "upright10": submit_job(
+            client, points, ids[0], method="direct", pose="upright", max_rotation=10
+        ),
+    }
+    expected = {
+        "points": ("rotation", None, "default"),
+        "images": ("upright", 30, "default for image collections"),
+        "affine": ("affine", None, "request"),
+        "as_given": ("as_given", None, "request"),
+        "upright": ("upright", 30, "request"),
+        "upright10": ("upright", 10, "request"),
+    }
+    assert {k: pose_of(j) for k, j in jobs.items()} == expected
+    for key, job in jobs.items():
+        assert wait_job(client, job["id"])["status"] == "succeeded", key
+        options = client.get(f"/v1/jobs/{job['id']}/result").json()["options"]
+        assert (options["pose"], options["max_rotation"]) == expected[key][:2], key
+
+    # One shape not made from an image: the collection is no longer an image collection.
+    upload_family(client, images, [("points", circle(20))])
+    mixed = submit_job(client, images, image_ids[0], method="direct")
+    assert pose_of(mixed) == ("rotation", None, "default")
+    # An idempotent resubmission without pose matches; asking for a pose is a new request.
+    body = {"collection_id": points, "model_shape_id": ids[0], "method": "direct"}
+    idem = {"Idempotency-Key": "pose-k"}
+    first = client.post("/v1/jobs", json=body, headers=idem)
+    assert client.post("/v1/jobs", json=body, headers=idem).json()["id"] == first.json()["id"]
+    assert_problem(client.post("/v1/jobs", json={**body, "pose": "affine"}, headers=idem), 422)
+
+    # Invalid combinations, the library's own rule: a 422 problem naming the fields.
+    for wrong in (
+        {"pose": "rotation", "max_rotation": 30},
+        {"pose": "affine", "max_rotation": 0},
+        {"pose": "as_given", "max_rotation": 10},
+    ):
+        problem = assert_problem(client.post("/v1/jobs", json={**body, **wrong}), 422)
+        assert "max_rotation" in problem["detail"] and "upright" in problem["detail"], problem
+    problem = assert_problem(client.post("/v1/jobs", json={**body, "pose": "sideways"}), 422)
+    assert problem["errors"][0]["loc"] == ["body", "pose"], problem
+    assert_problem(client.post("/v1/jobs", json={**body, "pose": None, "max_rotation": -1}), 422)
+
+    # The OpenAPI document lists the modes and explains them.
+    schema = client.get("/openapi.json").json()["components"]["schemas"]["JobCreate"]
+    pose = schema["properties"]["pose"]
+    assert pose["anyOf"][0]["enum"] == ["as_given", "upright", "rotation", "affine"]
+    for words in ("as_given:", "upright:", "rotation:", "affine:", "mirror", "PNG or JPEG"):
+        assert words in pose["description"], words
 
 
 def test_result_before_success_is_409(make_service: Callable[..., Service]) -> None:

@@ -13,7 +13,15 @@ from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
 from service.api.problems import ProblemError, not_found, problem_responses
 from service.jobs import queue
-from service.models import Collection, Job, JobStatus, Result, ResultSubject, Shape
+from service.models import (
+    Collection,
+    Job,
+    JobStatus,
+    Result,
+    ResultSubject,
+    Shape,
+    made_from_image,
+)
 from service.schemas import (
     DbInt,
     JobCreate,
@@ -64,6 +72,30 @@ def _get_job(session: Session, job_id: int, *, for_update: bool = False) -> Job:
     return job
 
 
+#: ``pose_source`` of a job's params: where its pose came from.
+POSE_FROM_REQUEST = "request"
+POSE_DEFAULT_IMAGES = "default for image collections"
+POSE_DEFAULT = "default"
+
+
+def resolve_pose(body: JobCreate, source_formats: list[str]) -> dict[str, Any]:
+    """The pose a job runs with, for its params: ``pose``, ``max_rotation``, ``pose_source``.
+
+    What the request gives, validated by the library's rule (``PoseSpec.resolve``). Without
+    pose and max_rotation: "upright" (30 degrees) when every shape was made from an image,
+    whose pose is the scan's, else the library's default ("rotation").
+    """
+    from registration._pose import DEFAULT_UPRIGHT_DEG, PoseSpec
+
+    if body.pose is not None or body.max_rotation is not None:
+        spec, source = PoseSpec.resolve(body.pose, body.max_rotation), POSE_FROM_REQUEST
+    elif source_formats and all(made_from_image(f) for f in source_formats):
+        spec, source = PoseSpec.resolve("upright", DEFAULT_UPRIGHT_DEG), POSE_DEFAULT_IMAGES
+    else:
+        spec, source = PoseSpec.resolve(None, None), POSE_DEFAULT
+    return {**spec.to_dict(), "pose_source": source}
+
+
 def _unprocessable(detail: str, type_: str = "/problems/invalid-job") -> ProblemError:
     return ProblemError(422, detail, type_=type_)
 
@@ -75,7 +107,11 @@ def _unprocessable(detail: str, type_: str = "/problems/invalid-job") -> Problem
     responses=problem_responses(401, 413, 422),
     summary="Submit a registration job",
     description="Queues the job and answers 202 with a `Location` to poll. The job registers "
-    "the model shape onto every shape the collection holds now.",
+    "the model shape onto every shape the collection holds now. Without `pose` and "
+    "`max_rotation`, a collection whose shapes were all uploaded as PNG or JPEG images is "
+    "registered `upright` (within 30 degrees of the shapes as uploaded), any other with "
+    "`rotation`; the job's `params` name the pose used and `pose_source` why. A "
+    "`max_rotation` with a pose other than `upright` is a 422.",
 )
 def create_job(
     body: JobCreate,
@@ -86,7 +122,10 @@ def create_job(
     idempotency_key: IdempotencyKeyDep = None,
 ) -> JobOut:
     scope = f"POST {request.url.path}"
-    request_hash = idempotency.hash_json(body.model_dump(mode="json"))
+    # A body without pose hashes as before pose existed: a retry across the upgrade matches.
+    request_hash = idempotency.hash_json(
+        body.model_dump(mode="json", exclude={"pose"} if body.pose is None else None)
+    )
     with db.write() as session:
         entry = idempotency.lookup(session, scope, idempotency_key, request_hash)
         if entry is not None:
@@ -102,13 +141,12 @@ def create_job(
                     f"model shape {body.model_shape_id} belongs to collection "
                     f"{model.collection_id}, not to collection {body.collection_id}"
                 )
-            shape_ids = list(
-                session.scalars(
-                    select(Shape.id)
-                    .where(Shape.collection_id == body.collection_id)
-                    .order_by(Shape.id)
-                ).all()
-            )
+            rows = session.execute(
+                select(Shape.id, Shape.source_format)
+                .where(Shape.collection_id == body.collection_id)
+                .order_by(Shape.id)
+            ).all()
+            shape_ids = [row.id for row in rows]
             if len(shape_ids) < 2:
                 raise _unprocessable(
                     f"collection {body.collection_id} has {len(shape_ids)} shape(s); a job "
@@ -116,11 +154,9 @@ def create_job(
                 )
             params = body.model_dump(
                 mode="json",
-                include={
-                    "similarity_threshold", "error_threshold", "compare_direct", "max_rotation",
-                    "cpd",
-                },
+                include={"similarity_threshold", "error_threshold", "compare_direct", "cpd"},
             )
+            params.update(resolve_pose(body, [row.source_format for row in rows]))
             job = Job(
                 collection_id=body.collection_id,
                 model_shape_id=body.model_shape_id,

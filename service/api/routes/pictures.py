@@ -23,7 +23,7 @@ from service import __version__
 from service.api.deps import DbDep
 from service.api.problems import ProblemError, problem_responses
 from service.api.routes.jobs import _subject, _succeeded_job
-from service.models import Job, Result, Shape
+from service.models import Job, Result, Shape, made_from_image
 from service.plots import Rendered, render_subject, render_summary, render_tree
 from service.schemas import DbInt
 
@@ -33,8 +33,6 @@ logger = logging.getLogger("regtree.pictures")
 #: Bump when a picture changes for the same input, so clients do not keep a stale copy.
 RENDER_VERSION = "2"
 
-#: Image sources whose points are pixel coordinates (y grows downwards).
-_IMAGE_SOURCES = ("png:", "jpeg:", "image:")
 
 WidthQuery = Annotated[
     int | None,
@@ -198,7 +196,7 @@ def subject_overlay_png(
                 type_="/problems/shape-deleted",
             )
         if y_down is None:
-            y_down = shape.source_format.startswith(_IMAGE_SOURCES)
+            y_down = made_from_image(shape.source_format)
         etag = _etag(job, "overlay", shape_id, shape.n_points, width, y_down)
         if _matches(request, etag):
             return _not_modified(etag)
