@@ -116,8 +116,8 @@ def _generated() -> Dataset:
 
 def load_all(points: int, ns_limit: int, chui_trials: int) -> tuple[list[Dataset], list[str]]:
     makers: list[tuple[str, Callable[[], Dataset | None]]] = [
-        ("mpeg7-fish", lambda: _mpeg7("fish", points)),
-        ("mpeg7-horse", lambda: _mpeg7("horse", points)),
+        *[(f"mpeg7-{c}", lambda c=c: _mpeg7(c, points))  # type: ignore[misc]
+          for c in ("fish", "lmfish", "flatfish", "horse", "bird", "bat", "camel", "deer")],
         ("yong-edge", lambda: _glyphs("edge", points)),
         ("yong-skel", lambda: _glyphs("skel", points)),
         ("nsfishes", lambda: _nsfishes(ns_limit)),
@@ -157,10 +157,15 @@ def evaluate(
     direct = {s.index: s for s in dyn.direct}
     static = {s.index: s for s in sta.subjects}
     plain_by = {s.index: s for s in plain.subjects}
+    conf = [s.confidence for s in dyn.subjects if s.confidence is not None]
     row: dict[str, object] = {
         "dataset": f"{ds.name} (root {ds.names[dyn.root]})",
         "shapes": len(ds.shapes),
         "attached": sum(s.attached for s in dyn.subjects),
+        "leaves": sum(s.leaf for s in dyn.subjects),
+        "confidence": (float(np.median(conf)) if conf else float("nan"),
+                       float(np.mean(np.asarray(conf) >= 0.5)) if conf else float("nan")),
+        "rotated": sum(1 for s in dyn.subjects if s.quality and s.quality["pose"] == "rotated"),
         "depth": dyn.summary()["depth"],
         "n_deep": len(deep),
         "thresholds": (dyn.thresholds["similarity"], dyn.thresholds["error"]),
@@ -190,6 +195,8 @@ def main() -> None:
     ap.add_argument("--roots", default="0,2",
                     help="comma-separated root indices, each run separately (the paper "
                     "reports two models per data set)")
+    ap.add_argument("--pose", default=None,
+                    help="pose mode of the pre-alignment (default: the library's)")
     ap.add_argument("--max-rotation", type=float, default=None,
                     help="upright collections: ICP starts within +- this many degrees")
     ap.add_argument("--no-prealign", action="store_true",
@@ -208,7 +215,8 @@ def main() -> None:
         for ds in datasets:
             for root in roots:
                 t0 = time.perf_counter()
-                opts = {"max_rotation": args.max_rotation, "prealign": not args.no_prealign}
+                opts = {"pose": args.pose, "max_rotation": args.max_rotation,
+                        "prealign": not args.no_prealign}
                 dyn = build_dynamic_tree(ds.shapes, root, names=ds.names, compare_direct=True,
                                          executor=ex, **opts)
                 t1 = time.perf_counter()
@@ -224,7 +232,8 @@ def main() -> None:
     table = _markdown(rows)
     print()
     print(table)
-    print(f"\noptions: max_rotation={args.max_rotation}, prealign={not args.no_prealign}")
+    print(f"\noptions: pose={args.pose}, max_rotation={args.max_rotation}, "
+          f"prealign={not args.no_prealign} (None: the library's default)")
     if args.out is not None:
         args.out.write_text(table + "\n")
 
@@ -232,19 +241,25 @@ def main() -> None:
 def _line(r: dict[str, object]) -> str:
     de, se, ye = r["direct_e"], r["static_e"], r["dynamic_e"]
     assert isinstance(de, tuple) and isinstance(ye, tuple) and isinstance(se, tuple)
+    pe = r["plain_e"]
+    assert isinstance(pe, tuple)
     return (f"{r['dataset']:22s} shapes={r['shapes']} attached={r['attached']} "
-            f"depth={r['depth']} layer>=3: {r['n_deep']}  e mean/p95 direct "
+            f"(leaves {r['leaves']}, rotated poses {r['rotated']}) "
+            f"depth={r['depth']} layer>=3: {r['n_deep']}  e mean/p95 plain "
+            f"{fmt(pe[0])}/{fmt(pe[1])} direct "
             f"{fmt(de[0])}/{fmt(de[1])} static {fmt(se[0])}/{fmt(se[1])} dynamic "
             f"{fmt(ye[0])}/{fmt(ye[1])}  seconds {r['seconds']}")
 
 
 def _markdown(rows: list[dict[str, object]]) -> str:
     out = [
-        "| data set (root) | shapes | attached | depth | layer >= 3 | plain CPD e mean / p95 "
+        "| data set (root) | shapes | registered (leaves) | confidence median, share >= 0.5 "
+        "| depth | layer >= 3 | plain CPD e mean / p95 "
         "| direct CPD e mean / p95 | static e mean / p95 | dynamic e mean / p95 | "
-        "dynamic / direct (mean, p95) | GT corr. error plain / direct / static / dynamic "
-        "(mean) | thresholds (D, e) | seconds (dynamic+direct, static) |",
-        "|" + "---|" * 13,
+        "dynamic / plain (mean, p95) | dynamic / direct (mean, p95) | GT corr. error plain / "
+        "direct / static / dynamic (mean) | thresholds (D, e) | seconds (dynamic+direct, "
+        "static) |",
+        "|" + "---|" * 15,
     ]
     for r in rows:
         pe, de, se, ye = r["plain_e"], r["direct_e"], r["static_e"], r["dynamic_e"]
@@ -252,6 +267,10 @@ def _markdown(rows: list[dict[str, object]]) -> str:
         assert isinstance(pe, tuple)
         ratio = (f"{ye[0] / de[0]:.2f}, {ye[1] / de[1]:.2f}"
                  if np.isfinite(de[0]) and de[0] > 0 and np.isfinite(ye[0]) else "n/a")
+        ratio_p = (f"{ye[0] / pe[0]:.2f}, {ye[1] / pe[1]:.2f}"
+                   if np.isfinite(pe[0]) and pe[0] > 0 and np.isfinite(ye[0]) else "n/a")
+        cf = r["confidence"]
+        assert isinstance(cf, tuple)
         ce = "n/a"
         if r.get("dynamic_ce"):
             parts = []
@@ -263,10 +282,12 @@ def _markdown(rows: list[dict[str, object]]) -> str:
         sec = r["seconds"]
         assert isinstance(th, tuple) and isinstance(sec, tuple)
         out.append(
-            f"| {r['dataset']} | {r['shapes']} | {r['attached']} | {r['depth']} | "
+            f"| {r['dataset']} | {r['shapes']} | {r['attached']} ({r['leaves']}) | "
+            f"{cf[0]:.2f}, {cf[1]:.2f} | {r['depth']} | "
             f"{r['n_deep']} | {fmt(pe[0])} / {fmt(pe[1])} | {fmt(de[0])} / {fmt(de[1])} | "
             f"{fmt(se[0])} / {fmt(se[1])} | "
-            f"{fmt(ye[0])} / {fmt(ye[1])} | {ratio} | {ce} | {fmt(th[0])}, {fmt(th[1])} | "
+            f"{fmt(ye[0])} / {fmt(ye[1])} | {ratio_p} | {ratio} | {ce} | "
+            f"{fmt(th[0])}, {fmt(th[1])} | "
             f"{sec[0]:.0f}, {sec[1]:.0f} |"
         )
     return "\n".join(out)

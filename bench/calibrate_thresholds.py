@@ -10,8 +10,9 @@ Two things come from here:
    `_quality.py`, with the held-out quality of the fit (leave one data set out).
 
 Registrations measured, each exactly as the tree runs them (`registration._tree`):
-from every start the pose option offers (the pose as given, a rotated one when ICP finds
-it, a mirrored one under ``pose="affine"``) and without pre-alignment (plain CPD), on
+from every start the pose option offers (the pose as given: CPD on the normalised shapes
+as they are; a rotated one when affine ICP finds it; a mirrored one under
+``pose="affine"``), on
 
 - chained smooth deformations of real glyphs (the 永 designs of ../shared/data, edges and
   skeletons; `registration.synthetic.deformation_chains`), root and mid-chain models;
@@ -37,15 +38,7 @@ from registration import LocalProcessExecutor, normalise
 from registration._icp import pairwise_affine_icp, prepare_shape
 from registration._pose import PoseSpec
 from registration._quality import _FEATURES, GOOD_ERROR
-from registration._similarity import Similarity
-from registration._tree import (
-    CPDOptions,
-    _register_from,
-    _RegTask,
-    _spacing2,
-    _Start,
-    _starts,
-)
+from registration._tree import CPDOptions, _register_from, _RegTask, _spacing2, _Start
 from registration.synthetic import chained_family, deformation_chains
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -114,27 +107,23 @@ def measure(item: Pair) -> list[tuple[object, ...]]:
     rows = []
     for mode in ("rotation", "affine"):
         spec = PoseSpec.resolve(mode, None)
-        sim = Similarity.empty([xn, yn], pose=spec)
         (r,) = pairwise_affine_icp({0: prepare_shape(xn), 1: prepare_shape(yn)}, [(0, 1)],
                                    pose=spec, tol=1e-3)
-        sim.D[0, 1], sim.A[0, 1], sim.t[0, 1] = r.D, r.A, r.t
-        sim.D_given[0, 1], sim.A_given[0, 1], sim.t_given[0, 1] = r.D_given, r.A_given, r.t_given
-        starts: list[_Start | None] = list(_starts(sim, 0, 1))
-        if mode == "affine":
-            starts = [s for s in starts if s is not None and s.label == "rotated"]
-            if not starts or np.linalg.det(sim.A[0, 1]) > 0:
-                continue  # only the mirrored poses are new under "affine"
-        else:
-            starts.append(None)  # plain CPD
+        # every pose the option offers, also those `_starts` would not register
+        starts = [_Start("as given")] if mode == "rotation" else []
+        if not np.allclose(r.A, r.A_given):
+            starts.append(_Start("rotated", r.A, r.t))
+        if mode == "affine" and np.linalg.det(r.A) > 0:
+            continue  # only the mirrored poses are new under "affine"
         task = _RegTask(subject=1, member=0, layer=2, similarity=r.D, q=xn, y=yn,
                         starts=(), cpd=CPDOptions(), prealign=True, pose=spec, spacing2=h2)
         for st in starts:
             out = _register_from(task, st)
             diff = out.warped - truth_n
             ce = float(np.sqrt((diff**2).sum(axis=1).mean()))
-            label = "plain" if st is None else f"{mode}:{st.label}"
+            label = f"{mode}:{st.label}"
             rows.append((name, label, r.D, out.error, h2, ce, out.min_jacobian,
-                         *out.quality.features()))
+                         r.D / max(r.D_given, 1e-300), *out.quality.features()))
     return rows
 
 
@@ -178,20 +167,24 @@ def main() -> None:
     starts = np.array([r[1] for r in rows])
     num = np.array([r[2:] for r in rows], dtype=np.float64)
     D, e, h2, ce, minjac = num[:, 0], num[:, 1], num[:, 2], num[:, 3], num[:, 4]
-    feats = num[:, 5:]
+    d_ratio = num[:, 5]
+    feats = num[:, 6:]
     good = (ce < GOOD_ERROR).astype(float)
     print(f"{len(items)} pairs, {len(rows)} registrations; good = RMS correspondence error "
           f"< {GOOD_ERROR} of the subject's RMS radius\n")
 
-    print("Per set and start: registrations, good %, median correspondence error, median e/h^2")
+    print("Per set and start: registrations, good %, median correspondence error, median e/h^2,"
+          " and D of the best pose over D of the pose as given (range, median)")
     for s_name in sorted(set(sets)):
         for st in sorted(set(starts[sets == s_name])):
             m = (sets == s_name) & (starts == st)
+            dr = d_ratio[m]
             print(f"  {s_name:22s} {st:18s} n={m.sum():4d} good={100 * good[m].mean():5.1f}%"
-                  f" ce={np.median(ce[m]):.3f} e/h2={np.median(e[m] / h2[m]):.2f}")
+                  f" ce={np.median(ce[m]):.3f} e/h2={np.median(e[m] / h2[m]):.2f}"
+                  f" D/D_given {dr.min():.2f}-{dr.max():.2f} ({np.median(dr):.2f})")
 
     print("\nCPD success by affine-ICP distance D (pose as given and plain excluded):")
-    sel = starts == "rotation:as given"
+    sel = starts == "rotation:as given"  # CPD from the pose as given (no affine step)
     for lo, hi in itertools.pairwise([0, 0.002, 0.005, 0.01, 0.02, 0.04, 0.08, np.inf]):
         m = sel & (D >= lo) & (D < hi)
         if m.any():

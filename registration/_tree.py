@@ -60,16 +60,24 @@ ERROR_FACTOR = 3.0
 SPACING_FACTOR = 0.5
 MAX_EXHAUSTIVE_SHAPES = 64
 DEFAULT_CANDIDATES = 12
-# A start whose pose differs from the pose as given by more than this (degrees, or in
-# handedness) is registered too; it replaces the pose as given only when its e is below
-# POSE_MARGIN times the pose as given's (see `_register_task`).
+# A pose that differs from the pose as given by more than POSE_DISTINCT_DEG (or in
+# handedness) and whose D is below POSE_D_RATIO times the pose as given's is registered
+# too; it replaces the pose as given only when its e is below POSE_MARGIN times the pose
+# as given's (see `_starts` and `_register_task`). Measured on ground truth
+# (bench/calibrate_thresholds.py): on collections given upright every rotated pose was
+# wrong (0 of 82 good) and its D was 0.34-0.97 (median 0.78-0.81) of the pose as given's;
+# on glyphs turned by 90 degrees 63-78% of them were right, at 0.07-0.65 (median 0.23-0.26).
 POSE_DISTINCT_DEG = 20.0
+POSE_D_RATIO = 0.6
 POSE_MARGIN = 0.5
 # A registration is accepted into the tree only with at least this confidence (the
 # calibrated probability that its correspondences are right; `_quality`). Measured in
-# bench/calibrate_thresholds.py: 1.4% of the registrations scored below 0.2 were good
-# (141 of 1027, mostly turned, mirrored and slid ones that e alone accepts).
+# bench/calibrate_thresholds.py: 1.1% of the registrations scored below 0.2 were good
+# (95 of 742, mostly turned, mirrored and slid ones that e alone accepts).
 MIN_CONFIDENCE = 0.2
+# Refinement moves a subject when the new path confidence is higher by more than this, or
+# within it and with a lower e.
+REFINE_TIE = 0.02
 
 
 @dataclass(frozen=True)
@@ -108,11 +116,12 @@ class CPDOptions:
 
 @dataclass(frozen=True)
 class _Start:
-    """A pose to start a registration's affine pre-alignment from."""
+    """A pose to start a registration from: the pose as given (no affine step: CPD runs
+    on the size-normalised shapes as they are) or an affine-ICP map of another pose."""
 
     label: str  # "as given" or "rotated"
-    A: FloatArray
-    t: FloatArray
+    A: FloatArray | None = None
+    t: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -152,7 +161,7 @@ def _register_from(task: _RegTask, start: _Start | None) -> _RegOutcome:
     steps: list[PointTransform] = []
     q = task.q
     angle = 0.0
-    if start is not None:
+    if start is not None and start.A is not None and start.t is not None:
         icp = affine_icp(q, task.y, init=(start.A, start.t), pose=task.pose.mode,
                          max_rotation=task.pose.max_rotation)
         affine = AffineTransform(A=icp.A, t=icp.t)
@@ -166,7 +175,7 @@ def _register_from(task: _RegTask, start: _Start | None) -> _RegOutcome:
     warped = np.asarray(res.warped, dtype=np.float64)
     e = registration_error(warped, task.y)
     quality = measure_quality(q, warped, task.y, res.transform, e, task.spacing2)
-    label = "none" if start is None else start.label
+    label = "plain" if start is None else start.label
     return _RegOutcome(
         subject=task.subject,
         member=task.member,
@@ -186,12 +195,12 @@ def _register_from(task: _RegTask, start: _Start | None) -> _RegOutcome:
 
 
 def _register_task(task: _RegTask) -> _RegOutcome:
-    """Pre-align the member's warped model to the subject by affine ICP, then CPD.
+    """Register the member's warped model onto the subject from every start; keep one.
 
-    Every start is registered; the pose as given (the first) is kept unless another
-    start's registration does not fold and reaches an e below ``POSE_MARGIN`` times the
-    pose as given's (or the pose as given folds and it does not). A rotated pose thus
-    earns its place by the registration it leads to, not by D alone.
+    The pose as given (the first start) is kept unless another start's registration does
+    not fold and reaches an e below ``POSE_MARGIN`` times the pose as given's, or the
+    pose as given folds and the other reaches no larger an e. A rotated pose thus earns
+    its place by the registration it leads to, not by D alone.
     """
     if not task.prealign:
         return _register_from(task, None)
@@ -200,17 +209,23 @@ def _register_task(task: _RegTask) -> _RegOutcome:
     for other in outs[1:]:
         if not other.min_jacobian > 0:
             continue
-        if not chosen.min_jacobian > 0 or other.error < POSE_MARGIN * chosen.error:
+        folded = not chosen.min_jacobian > 0
+        if other.error < POSE_MARGIN * chosen.error or (folded and other.error <= chosen.error):
             chosen = other
     errors = {o.pose: o.error for o in outs}
     return replace(chosen, pose_errors=errors)
 
 
 def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
-    """The pose as given, and the best pose when it is a different one."""
-    given = _Start("as given", sim.A_given[member, subject], sim.t_given[member, subject])
+    """The pose as given; and the similarity's best pose when it is another pose (turned
+    by more than ``POSE_DISTINCT_DEG`` or of the other handedness) that fits clearly
+    better: its D below ``POSE_D_RATIO`` times the D reached from the pose as given."""
+    given = _Start("as given")
     A = sim.A[member, subject]
     A_g = sim.A_given[member, subject]
+    d, d_g = sim.D[member, subject], sim.D_given[member, subject]
+    if not (np.isfinite(d) and np.isfinite(d_g)) or not d < POSE_D_RATIO * d_g:
+        return (given,)
     distinct = (np.sign(np.linalg.det(A)) != np.sign(np.linalg.det(A_g))
                 or angle_between(rotation_angle(A), rotation_angle(A_g)) > POSE_DISTINCT_DEG)
     if not distinct:
@@ -490,6 +505,82 @@ def _check_threshold(name: str, value: float | None) -> None:
         raise ValueError(f"{name} must be a positive finite number or None; got {value}")
 
 
+def _refine_parents(
+    coll: _Collection,
+    sim: Similarity,
+    sim_rule: _SimilarityRule,
+    nodes: dict[int, _Node],
+    results: dict[int, SubjectResult],
+    tried: set[tuple[int, int]],
+    tau_err: float | None,
+    floors: dict[int, float],
+    explicit_error: bool,
+    fold_check: bool,
+    cpd: CPDOptions,
+    prealign: bool,
+    pose: PoseSpec,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+) -> None:
+    """Move childless subjects to a later, more similar member when that registers better.
+
+    The layers fix a subject's parent at the first layer with an acceptable
+    registration; a member that joined later can be more similar to it (a smaller D:
+    a smaller deformation for CPD to bridge). For every subject without children, the
+    most similar such member not yet tried (and not the subject itself or below it) is
+    tried; the subject moves when the new registration passes the tree's rule and is
+    better: a higher path confidence, or one within ``REFINE_TIE`` with a lower e.
+    """
+    parents = {r.parent for r in results.values() if r.parent is not None}
+    tasks: list[_RegTask] = []
+    for s, r in sorted(results.items()):
+        if s in parents or r.parent is None or r.leaf or r.layer is None:
+            continue
+        d_parent = float(sim.D[r.parent, s])
+        later = sorted(
+            (float(sim.D[m, s]), m) for m, node in nodes.items()
+            if m != s and node.layer >= r.layer and (m, s) not in tried
+            and s not in node.chain.path and np.isfinite(sim.D[m, s])
+            and sim.D[m, s] < d_parent and sim_rule.similar(sim, m, s)
+        )
+        if not later:
+            continue
+        d, m = later[0]
+        tried.add((m, s))
+        tasks.append(_RegTask(
+            subject=s, member=m, layer=nodes[m].layer + 1, similarity=d, q=nodes[m].q,
+            y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd, prealign=prealign,
+            pose=pose, spacing2=coll.spacing2[s],
+        ))
+    for out in _run_tasks(tasks, executor, progress, "refine"):
+        s = out.subject
+        old = results[s]
+        limit = math.inf if tau_err is None else (
+            tau_err if explicit_error else max(tau_err, floors[s]))
+        parent = nodes[out.member]
+        conf = min(parent.confidence, out.quality.confidence)
+        ok = (out.error < limit and not (fold_check and not out.min_jacobian > 0)
+              and out.quality.confidence >= MIN_CONFIDENCE)
+        assert old.confidence is not None and old.error is not None
+        better = conf > old.confidence + REFINE_TIE or (
+            conf >= old.confidence - REFINE_TIE and out.error < old.error)
+        accepted = ok and better
+        old.attempts.append(Attempt(
+            member=out.member, layer=out.layer, similarity=out.similarity, error=out.error,
+            limit=limit, min_jacobian=out.min_jacobian, accepted=accepted,
+            reason=("refined: moved here, more similar and a better registration" if accepted
+                    else "refinement not taken: not better than the registration it had"),
+        ))
+        if not accepted:
+            continue
+        res, node = _subject_from_outcome(coll, out, parent, layer=parent.layer + 1)
+        res.attempts = [replace(a, accepted=a is old.attempts[-1]) for a in old.attempts]
+        res.reason = (f"registered from {coll.names[out.member]} (layer {parent.layer}), "
+                      f"moved there from {coll.names[old.parent or 0]} by refinement")
+        results[s] = res
+        nodes[s] = node
+
+
 def _attach_leaves(
     coll: _Collection,
     sim: Similarity,
@@ -575,6 +666,7 @@ def build_dynamic_tree(
     pose: str | None = None,
     max_rotation: float | None = None,
     fold_check: bool = True,
+    refine: bool = True,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
     executor: Executor | None = None,
@@ -607,20 +699,27 @@ def build_dynamic_tree(
         are considered (and the root to every subject). Default: all pairs for up to 64
         shapes, 12 nearest beyond.
     prealign : bool
-        Affine-ICP pre-alignment before each CPD (initialised from the similarity's map).
+        Pose handling: CPD from the pose as given, and also from the similarity's
+        affine-ICP map when that is another pose that fits clearly better (see `pose`).
+        False: CPD from the pose as given only (the paper's plain CPD).
     pose : {"rotation", "as_given", "upright", "affine"}, optional
-        Which poses the affine pre-alignment may take (see :mod:`registration._pose`):
-        any rotation (default), the shapes as given only, rotations within
-        +-`max_rotation` of them, or any affine map including reflections (the paper's
-        ``det(A) != 0``). Outside "affine" it never mirrors. In every mode the pose as
-        given is registered too, and a different pose replaces it only when CPD from it
-        reaches less than half the pose as given's e.
+        Which poses may be tried (see :mod:`registration._pose`): any rotation (default),
+        the shapes as given only, rotations within +-`max_rotation` of them, or any affine
+        map including reflections (the paper's ``det(A) != 0``). Outside "affine" the
+        affine ICP never mirrors. The pose as given is always registered; another pose is
+        tried when its D is below 0.6 of the pose as given's and replaces it only when
+        CPD from it reaches less than half the pose as given's e.
     max_rotation : float, optional
         Half-width in degrees of the "upright" mode (default 30); given alone, it
         selects that mode (glyph scans, aligned outlines).
     fold_check : bool
         Also reject registrations whose displacement field folds the model (Jacobian
         determinant <= 0 at a model point): e can be small while correspondences are wrong.
+    refine : bool
+        After the tree stops growing, a subject without children may move to a member
+        that joined the tree after it and is more similar to it than its parent, when
+        the registration from there is better (higher confidence, or as confident with a
+        lower e). No cycles: a subject never moves below itself.
     compare_direct : bool
         Also run direct CPD from the root on every subject, for comparison.
     names : sequence of str, optional
@@ -722,6 +821,10 @@ def build_dynamic_tree(
             waiting.discard(s)
             new_frontier.append(s)
         frontier = new_frontier
+    if refine:
+        _refine_parents(coll, sim, sim_rule, nodes, results, tried, tau_err, floors,
+                        error_threshold is not None, fold_check, cpd, prealign, spec, executor,
+                        progress)
     if waiting:
         _attach_leaves(coll, sim, nodes, results, waiting, rejected, tried, allowed, cpd,
                        prealign, spec, max_candidates, executor, progress)
@@ -902,8 +1005,9 @@ def register_direct(
 ) -> CollectionResult:
     """Direct CPD from the root model to every subject (the paper's baseline).
 
-    With `prealign` (default) each registration starts from the best affine-ICP map of
-    the root onto the subject; the paper's plain CPD corresponds to ``prealign=False``.
+    With `prealign` (default) the pose handling of :func:`build_dynamic_tree` applies (CPD
+    from the pose as given, and from a clearly better other pose when ICP finds one); the
+    paper's plain CPD is ``prealign=False``: no pose search of any kind.
     Every subject is at layer 2 with the root as parent.
 
     Parameters
@@ -916,7 +1020,7 @@ def register_direct(
         Ignored; accepted so that the three methods take the same arguments.
     cpd : CPDOptions, optional
     prealign : bool
-        Affine-ICP pre-alignment (multi-start) before each CPD.
+        Pose handling as in :func:`build_dynamic_tree`; False for plain CPD.
     pose, max_rotation
         As for :func:`build_dynamic_tree`.
     names : sequence of str, optional

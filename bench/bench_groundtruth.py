@@ -1,0 +1,529 @@
+"""Ground-truth correspondence error of plain CPD, direct CPD and the dynamic tree, defaults only.
+
+Each method is called with its DEFAULT options (the point of this benchmark is to judge
+the defaults); only the root changes:
+
+- plain CPD: ``register_direct(shapes, root=r, prealign=False)``, the paper's baseline;
+  every ratio is taken against it;
+- direct CPD: ``register_direct(shapes, root=r)``;
+- dynamic tree: ``build_dynamic_tree(shapes, root=r)``.
+
+The error of a subject k is the RMS distance between ``res.subject(k).warped`` (the root
+model warped onto k, in k's coordinates, in the order of the root's points) and the true
+images of the root's points on k, divided by k's RMS radius
+(:func:`registration.synthetic.correspondence_error`). A subject a method leaves
+unattached (``warped is None``) is counted separately and left out of that method's
+mean; a penalised mean, where it counts as error 1.0, is printed beside it.
+
+Families (collections with exact ground truth):
+
+- ``yong-edge`` / ``yong-skel``: the character 永 (``../shared/data/glyphs_yong``), edge
+  or skeleton points of a few font designs, deformed by
+  :func:`registration.synthetic.deformation_chains` with its defaults (4 chains x 6 warp
+  steps, 400 points, step 0.12); roots: shape 0 (undeformed) and chain 1 step 3;
+- ``chui-fish`` / ``chui-chinese``: the Chui & Rangarajan deformation series
+  (``../shared/data/chui_rangarajan``): per trial, the model X (root) and that trial's
+  targets of deformation levels 1-5;
+- ``generated``: :func:`registration.synthetic.chained_family` with its defaults (root 0).
+
+"far" subjects are those more than half the family's chain length away from the root
+along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
+a glyph chain for root 0. For the mid-chain root the distance is counted along the
+generation tree (same chain: |step - 3|; other chains: 3 + step).
+
+    .venv/bin/python bench/bench_groundtruth.py [--quick] [--seeds 2] [--designs ID,...]
+        [--trials 3] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from registration import CollectionResult, build_dynamic_tree, register_direct
+from registration.synthetic import chained_family, correspondence_error, deformation_chains
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+GLYPHS = DATA / "glyphs_yong"
+CHUI = DATA / "chui_rangarajan"
+PENALTY = 1.0
+METHODS = ("plain", "direct", "tree")
+MIRROR_CHECK = 0.5  # subjects with a GT error above this get a pose diagnosis
+
+
+@dataclass
+class Case:
+    """One registration problem: a collection, a root and the ground truth for that root."""
+
+    kind: str  # family kind, e.g. "yong-edge"
+    label: str  # e.g. "yong-edge arphic-... seed 0"
+    seed: int
+    shapes: list[np.ndarray]
+    names: list[str]
+    root: int
+    truth: list[np.ndarray]  # per shape, (n_root, 2); NaN rows: no true image
+    depth: list[int]  # generation depth from the family's undeformed shape
+    distance: list[int]  # generation distance from the root
+    far_from: int  # subjects with distance >= far_from are "far"
+    results: dict[str, CollectionResult] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def _chain_distance(depth: list[int], chain: list[int], root: int) -> list[int]:
+    """Warp steps between each shape and the root along the generation tree (a star of
+    chains joined at shape 0)."""
+    return [abs(depth[k] - depth[root]) if chain[k] == chain[root] else depth[k] + depth[root]
+            for k in range(len(depth))]
+
+
+def glyph_ids() -> list[str]:
+    with (GLYPHS / "index.csv").open(newline="") as fh:
+        return [row["id"] for row in csv.DictReader(fh)]
+
+
+def pick_designs(spec: str | None, count: int) -> list[str]:
+    """Design ids from ``--designs`` (ids or row numbers of index.csv), else `count`
+    spread evenly over index.csv."""
+    ids = glyph_ids()
+    if spec:
+        out = []
+        for tok in (t.strip() for t in spec.split(",") if t.strip()):
+            if tok.isdigit():
+                out.append(ids[int(tok)])
+            elif tok in ids:
+                out.append(tok)
+            else:
+                raise SystemExit(f"unknown design {tok!r}: not an id or row number of index.csv")
+        return out
+    pos = np.unique(np.round(np.linspace(0, len(ids) - 1, count)).astype(int))
+    return [ids[p] for p in pos]
+
+
+def glyph_cases(kind: str, designs: list[str], seeds: list[int], mid_root: bool) -> list[Case]:
+    cases = []
+    for design in designs:
+        dense = np.loadtxt(GLYPHS / "points" / f"{design}_{kind}.txt")
+        for seed in seeds:
+            fam = deformation_chains(dense, seed=seed)
+            roots = [0]
+            if mid_root:
+                roots.append(next(k for k in range(len(fam.shapes))
+                                  if fam.chain[k] == 0 and fam.depth[k] == 3))
+            chain_length = max(fam.depth)
+            for r in roots:
+                cases.append(Case(
+                    kind=f"yong-{kind}", label=f"yong-{kind} {design} seed {seed}", seed=seed,
+                    shapes=fam.shapes, names=fam.names, root=r, truth=fam.root_images(r),
+                    depth=fam.depth, distance=_chain_distance(fam.depth, fam.chain, r),
+                    far_from=chain_length // 2 + 1,
+                ))
+    return cases
+
+
+def chui_cases(kind: str, trials: list[int]) -> list[Case]:
+    files = [CHUI / f"{kind}_def_{lvl}.npz" for lvl in range(1, 6)]
+    data = [np.load(f) for f in files]
+    cases = []
+    for t in trials:
+        model = np.asarray(data[0]["X"][t], dtype=np.float64)
+        shapes, names, truth = [model], ["model"], [model.copy()]
+        for lvl, d in enumerate(data, start=1):
+            if not np.array_equal(d["X"][t], model):
+                raise SystemExit(f"{files[lvl - 1].name}: trial {t} has a different model X")
+            y, y_clean, gt = d["Y"][t], d["Y_clean"][t], d["gt_index_into_X"]
+            # row j of Y is the image of model row gt[j] (-1: outlier); in the deformation
+            # series Y_clean has Y's rows (no outliers, no noise): check, do not assume
+            if y_clean.shape != y.shape or gt.shape[0] != y.shape[0]:
+                raise SystemExit(f"{files[lvl - 1].name}: Y_clean rows do not match Y rows")
+            image = np.full_like(model, np.nan)
+            inl = gt >= 0
+            if len(np.unique(gt[inl])) != int(inl.sum()):
+                raise SystemExit(f"{files[lvl - 1].name}: a model point has two images")
+            image[gt[inl]] = y_clean[inl]
+            shapes.append(np.asarray(y, dtype=np.float64))
+            names.append(f"def{lvl}")
+            truth.append(image)
+        depth = list(range(6))
+        cases.append(Case(
+            kind=f"chui-{kind}", label=f"chui-{kind} trial {t}", seed=t, shapes=shapes,
+            names=names, root=0, truth=truth, depth=depth, distance=depth, far_from=3,
+        ))
+    return cases
+
+
+def generated_cases(seeds: list[int]) -> list[Case]:
+    cases = []
+    for seed in seeds:
+        fam = chained_family(seed=seed)
+        chain_length = max(fam.depth)
+        cases.append(Case(
+            kind="generated", label=f"generated chained_family seed {seed}", seed=seed,
+            shapes=fam.shapes, names=fam.names, root=0, truth=fam.root_images,
+            depth=fam.depth, distance=fam.depth, far_from=chain_length // 2 + 1,
+        ))
+    return cases
+
+
+# ----------------------------------------------------------------------------- scoring
+
+
+def gt_error(warped: np.ndarray | None, truth: np.ndarray, subject: np.ndarray) -> float | None:
+    if warped is None:
+        return None
+    has = np.isfinite(truth).all(axis=1)
+    return correspondence_error(warped[has], truth[has], subject)
+
+
+def pose_diagnosis(warped: np.ndarray, truth: np.ndarray) -> str:
+    """Best orthogonal map (Procrustes) from the true images to the warped model: a
+    reflection or a large rotation means the method found a mirrored/rotated match."""
+    has = np.isfinite(truth).all(axis=1)
+    a = truth[has] - truth[has].mean(axis=0)
+    b = warped[has] - warped[has].mean(axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    r = u @ vt  # a @ r ~ b
+    mirrored = np.linalg.det(r) < 0
+    if mirrored:
+        r = r @ np.diag([1.0, -1.0])
+    angle = math.degrees(math.atan2(r[0, 1], r[0, 0]))
+    scale = float(np.linalg.norm(b)) / max(float(np.linalg.norm(a)), 1e-12)
+    return f"{'MIRRORED ' if mirrored else ''}rotation {angle:+.0f} deg, size ratio {scale:.2f}"
+
+
+def per_subject(case: Case) -> list[dict[str, Any]]:
+    rows = []
+    for k in range(len(case.shapes)):
+        if k == case.root:
+            continue
+        row: dict[str, Any] = {
+            "index": k, "name": case.names[k], "depth": case.depth[k],
+            "distance": case.distance[k], "far": case.distance[k] >= case.far_from,
+        }
+        for m in METHODS:
+            s = case.results[m].subject(k)
+            row[m] = {
+                "gt": gt_error(s.warped, case.truth[k], case.shapes[k]),
+                "e": s.error, "layer": s.layer, "parent": s.parent, "attached": s.attached,
+                # newer library versions attach low-confidence leaves and give a confidence
+                "leaf": bool(getattr(s, "leaf", False)),
+                "confidence": getattr(s, "confidence", None),
+            }
+        rows.append(row)
+    return rows
+
+
+def _mean(v: list[float]) -> float:
+    return float(np.mean(v)) if v else float("nan")
+
+
+def _p95(v: list[float]) -> float:
+    return float(np.percentile(v, 95)) if v else float("nan")
+
+
+def group_stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per method: mean (attached), penalised mean, p95, counts; ratios against plain."""
+    out: dict[str, Any] = {"n": len(rows)}
+    for m in METHODS:
+        att = [r[m]["gt"] for r in rows if r[m]["gt"] is not None]
+        pen = [r[m]["gt"] if r[m]["gt"] is not None else PENALTY for r in rows]
+        out[m] = {"mean": _mean(att), "pen": _mean(pen), "p95": _p95(att),
+                  "attached": len(att), "unattached": len(rows) - len(att)}
+    plain_pen = out["plain"]["pen"]
+    for m in ("tree", "direct"):
+        same = [r["plain"]["gt"] for r in rows
+                if r[m]["gt"] is not None and r["plain"]["gt"] is not None]
+        out[f"{m}/plain"] = out[m]["pen"] / plain_pen if plain_pen > 0 else float("nan")
+        out[f"{m}/plain same"] = (out[m]["mean"] / _mean(same)
+                                  if same and _mean(same) > 0 else float("nan"))
+    return out
+
+
+def e_stats(case: Case) -> dict[str, Any]:
+    """e (eq. 10) at tree layer >= 3, the tree's and plain CPD's on the same subjects."""
+    tree, plain = case.results["tree"], case.results["plain"]
+    deep = [s.index for s in tree.subjects
+            if s.attached and s.layer is not None and s.layer >= 3]
+    pe = [e for i in deep if (e := plain.subject(i).error) is not None]
+    st = tree.summary()["layer_ge_3"]
+    return {"n": st["count"], "tree_mean": st["mean"], "tree_p95": st["p95"],
+            "plain_mean": _mean(pe) if pe else None, "plain_p95": _p95(pe) if pe else None}
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def f4(v: float | None) -> str:
+    return "   n/a" if v is None or not np.isfinite(v) else f"{v:6.4f}"
+
+
+def f2(v: float | None) -> str:
+    return "  n/a" if v is None or not np.isfinite(v) else f"{v:5.2f}"
+
+
+def header(first: str = "subjects", width: int = 9) -> str:
+    return (f"{first:{width}s} {'n':>3s} | {'plain':>6s} {'direct':>6s} {'tree':>6s} "
+            f"{'tree*':>6s} {'unatt':>5s} | {'p95 pl':>6s} {'p95 dir':>7s} {'p95 tr':>6s} | "
+            f"{'tr/pl':>5s} {'tr/pl=':>6s} {'dir/pl':>6s}")
+
+
+def stats_line(name: str, st: dict[str, Any], width: int = 9) -> str:
+    if st["n"] == 0:
+        return f"{name:{width}s} {0:3d} | (none)"
+    return (f"{name:{width}s} {st['n']:3d} | {f4(st['plain']['mean'])} "
+            f"{f4(st['direct']['mean'])} "
+            f"{f4(st['tree']['mean'])} {f4(st['tree']['pen'])} "
+            f"{st['tree']['unattached']:5d} | {f4(st['plain']['p95'])} "
+            f" {f4(st['direct']['p95'])} {f4(st['tree']['p95'])} | "
+            f"{f2(st['tree/plain'])}  {f2(st['tree/plain same'])}  {f2(st['direct/plain'])}")
+
+
+def report_case(case: Case, rows: list[dict[str, Any]]) -> dict[str, Any]:
+    root = case.names[case.root]
+    all_st = group_stats(rows)
+    far_rows = [r for r in rows if r["far"]]
+    far_st = group_stats(far_rows)
+    es = e_stats(case)
+    secs = "  ".join(f"{m} {case.seconds[m]:.1f}s" for m in METHODS)
+    print(f"\n--- {case.label}, root {case.root} ({root}): {len(case.shapes)} shapes; {secs}")
+    print(header())
+    print(stats_line("all", all_st))
+    far_note = (f"far: distance from the root >= {case.far_from} generation steps"
+                + ("" if case.depth[case.root] == 0
+                   else " (counted along the generation tree through shape 0)"))
+    print(stats_line("far", far_st) + f"   [{far_note}]")
+    unatt = {m: [r["name"] for r in rows if not r[m]["attached"]] for m in METHODS}
+    for m, names in unatt.items():
+        if names:
+            print(f"  {m}: unattached {', '.join(names)}")
+    leaves = [r for r in rows if r["tree"]["leaf"]]
+    if leaves:
+        gts = [r["tree"]["gt"] for r in leaves if r["tree"]["gt"] is not None]
+        print(f"  tree: {len(leaves)} low-confidence leaves (attached, counted in the means; "
+              f"mean GT error {_mean(gts):.4f}): " + ", ".join(r["name"] for r in leaves))
+    print(f"  e (eq. 10) at tree layer >= 3 ({es['n']} subjects): tree mean/p95 "
+          f"{f4(es['tree_mean'])}/{f4(es['tree_p95'])}, plain CPD on the same subjects "
+          f"{f4(es['plain_mean'])}/{f4(es['plain_p95'])}")
+    by_layer: dict[int, list[float]] = {}
+    for r in rows:
+        if r["tree"]["layer"] is not None:
+            by_layer.setdefault(r["tree"]["layer"], []).append(r["tree"]["gt"])
+    print("  tree layers (count: mean GT error): " + ", ".join(
+        f"L{k} {len(v)}: {np.mean(v):.4f}" for k, v in sorted(by_layer.items())))
+    for r in rows:
+        for m in METHODS:
+            gt = r[m]["gt"]
+            if gt is not None and gt > MIRROR_CHECK:
+                s = case.results[m].subject(r["index"])
+                assert s.warped is not None
+                print(f"  ! {m} on {r['name']} (depth {r['depth']}): GT error {gt:.3f}, "
+                      f"e {s.error:.4g}, layer {s.layer}: "
+                      f"{pose_diagnosis(s.warped, case.truth[r['index']])}")
+    return {"all": all_st, "far": far_st, "e": es}
+
+
+def summary(cases: list[Case], reports: list[dict[str, Any]],
+            rows_by_case: list[list[dict[str, Any]]]) -> None:
+    print("\n" + "=" * 100)
+    print("SUMMARY: mean ground-truth correspondence error (RMS / subject's RMS radius), "
+          "pooled over the runs of each family")
+    print("tree = attached subjects only; tree* = penalised, an unattached subject counts as "
+          f"error {PENALTY}; tr/pl uses tree*, tr/pl= compares the attached subjects with "
+          "plain on the same subjects")
+    print("far = subjects more than half a chain from the root along the generation "
+          "(glyph chains: steps 4-6 from root 0)")
+    kinds = list(dict.fromkeys(c.kind for c in cases))
+    print(f"\n{'family':13s} {'runs':>4s} " + header("part", 4)
+          + f" | {'worst tr/pl':>11s} {'worst dir/pl':>12s}")
+    verdicts: list[tuple[str, bool, str]] = []
+    pooled_all: list[dict[str, Any]] = []
+    pooled_far: list[dict[str, Any]] = []
+    worst_t_all, worst_d_all = 0.0, 0.0
+    for kind in [*kinds, "ALL"]:
+        idx = [i for i, c in enumerate(cases) if kind in (c.kind, "ALL")]
+        rows = [r for i in idx for r in rows_by_case[i]]
+        far = [r for r in rows if r["far"]]
+        worst_t = max(reports[i]["all"]["tree/plain"] for i in idx)
+        worst_d = max(reports[i]["all"]["direct/plain"] for i in idx)
+        for part, group in (("all", rows), ("far", far)):
+            st = group_stats(group)
+            extra = f" | {f2(worst_t):>11s} {f2(worst_d):>12s}" if part == "all" else ""
+            print(f"{kind:13s} {len(idx):4d} {stats_line(part, st, 4)}{extra}")
+            if kind == "ALL":
+                (pooled_all if part == "all" else pooled_far).append(st)
+            else:
+                if part == "far" and st["n"]:
+                    verdicts.append((f"{kind}: tree* <= 0.6x plain on the far half",
+                                     st["tree/plain"] <= 0.6, f2(st["tree/plain"]).strip()))
+                if part == "all":
+                    verdicts.append((f"{kind}: tree* <= 0.85x plain over all subjects",
+                                     st["tree/plain"] <= 0.85, f2(st["tree/plain"]).strip()))
+        if kind != "ALL":
+            worst_t_all, worst_d_all = max(worst_t_all, worst_t), max(worst_d_all, worst_d)
+    verdicts.append(("every run: tree* <= 1.05x plain", worst_t_all <= 1.05,
+                     f"worst {worst_t_all:.2f}"))
+    verdicts.append(("every run: direct <= 1.05x plain", worst_d_all <= 1.05,
+                     f"worst {worst_d_all:.2f}"))
+    over_t = [(c.label, c.root, r["all"]["tree/plain"]) for c, r in zip(cases, reports,
+              strict=True) if r["all"]["tree/plain"] > 1.05]
+    over_d = [(c.label, c.root, r["all"]["direct/plain"]) for c, r in zip(cases, reports,
+              strict=True) if r["all"]["direct/plain"] > 1.05]
+    st_all, st_far = pooled_all[0], pooled_far[0]
+    verdicts.append(("ALL: tree* <= 0.6x plain on the far half", st_far["tree/plain"] <= 0.6,
+                     f2(st_far["tree/plain"]).strip()))
+    verdicts.append(("ALL: tree* <= 0.85x plain over all subjects",
+                     st_all["tree/plain"] <= 0.85, f2(st_all["tree/plain"]).strip()))
+    print("\nTargets (tree* = penalised for unattached subjects):")
+    for text, ok, val in verdicts:
+        print(f"  [{'PASS' if ok else 'FAIL'}] {text}: {val}")
+    for label, root, v in over_t:
+        print(f"    tree*/plain {v:.2f} on {label}, root {root}")
+    for label, root, v in over_d:
+        print(f"    direct/plain {v:.2f} on {label}, root {root}")
+    print("\ne (eq. 10) at tree layer >= 3 (tree vs plain CPD on the same subjects), pooled "
+          "per family:")
+    for kind in kinds:
+        t_e, p_e = [], []
+        for c in cases:
+            if c.kind != kind:
+                continue
+            tree, plain = c.results["tree"], c.results["plain"]
+            for s in tree.subjects:
+                if s.attached and s.layer is not None and s.layer >= 3 and s.error is not None:
+                    pe = plain.subject(s.index).error
+                    if pe is not None:
+                        t_e.append(s.error)
+                        p_e.append(pe)
+        print(f"  {kind:13s} n={len(t_e):3d}  tree mean/p95 {f4(_mean(t_e))}/{f4(_p95(t_e))}"
+              f"   plain mean/p95 {f4(_mean(p_e))}/{f4(_p95(p_e))}")
+    print("\ntree subjects attached as low-confidence leaves (counted as attached above):")
+    for kind in kinds:
+        rows = [r for i, c in enumerate(cases) if c.kind == kind for r in rows_by_case[i]]
+        leaf = [r["tree"]["gt"] for r in rows if r["tree"]["leaf"] and r["tree"]["gt"] is not None]
+        rest = [r["tree"]["gt"] for r in rows
+                if not r["tree"]["leaf"] and r["tree"]["gt"] is not None]
+        print(f"  {kind:13s} {len(leaf):3d} of {len(rows):3d}; mean GT error leaves "
+              f"{f4(_mean(leaf))}, accepted subjects {f4(_mean(rest))}")
+    print("\nwall time (s), summed over runs:")
+    for kind in kinds:
+        secs = {m: sum(c.seconds[m] for c in cases if c.kind == kind) for m in METHODS}
+        print(f"  {kind:13s} " + "  ".join(f"{m} {secs[m]:7.1f}" for m in METHODS))
+    tot = {m: sum(c.seconds[m] for c in cases) for m in METHODS}
+    print(f"  {'ALL':13s} " + "  ".join(f"{m} {tot[m]:7.1f}" for m in METHODS))
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def library_fingerprint() -> str:
+    """A short hash of the library's source, so runs of a changing library can be told
+    apart."""
+    import hashlib
+
+    import registration
+
+    h = hashlib.sha1()
+    for f in sorted(Path(registration.__file__).parent.glob("*.py")):
+        h.update(f.name.encode() + f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+RUNNERS: dict[str, Callable[[list[np.ndarray], int], CollectionResult]] = {
+    # DEFAULT options only: the benchmark judges the defaults
+    "plain": lambda shapes, r: register_direct(shapes, root=r, prealign=False),
+    "direct": lambda shapes, r: register_direct(shapes, root=r),
+    "tree": lambda shapes, r: build_dynamic_tree(shapes, root=r),
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true",
+                    help="1 design, 1 seed, 1 Chui trial, root 0 only")
+    ap.add_argument("--seeds", type=int, default=2, help="seeds per design (default 2)")
+    ap.add_argument("--designs", default=None,
+                    help="comma-separated glyph ids or row numbers of index.csv "
+                    "(default: 3 spread over index.csv)")
+    ap.add_argument("--trials", type=int, default=3,
+                    help="Chui & Rangarajan trials per series (default 3)")
+    ap.add_argument("--only", nargs="*", default=None,
+                    help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
+                    "generated)")
+    ap.add_argument("--json", type=Path, default=None, help="dump every per-subject number")
+    args = ap.parse_args()
+    seeds = list(range(1 if args.quick else args.seeds))
+    trials = list(range(1 if args.quick else args.trials))
+    mid_root = not args.quick
+
+    cases: list[Case] = []
+    if not DATA.is_dir():
+        print(f"NOTE: {DATA} is missing: skipping the 永 glyph and Chui & Rangarajan families "
+              "(the generated family still runs)")
+    if (GLYPHS / "index.csv").exists():
+        designs = pick_designs(args.designs, 1 if args.quick else 3)
+        print(f"永 designs: {', '.join(designs)}; seeds {seeds}")
+        for kind in ("edge", "skel"):
+            cases += glyph_cases(kind, designs, seeds, mid_root)
+    elif DATA.is_dir():
+        print(f"NOTE: {GLYPHS} is missing: skipping the 永 glyph families")
+    if all((CHUI / f"{k}_def_{lvl}.npz").exists() for k in ("fish", "chinese")
+           for lvl in range(1, 6)):
+        for kind in ("fish", "chinese"):
+            cases += chui_cases(kind, trials)
+    elif DATA.is_dir():
+        print(f"NOTE: {CHUI} lacks the def series: skipping the Chui & Rangarajan families")
+    cases += generated_cases(seeds)
+    if args.only:
+        cases = [c for c in cases if c.kind in args.only]
+    print(f"{len(cases)} runs x 3 methods, default options (the library picks its executor); "
+          f"library fingerprint {library_fingerprint()}")
+
+    reports, rows_by_case = [], []
+    for case in cases:
+        for m in METHODS:
+            t0 = time.perf_counter()
+            case.results[m] = RUNNERS[m](case.shapes, case.root)
+            case.seconds[m] = time.perf_counter() - t0
+        rows = per_subject(case)
+        rows_by_case.append(rows)
+        reports.append(report_case(case, rows))
+    summary(cases, reports, rows_by_case)
+
+    if args.json is not None:
+        doc = [{"family": c.kind, "label": c.label, "seed": c.seed, "root": c.root,
+                "root_name": c.names[c.root], "far_from": c.far_from, "seconds": c.seconds,
+                "tree_thresholds": c.results["tree"].thresholds, "report": rep,
+                "subjects": rows}
+               for c, rep, rows in zip(cases, reports, rows_by_case, strict=True)]
+        args.json.write_text(json.dumps(_clean(doc), indent=1, allow_nan=False))
+        print(f"\nper-subject numbers written to {args.json}")
+
+
+def _clean(o: Any) -> Any:
+    """JSON-ready: numpy scalars and arrays to Python, NaN and infinity to None."""
+    if isinstance(o, dict):
+        return {str(k): _clean(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [_clean(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _clean(o.tolist())
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, float | np.floating):
+        return float(o) if math.isfinite(o) else None
+    return o
+
+
+if __name__ == "__main__":
+    main()
