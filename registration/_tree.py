@@ -552,9 +552,11 @@ def _refine_parents(
             y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd, prealign=prealign,
             pose=pose, spacing2=coll.spacing2[s],
         ))
-    for out in _run_tasks(tasks, executor, progress, "refine"):
+    for out in sorted(_run_tasks(tasks, executor, progress, "refine"), key=lambda o: o.subject):
         s = out.subject
         old = results[s]
+        if s in parents or s in nodes[out.member].chain.path:
+            continue  # a move earlier in this pass made it a parent, or put it above m
         limit = math.inf if tau_err is None else (
             tau_err if explicit_error else max(tau_err, floors[s]))
         parent = nodes[out.member]
@@ -579,6 +581,7 @@ def _refine_parents(
                       f"moved there from {coll.names[old.parent or 0]} by refinement")
         results[s] = res
         nodes[s] = node
+        parents.add(out.member)
 
 
 def _attach_leaves(

@@ -267,3 +267,23 @@ def test_float32_cpd_builds_the_same_tree_as_float64(family):
 def test_cpd_options_reject_an_unknown_dtype():
     with pytest.raises(ValueError, match="dtype must be 'float64' or 'float32'; got 'float16'"):
         CPDOptions(dtype="float16")
+
+
+def test_tree_paths_stay_consistent_after_refinement(dynamic):
+    # every subject's path starts at the root, has no repeated shape, ends with its
+    # parent, and runs through its parent's own path: no cycles, no stale chains
+    by_index = {s.index: s for s in dynamic.subjects}
+    for s in dynamic.subjects:
+        assert s.path[0] == dynamic.root and s.path[-1] == s.index
+        assert len(set(s.path)) == len(s.path) and s.path[-2] == s.parent
+        if s.parent != dynamic.root:
+            assert by_index[s.parent].path == s.path[:-1]
+            assert not by_index[s.parent].leaf  # leaves are never parents
+    refined = [a for s in dynamic.subjects for a in s.attempts if "refine" in a.reason]
+    assert all(a.accepted == a.reason.startswith("refined:") for a in refined)
+
+
+def test_refinement_can_be_turned_off(family):
+    res = build_dynamic_tree(family.shapes[:8], 0, cpd=FAST_CPD, refine=False,
+                             executor=SerialExecutor())
+    assert not any("refine" in a.reason for s in res.subjects for a in s.attempts)
