@@ -64,6 +64,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = cli_client.join_option_values(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
     if args.command in cli_client.COMMANDS:
         return cli_client.main(args)

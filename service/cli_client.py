@@ -6,6 +6,7 @@
     regtree run --collection yong --model 00-root --wait
     regtree watch 12
     regtree results 12 --out results/yong
+    regtree results 12 --sort=-confidence --min-confidence 0.5
     regtree cancel 12
 
 They talk HTTP through :class:`service.client.RegtreeClient`: ``--url`` (default
@@ -52,6 +53,8 @@ DEFAULT_URL = "http://127.0.0.1:8000"
 METHODS = ("dynamic_tree", "static_tree", "direct")
 IMAGE_MODES = ("contour", "edges", "skeleton")
 POSES = ("as_given", "upright", "rotation", "affine")
+#: Orders of a result's subjects: the service's ``sort`` (``service.client.SUBJECT_SORTS``).
+SUBJECT_SORTS = ("position", "confidence", "-confidence", "error", "-error")
 
 
 class CLIError(Exception):
@@ -93,6 +96,40 @@ def _job_id(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"a job id is a positive number, got {text!r}")
     return value
+
+
+def _confidence(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}") from None
+    if not 0.0 <= value <= 1.0:  # NaN too
+        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}")
+    return value
+
+
+def _subject_sort(text: str) -> str:
+    if text not in SUBJECT_SORTS:
+        raise argparse.ArgumentTypeError(
+            f"expected one of {', '.join(SUBJECT_SORTS)}, got {text!r}"
+        )
+    return text
+
+
+def join_option_values(argv: Sequence[str]) -> list[str]:
+    """``--sort -confidence`` as ``--sort=-confidence``: argparse takes a value starting
+    with "-" for an option of its own, so a descending order is joined to its option."""
+    out: list[str] = []
+    args = list(argv)
+    k = 0
+    while k < len(args):
+        if args[k] == "--sort" and k + 1 < len(args) and args[k + 1] in SUBJECT_SORTS:
+            out.append(f"--sort={args[k + 1]}")
+            k += 2
+            continue
+        out.append(args[k])
+        k += 1
+    return out
 
 
 def _subjects_choice(text: str) -> str | int:
@@ -250,20 +287,58 @@ def add_commands(sub: Any) -> None:
 
     results = command(
         "results",
-        help="download a job's result and draw its pictures",
-        description="Write OUT/result.json (the full result document), tree.svg, tree.png, "
-        "summary.png and subjects/<name>.png (the model warped onto each subject, beside "
-        "direct CPD's), and print the summary table.",
+        help="print a job's result; download it and draw its pictures",
+        description="Print the summary table and one line per subject (layer, parent, e, "
+        "direct e, confidence, status: tree, leaf for a low-confidence leaf, or unattached). "
+        "With --out, also write OUT/result.json (the full result document), tree.svg, "
+        "tree.png, summary.png and subjects/<name>.png (the model warped onto each subject, "
+        "beside direct CPD's). --sort, --min-confidence, --only-leaves and --no-leaves choose "
+        "and order the subject lines and the subject pictures (the service does it); "
+        "result.json, the tree and the summary always cover every subject.",
     )
     results.add_argument("job", metavar="JOB", type=_job_id)
-    results.add_argument("--out", required=True, type=Path, metavar="DIR")
+    results.add_argument(
+        "--out", type=Path, metavar="DIR", help="write the result and its pictures here"
+    )
     results.add_argument(
         "--subjects",
         type=_subjects_choice,
         default="all",
         metavar="all|attached|N",
         help="which subject pictures to draw: all (default), attached ones, or the first N "
-        "(0: none)",
+        "of the subject lines (0: none)",
+    )
+    results.add_argument(
+        "--sort",
+        type=_subject_sort,
+        default=None,
+        metavar="KEY",
+        help="order of the subjects: position (default, the job's shape order), confidence, "
+        "error, or descending with a leading - (-confidence, -error); subjects without the "
+        "value come last",
+    )
+    results.add_argument(
+        "--min-confidence",
+        type=_confidence,
+        default=None,
+        metavar="X",
+        help="only subjects whose confidence is at least X (0 to 1); leaves out unattached ones",
+    )
+    leaves = results.add_mutually_exclusive_group()
+    leaves.add_argument(
+        "--only-leaves",
+        dest="leaf",
+        action="store_const",
+        const=True,
+        default=None,
+        help="only the low-confidence leaves",
+    )
+    leaves.add_argument(
+        "--no-leaves",
+        dest="leaf",
+        action="store_const",
+        const=False,
+        help="leave out the low-confidence leaves",
     )
     results.add_argument(
         "--format",
@@ -658,10 +733,10 @@ def watch_job(
         summary = {}
     line = f"job {job_id} succeeded{took}"
     if summary:
-        line += (
-            f": {summary.get('attached')} of {summary.get('subjects')} subjects attached, "
-            f"tree depth {summary.get('depth')}"
-        )
+        line += f": {summary.get('attached')} of {summary.get('subjects')} subjects attached"
+        if summary.get("leaves"):
+            line += f" ({summary['leaves']} as low-confidence leaves)"
+        line += f", tree depth {summary.get('depth')}"
     _out(line, stream)
     _out(f"pictures and numbers: regtree results {job_id} --out DIR", stream)
     return EXIT_OK
@@ -710,6 +785,78 @@ def select_subjects(subjects: Sequence[Mapping[str, Any]], which: str | int) -> 
     return list(subjects[: int(which)])
 
 
+def subject_status(subject: Mapping[str, Any]) -> str:
+    """The subject's status: leaf (a low-confidence leaf), tree (a member) or unattached."""
+    if subject.get("leaf"):
+        return "leaf"
+    if subject.get("attached", subject.get("layer") is not None) and subject.get("layer"):
+        return "tree"
+    return "unattached"
+
+
+def _cell(text: str, width: int) -> str:
+    text = text if len(text) <= width else text[: width - 1] + "…"
+    return f"{text:<{width}}"
+
+
+def subjects_table(doc: Mapping[str, Any], subjects: Sequence[Mapping[str, Any]]) -> list[str]:
+    """One line per subject, in the given order: shape id, name, layer, parent, e, direct e,
+    confidence and status ("tree", "leaf" for a low-confidence leaf, "unattached")."""
+    names = dict(zip(doc.get("shape_ids") or [], doc.get("names") or [], strict=False))
+    for s in doc.get("subjects") or []:
+        if isinstance(s, Mapping) and "shape_id" in s and s.get("name") is not None:
+            names[s["shape_id"]] = s["name"]
+    width = min(32, max([4, *(len(str(s.get("name", ""))) for s in subjects)]))
+    lines = [
+        f"{'shape':>8}  {_cell('name', width)}  {'layer':>5}  {_cell('parent', 16)}"
+        f" {'e':>11} {'direct e':>11} {'confidence':>10}  status"
+    ]
+    for s in subjects:
+        layer = s.get("layer")
+        parent = s.get("parent_shape_id")
+        confidence = s.get("confidence")
+        lines.append(
+            f"{s.get('shape_id', '?'):>8}  {_cell(str(s.get('name', '')), width)}"
+            f"  {('-' if layer is None else layer):>5}"
+            f"  {_cell('-' if parent is None else str(names.get(parent, parent)), 16)}"
+            f" {_num(s.get('error'))} {_num(s.get('direct_error'))}"
+            + (
+                f" {confidence:10.3f}"
+                if isinstance(confidence, int | float) and not isinstance(confidence, bool)
+                else f" {'-':>10}"
+            )
+            + f"  {subject_status(s)}"
+        )
+    return lines
+
+
+def _subject_query(args: argparse.Namespace) -> dict[str, Any]:
+    """The options of ``regtree results`` that the service's result query takes."""
+    query: dict[str, Any] = {}
+    if args.sort is not None:
+        query["sort"] = args.sort
+    if args.min_confidence is not None:
+        query["min_confidence"] = args.min_confidence
+    if args.leaf is not None:
+        query["leaf"] = args.leaf
+    return query
+
+
+def _query_text(query: Mapping[str, Any]) -> str:
+    parts = []
+    if "min_confidence" in query:
+        parts.append(f"confidence >= {query['min_confidence']:g}")
+    if query.get("leaf") is True:
+        parts.append("low-confidence leaves only")
+    elif query.get("leaf") is False:
+        parts.append("no low-confidence leaves")
+    if query.get("sort") not in (None, "position"):
+        key = str(query["sort"])
+        direction = "descending" if key.startswith("-") else "ascending"
+        parts.append(f"by {key.removeprefix('-')}, {direction}")
+    return "; ".join(parts)
+
+
 def _num(value: Any) -> str:
     return f"{value:11.4g}" if isinstance(value, int | float) else f"{'-':>11}"
 
@@ -732,10 +879,13 @@ def summary_table(doc: Mapping[str, Any]) -> list[str]:
         else:
             unattached += 1
     tree_stats, direct_stats = layer_statistics(doc)
+    leaves = sum(1 for s in subjects if s.get("leaf"))
+    as_leaves = f" ({leaves} as low-confidence leaves)" if leaves else ""
     lines = [
         f"job {doc.get('job_id')}: {doc.get('method')}, model {names.get(root, root)!r} "
-        f"(shape {root}); {len(subjects)} subjects, {sum(counts.values())} attached, "
-        f"{unattached} unattached, depth {summary.get('depth', max(counts, default=1))}"
+        f"(shape {root}); {len(subjects)} subjects, {sum(counts.values())} attached"
+        f"{as_leaves}, {unattached} unattached, depth "
+        f"{summary.get('depth', max(counts, default=1))}"
     ]
     thresholds = doc.get("thresholds") or {}
     for key in ("similarity", "error"):
@@ -771,11 +921,48 @@ def summary_table(doc: Mapping[str, Any]) -> list[str]:
 
 
 def cmd_results(args: argparse.Namespace, rt: RegtreeClient) -> int:
+    job = rt.get_job(args.job)
+    out: Path | None = args.out
+    # every subject, for the summary, result.json and the tree; the full one to draw from
+    doc = rt.result_document(args.job, full=out is not None)
+    query = _subject_query(args)
+    # the subject lines (and pictures): chosen and ordered by the service
+    listed = rt.result_document(args.job, **query)["subjects"] if query else doc["subjects"]
+    if out is None:
+        for line in summary_table(doc):
+            _out(line)
+        _print_subjects(doc, listed, query)
+        return EXIT_OK
+    return _write_results(args, rt, job, doc, listed, query, out)
+
+
+def _print_subjects(
+    doc: Mapping[str, Any], listed: Sequence[Mapping[str, Any]], query: Mapping[str, Any]
+) -> None:
+    total = len(doc.get("subjects") or [])
+    chosen = _query_text(query)
+    _out("")
+    _out(f"subjects ({chosen}): {len(listed)} of {total}" if chosen else f"subjects: {total}")
+    for line in subjects_table(doc, listed):
+        _out(line)
+    if any(s.get("leaf") for s in listed):
+        _out(
+            "leaf: a low-confidence leaf, which the tree could not accept; it got its best "
+            "registration anyway and is never a parent (its reason is in result.json)"
+        )
+
+
+def _write_results(
+    args: argparse.Namespace,
+    rt: RegtreeClient,
+    job: JobStatus,
+    doc: dict[str, Any],
+    listed: Sequence[Mapping[str, Any]],
+    query: Mapping[str, Any],
+    out: Path,
+) -> int:
     from service.plots import render_subject, render_summary, render_tree
 
-    job = rt.get_job(args.job)
-    doc = rt.result_document(args.job, full=True)
-    out: Path = args.out
     written: list[Path] = []
     problems: list[str] = []
 
@@ -798,7 +985,9 @@ def cmd_results(args: argparse.Namespace, rt: RegtreeClient) -> int:
         except (ValueError, KeyError, TypeError) as e:
             problems.append(f"{name}: {e}")
 
-    chosen = select_subjects(doc.get("subjects") or [], args.subjects)
+    full = {s.get("shape_id"): s for s in doc.get("subjects") or [] if isinstance(s, Mapping)}
+    ordered = [full.get(s.get("shape_id"), s) for s in listed]
+    chosen = select_subjects(ordered, args.subjects)
     used: set[str] = set()
     tty = sys.stdout.isatty()
     for number, subject in enumerate(chosen, start=1):
@@ -828,6 +1017,7 @@ def cmd_results(args: argparse.Namespace, rt: RegtreeClient) -> int:
 
     for line in summary_table(doc):
         _out(line)
+    _print_subjects(doc, listed, query)
     _out("")
     subject_files = [p for p in written if p.parent.name == "subjects"]
     for path in written:

@@ -45,6 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "POINT_SUFFIXES",
+    "SUBJECT_SORTS",
     "UPLOAD_SUFFIXES",
     "Collection",
     "Conflict",
@@ -59,6 +60,7 @@ __all__ = [
     "ServerError",
     "Shape",
     "Subject",
+    "SubjectSort",
     "Unauthorized",
     "ValidationError",
 ]
@@ -68,6 +70,9 @@ ImageMode = Literal["contour", "edges", "skeleton"]
 Method = Literal["dynamic_tree", "static_tree", "direct"]
 #: How the affine pre-alignment may pose a shape: see :meth:`RegtreeClient.start_job`.
 Pose = Literal["as_given", "upright", "rotation", "affine"]
+#: Orders of a result's subjects (``sort`` of :meth:`RegtreeClient.result`).
+SubjectSort = Literal["position", "confidence", "-confidence", "error", "-error"]
+SUBJECT_SORTS: tuple[str, ...] = ("position", "confidence", "-confidence", "error", "-error")
 
 #: Point files, and images, that :meth:`RegtreeClient.upload_folder` sends (by suffix).
 POINT_SUFFIXES: dict[str, str] = {
@@ -365,6 +370,12 @@ class Subject:
     the model warped onto it (``warped``, in the subject's coordinates), ``correspondence``
     (for each model point, the index of its subject point) and the transform.
 
+    ``confidence`` is the estimated probability (0 to 1) that its correspondences are right
+    (None when unattached, or in a result from before confidences existed); ``leaf`` is true
+    for a low-confidence leaf (the tree could not accept it; it got its best registration
+    anyway, never as a parent; ``reason`` says why); ``quality`` holds the checks of its
+    last registration.
+
     ``direct`` is the direct-CPD registration of the same subject when the job compared it.
     """
 
@@ -378,6 +389,9 @@ class Subject:
     error: float | None
     direct_error: float | None
     reason: str
+    confidence: float | None = None
+    leaf: bool = False
+    quality: dict[str, Any] | None = field(default=None, repr=False, compare=False)
     warped: FloatArray | None = field(default=None, repr=False, compare=False)
     correspondence: NDArray[np.intp] | None = field(default=None, repr=False, compare=False)
     probability: FloatArray | None = field(default=None, repr=False, compare=False)
@@ -403,6 +417,14 @@ class Subject:
             error=d.get("error"),
             direct_error=d.get("direct_error"),
             reason=str(d.get("reason") or ""),
+            confidence=(
+                float(d["confidence"])
+                if isinstance(d.get("confidence"), int | float)
+                and not isinstance(d.get("confidence"), bool)
+                else None
+            ),
+            leaf=bool(d.get("leaf", False)),
+            quality=dict(d["quality"]) if isinstance(d.get("quality"), Mapping) else None,
             warped=None if warped is None else warped.reshape(-1, 2),
             correspondence=correspondence,
             probability=_array(d.get("probability")),
@@ -435,6 +457,11 @@ class JobResult:
     def unattached(self) -> list[Subject]:
         return [s for s in self.subjects if not s.attached]
 
+    @property
+    def leaves(self) -> list[Subject]:
+        """The low-confidence leaves (attached too: they have a parent and a registration)."""
+        return [s for s in self.subjects if s.leaf]
+
     def subject(self, shape_id: int) -> Subject:
         for s in self.subjects:
             if s.shape_id == shape_id:
@@ -455,6 +482,22 @@ class JobResult:
 
 
 # --- the client ------------------------------------------------------------------------------
+
+
+def _result_params(
+    full: bool, min_confidence: float | None, sort: str | None, leaf: bool | None
+) -> dict[str, str] | None:
+    """The query of ``GET /v1/jobs/{id}/result``: only what was given."""
+    params: dict[str, str] = {}
+    if full:
+        params["full"] = "true"
+    if min_confidence is not None:
+        params["min_confidence"] = repr(float(min_confidence))
+    if sort is not None:
+        params["sort"] = str(sort)
+    if leaf is not None:
+        params["leaf"] = "true" if leaf else "false"
+    return params or None
 
 
 def _points_list(points: ArrayLike) -> list[list[float]]:
@@ -934,18 +977,43 @@ class RegtreeClient:
 
     # --- results -----------------------------------------------------------------------
 
-    def result(self, job_id: int, *, full: bool = False) -> JobResult:
+    def result(
+        self,
+        job_id: int,
+        *,
+        full: bool = False,
+        min_confidence: float | None = None,
+        sort: SubjectSort | None = None,
+        leaf: bool | None = None,
+    ) -> JobResult:
         """The job's result. ``full=True`` includes every subject's warped model,
         correspondences and transform (heavy for big collections; :meth:`subject` reads one).
 
+        ``min_confidence`` (0 to 1) lists only subjects at least that confident (those
+        without a confidence, unattached ones, are left out); ``leaf`` only low-confidence
+        leaves (True) or only the others (False); ``sort`` orders the subjects: "position"
+        (the server's default: the job's shape order), "confidence", "-confidence", "error"
+        or "-error" (a leading "-" is descending; subjects without the value come last).
+        The server checks them: a bad value raises :class:`ValidationError` (422). The
+        ``summary`` always counts every subject.
+
         Raises :class:`Conflict` while the job has not succeeded.
         """
-        params = {"full": "true"} if full else None
+        params = _result_params(full, min_confidence, sort, leaf)
         return JobResult.from_json(self._get(f"/v1/jobs/{job_id}/result", params=params))
 
-    def result_document(self, job_id: int, *, full: bool = False) -> dict[str, Any]:
-        """The result JSON as served (what :mod:`service.plots` takes)."""
-        params = {"full": "true"} if full else None
+    def result_document(
+        self,
+        job_id: int,
+        *,
+        full: bool = False,
+        min_confidence: float | None = None,
+        sort: SubjectSort | None = None,
+        leaf: bool | None = None,
+    ) -> dict[str, Any]:
+        """The result JSON as served (what :mod:`service.plots` takes); the options are
+        :meth:`result`'s."""
+        params = _result_params(full, min_confidence, sort, leaf)
         document: dict[str, Any] = self._get(f"/v1/jobs/{job_id}/result", params=params)
         return document
 

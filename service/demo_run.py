@@ -67,7 +67,8 @@ def summarise(result: dict[str, Any], out: Any = sys.stdout) -> None:
     print(f"direct, layer >= 3        {_fmt(direct.get('layer_ge_3'))}", file=out)
     if "attached" in summary:
         print(
-            f"\nattached {summary['attached']} of {summary.get('subjects')} subjects; "
+            f"\nattached {summary['attached']} of {summary.get('subjects')} subjects"
+            f" ({summary.get('leaves', 0)} as low-confidence leaves); "
             f"unattached {summary.get('unattached')}; depth {summary.get('depth')}",
             file=out,
         )

@@ -354,8 +354,14 @@ class ResultOut(BaseModel):
     """A job's result: the tree and, per subject, its place, similarity and error.
 
     Subjects name shapes by ``shape_id``; ``parent_shape_id`` and ``path_shape_ids`` give the
-    tree. Heavy arrays (warped points, correspondences, transforms) are left out unless
-    ``?full=true``; ``/result/subjects/{shape_id}`` always has them.
+    tree. Each subject has ``confidence`` (0 to 1, the estimated probability that its
+    correspondences are right; null when unattached), ``leaf`` (true for a low-confidence
+    leaf: given its best registration after the tree stopped growing, never a parent; its
+    ``reason`` says why) and ``quality`` (the checks of its last registration). Heavy arrays
+    (warped points, correspondences, transforms) are left out unless ``?full=true``;
+    ``/result/subjects/{shape_id}`` always has them. ``summary`` counts over all subjects
+    (``subjects``, ``attached`` with leaves, ``leaves``, ``unattached``), whatever
+    ``min_confidence`` and ``leaf`` list.
     """
 
     model_config = ConfigDict(extra="allow")

@@ -18,7 +18,22 @@ def subjects(doc: Doc) -> list[Mapping[str, Any]]:
 
 
 def is_attached(subject: Mapping[str, Any]) -> bool:
+    """In the tree, with a parent and a registration: low-confidence leaves are too."""
     return bool(subject.get("attached", subject.get("layer") is not None))
+
+
+def is_leaf(subject: Mapping[str, Any]) -> bool:
+    """A low-confidence leaf: the tree could not accept it, so it got its best registration
+    once the tree stopped growing; never a parent."""
+    return bool(subject.get("leaf", False))
+
+
+def confidence(subject: Mapping[str, Any]) -> float | None:
+    """The subject's confidence (0 to 1), or None (unattached, or an older result)."""
+    value = subject.get("confidence")
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if np.isfinite(value) else None
 
 
 def root_id(doc: Doc) -> int:

@@ -12,6 +12,7 @@ from matplotlib.axes import Axes
 from matplotlib.lines import Line2D
 from numpy.typing import ArrayLike, NDArray
 
+from service.plots import _doc
 from service.plots._common import (
     METHOD_LABELS,
     Rendered,
@@ -51,8 +52,20 @@ def _points(value: Any) -> NDArray[np.float64] | None:
 def _panels(subject: Mapping[str, Any], method: str) -> list[dict[str, Any]]:
     panels: list[dict[str, Any]] = []
     warped = _points(subject.get("warped"))
+    confidence = _doc.confidence(subject)
+    leaf = _doc.is_leaf(subject)
     if warped is not None:
         layer = subject.get("layer")
+        title = (
+            f"{method}: layer {layer if layer is not None else '?'}, "
+            f"e = {fmt_e(subject.get('error'))}"
+        )
+        if confidence is not None:
+            title += f", confidence {confidence:.2f}"
+        if leaf:
+            # its reason starts "low-confidence leaf: ..."
+            reason = str(subject.get("reason") or "low-confidence leaf")
+            title += f" — {shorten(reason, 300)}"
         panels.append(
             {
                 "name": "tree",
@@ -61,8 +74,9 @@ def _panels(subject: Mapping[str, Any], method: str) -> list[dict[str, Any]]:
                 "correspondence": subject.get("correspondence"),
                 "error": subject.get("error"),
                 "layer": layer,
-                "title": f"{method}: layer {layer if layer is not None else '?'}, "
-                f"e = {fmt_e(subject.get('error'))}",
+                "leaf": leaf,
+                "confidence": confidence,
+                "title": title,
             }
         )
     else:
@@ -75,6 +89,8 @@ def _panels(subject: Mapping[str, Any], method: str) -> list[dict[str, Any]]:
                 "correspondence": None,
                 "error": None,
                 "layer": None,
+                "leaf": False,
+                "confidence": confidence,
                 "title": f"unattached: {shorten(reason, 300)}",
             }
         )
@@ -88,6 +104,8 @@ def _panels(subject: Mapping[str, Any], method: str) -> list[dict[str, Any]]:
                 "correspondence": direct.get("correspondence"),
                 "error": direct.get("error"),
                 "layer": None,
+                "leaf": False,
+                "confidence": None,
                 "title": f"direct CPD from the model: e = {fmt_e(direct.get('error'))}",
             }
         )
@@ -190,14 +208,16 @@ def render_subject(
         The job's method (``dynamic_tree``, ``static_tree``, ``direct``) or any label, for
         the first panel's title.
 
-    One panel for the tree registration (or, for an unattached subject, the subject alone
-    with the reason), and beside it, with the same axes limits, direct CPD's registration when
+    One panel for the tree registration, titled with its layer, e and confidence (and, for a
+    low-confidence leaf, its reason), or, for an unattached subject, the subject alone
+    with the reason; and beside it, with the same axes limits, direct CPD's registration when
     the subject has a ``direct`` entry. Subject points are grey, the warped model red, the
     correspondence lines green (``COLOURS``); equal aspect, the user's own coordinates.
 
     ``meta``: ``panels`` (per panel ``name`` — "tree", "subject" or "direct" —, ``error``,
-    ``lines``, ``data_to_pixel`` ``[[a, 0, b], [0, c, d]]`` mapping a point to PNG pixel
-    column ``a x + b`` and row ``c y + d``, ``bbox_px`` of the axes, ``slot_px`` of the
+    ``leaf``, ``confidence`` (None for direct), ``lines``, ``data_to_pixel``
+    ``[[a, 0, b], [0, c, d]]`` mapping a point to PNG pixel column ``a x + b`` and row
+    ``c y + d``, ``bbox_px`` of the axes, ``slot_px`` of the
     room the panel was given, and ``title``), ``title`` (the picture's), ``colours``,
     ``y_down``, ``warnings``. A ``title`` is ``text`` (lines joined by newlines),
     ``fontsize``, ``lines``, ``cut`` (ends in "…") and ``bbox_px``; all boxes are
@@ -322,6 +342,8 @@ def render_subject(
                 {
                     "name": panel["name"],
                     "error": panel["error"],
+                    "leaf": panel["leaf"],
+                    "confidence": panel["confidence"],
                     "lines": n,
                     "data_to_pixel": data_to_pixel(fig, ax),
                     "bbox_px": axes_box_pixels(fig, ax),

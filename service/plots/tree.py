@@ -1,4 +1,5 @@
-"""The registration tree: shapes by layer, edges coloured by e, unattached shapes apart."""
+"""The registration tree: shapes by layer, edges coloured by e, low-confidence leaves dashed,
+unattached shapes apart."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from matplotlib import colormaps
 from matplotlib.cm import ScalarMappable
 from matplotlib.collections import LineCollection
 from matplotlib.colors import ListedColormap, LogNorm, Normalize
+from matplotlib.lines import Line2D
 
 from service.plots import _doc
 from service.plots._common import (
@@ -33,9 +35,13 @@ EDGE_CMAP = ListedColormap(
 NODE_COLOUR = "#333333"
 ROOT_COLOUR = "#1f4e79"
 UNATTACHED_COLOUR = "#888888"
+LEAF_COLOUR = "#777777"  # outline and name of a low-confidence leaf
+LEAF_DASH = (0, (3.5, 2.5))  # its edge: dashed, in the colour of its e
+LEAF_LABEL = "low-confidence leaf"
 NAME_LIMIT = 40  # characters of a name drawn; longer names end in "…"
 
 _LEFT_PX, _RIGHT_PX, _TOP_PX, _BOTTOM_PX = 64, 120, 56, 24
+_LEGEND_PX = 14  # room under the title for the legend, when there are leaves
 _WIDE_PX = 2400  # widest default picture with names written across
 _UPRIGHT_SLOT_PX = 30  # room per shape in a row when names are upright
 
@@ -47,6 +53,8 @@ class _Node:
     layer: int
     parent: int | None
     error: float | None
+    leaf: bool = False
+    confidence: float | None = None
     children: list[int] = field(default_factory=list)
     x: float = 0.0
 
@@ -67,6 +75,8 @@ def _build(doc: Mapping[str, Any]) -> tuple[dict[int, _Node], list[tuple[int, st
             err = s.get("error")
             node = _Node(sid, name, int(s["layer"]), _doc.parent_of(s), None)
             node.error = None if err is None else float(err)
+            node.leaf = _doc.is_leaf(s)
+            node.confidence = _doc.confidence(s)
             nodes[sid] = node
             attached.append(node)
         else:
@@ -200,7 +210,11 @@ def render_tree(
     The root (the model) is on top; each row is a layer (the root is layer 1); an edge goes
     from the member a shape was registered from to the shape, coloured by that shape's
     registration error e (colour bar on the right; logarithmic when e spans more than 50x).
-    Shapes no member could register are in a separate box labelled "unattached" below.
+    A low-confidence leaf (a subject the tree could not accept, given its best registration
+    after the tree stopped growing; never a parent) hangs from its parent by a dashed edge,
+    as a hollow grey node with a grey name, and a legend under the title says so (only when
+    there are leaves). Shapes no member could register are in a separate box labelled
+    "unattached" below.
     The layout is tidy (see `_layout`): each parent at the mean x of its children, rows that
     never cross, subtrees packed side by side. Names are written across below their shapes
     when that keeps the picture at most 2400 px wide by default; otherwise (or when a
@@ -208,9 +222,13 @@ def render_tree(
     (``label_rotation`` 270), and the shapes of a row are about 30 px apart.
 
     In SVG the tree is the group ``<g id="tree">`` and the box ``<g id="unattached">``; each
-    name is a ``<text>`` in a group ``node-<shape_id>`` (``unattached-<shape_id>``).
-    ``meta`` holds ``nodes`` (shape_id, name, layer, parent_shape_id, error, x), ``unattached``
-    (shape_id, name), ``depth``, ``norm`` ("log" or "linear"), ``e_range``, ``label_rotation``
+    name is a ``<text>`` in a group ``node-<shape_id>`` (``unattached-<shape_id>``); the
+    edges are ``<g id="edges">`` and the leaves' ``<g id="leaf-edges">``, their nodes
+    ``<g id="leaf-nodes">``, the legend ``<g id="legend">``.
+    ``meta`` holds ``nodes`` (shape_id, name, layer, parent_shape_id, error, leaf,
+    confidence, x), ``leaves`` (their shape ids), ``legend`` (its labels; empty without
+    leaves), ``unattached`` (shape_id, name), ``depth``, ``norm`` ("log" or "linear"),
+    ``e_range``, ``label_rotation``
     (0 or 270), ``label_fontsize``, ``data_to_pixel`` (``[[a, 0, b], [0, c, d]]``: a node at
     ``x`` in row ``y`` is at PNG pixel column ``a x + b``, row ``c y + d``; ``meta["rows"]``
     gives each layer's ``y``) and ``warnings``; ``x`` is in slots, one slot at least between
@@ -257,6 +275,8 @@ def render_tree(
     per_row = max(1, int(axes_w // u_slot))
     u_rows = math.ceil(len(unattached) / per_row) if unattached else 0
     u_box = 34 + 30 * u_rows if unattached else 0
+    leaves = [n for n in nodes.values() if n.leaf and n.parent is not None]
+    top_px = _TOP_PX + (_LEGEND_PX if leaves else 0)
 
     # each row's names hang below it (the model's goes above): a row is as far below the
     # previous one as that row's longest name needs, so short names make short gaps
@@ -282,7 +302,7 @@ def render_tree(
     below = row_label_px[-1] if len(layers) > 1 else label_px
     above = 1.6 * fontsize * dpi / 72 + 14
     tree_px = -row_y[-1] + below + 36
-    fig_h = height or int(min(6000, max(320, _TOP_PX + tree_px + u_box + _BOTTOM_PX + 20)))
+    fig_h = height or int(min(6000, max(320, top_px + tree_px + u_box + _BOTTOM_PX + 20)))
 
     def y_of(node: _Node) -> float:
         return row_y[layer_index[node.layer]]
@@ -291,7 +311,7 @@ def render_tree(
     norm, norm_kind = _edge_norm(errors)
 
     with figure(fig_w, fig_h, dpi) as fig:
-        avail = fig_h - _TOP_PX - _BOTTOM_PX
+        avail = fig_h - top_px - _BOTTOM_PX
         u_h = min(u_box, 0.45 * avail) if unattached else 0
         tree_h = avail - u_h - (16 if unattached else 0)
         ax = fig.add_axes(
@@ -317,34 +337,49 @@ def render_tree(
         for y in row_y:
             ax.axhline(y, color="#eeeeee", lw=0.8, zorder=0)
 
-        segments, colours = [], []
+        # an edge per attached shape, coloured by its e; a leaf's dashed
+        edges: dict[bool, tuple[list[Any], list[float]]] = {False: ([], []), True: ([], [])}
         for node in nodes.values():
             if node.parent is None:
                 continue
             parent = nodes[node.parent]
+            segments, colours = edges[node.leaf]
             segments.append([(parent.x, row_y[layer_index[parent.layer]]), (node.x, y_of(node))])
-            colours.append(node.error)
-        if segments:
+            colours.append(np.nan if node.error is None else node.error)
+        segments = edges[False][0] + edges[True][0]
+        for dashed, gid in ((False, "edges"), (True, "leaf-edges")):
+            if not edges[dashed][0]:
+                continue
             lc = LineCollection(
-                segments,
+                edges[dashed][0],
                 cmap=EDGE_CMAP,
                 norm=norm,
-                linewidths=2.2,
+                linewidths=1.8 if dashed else 2.2,
+                linestyles=LEAF_DASH if dashed else "solid",
                 zorder=1,
                 colors=None,
             )
-            lc.set_array(np.asarray([c if c is not None else np.nan for c in colours]))
-            lc.set_gid("edges")
+            lc.set_array(np.asarray(edges[dashed][1], dtype=float))
+            lc.set_gid(gid)
             ax.add_collection(lc)
 
         xs = np.asarray([n.x for n in nodes.values()])
         ys = np.asarray([y_of(n) for n in nodes.values()])
         is_root = np.asarray([n.parent is None for n in nodes.values()])
+        leaf_mask = np.asarray([n.leaf and n.parent is not None for n in nodes.values()])
+        member = ~is_root & ~leaf_mask
         marker_s = float(np.clip(0.25 * slot_px, 12, 60))
         ax.scatter(
-            xs[~is_root], ys[~is_root], s=marker_s, facecolor="white",
+            xs[member], ys[member], s=marker_s, facecolor="white",
             edgecolor=NODE_COLOUR, linewidths=1.2, zorder=2,
         )  # fmt: skip
+        if leaf_mask.any():
+            # hollow: the dashed edge shows through
+            leaf_nodes = ax.scatter(
+                xs[leaf_mask], ys[leaf_mask], s=marker_s, facecolor="none",
+                edgecolor=LEAF_COLOUR, linewidths=1.2, zorder=2,
+            )  # fmt: skip
+            leaf_nodes.set_gid("leaf-nodes")
         ax.scatter(
             xs[is_root], ys[is_root], s=marker_s * 1.8, marker="s", color=ROOT_COLOUR, zorder=2
         )
@@ -376,8 +411,9 @@ def render_tree(
                 textcoords="offset points",
                 rotation=0 if is_model else rotation,
                 fontsize=fontsize,
-                color=ROOT_COLOUR if is_model else "#111111",
+                color=ROOT_COLOUR if is_model else LEAF_COLOUR if node.leaf else "#111111",
                 fontweight="bold" if is_model else "normal",
+                fontstyle="italic" if node.leaf and not is_model else "normal",
                 annotation_clip=False,
                 parse_math=False,  # a name is shown as written, "$" and all
                 bbox={"boxstyle": "square,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.85},
@@ -413,7 +449,7 @@ def render_tree(
                 spine.set_linestyle((0, (4, 3)))
                 spine.set_color(UNATTACHED_COLOUR)
             uax.set_title(
-                f"unattached ({len(unattached)}): no member registered them within the thresholds",
+                f"unattached ({len(unattached)}): no member gave them a usable registration",
                 loc="left",
                 fontsize=9,
                 color="#555555",
@@ -428,12 +464,41 @@ def render_tree(
                 )  # fmt: skip
                 t.set_gid(f"unattached-{sid}")
 
+        legend_labels: list[str] = []
+        if leaves:
+            handles = [
+                Line2D(
+                    [], [], color="#777777", lw=2.2, marker="o", markersize=6,
+                    markerfacecolor="white", markeredgecolor=NODE_COLOUR, label="tree member",
+                ),
+                Line2D(
+                    [], [], color="#777777", lw=1.8, ls=LEAF_DASH, marker="o", markersize=6,
+                    markerfacecolor="none", markeredgecolor=LEAF_COLOUR,
+                    label=f"{LEAF_LABEL} (never a parent)",
+                ),
+            ]  # fmt: skip
+            legend = fig.legend(
+                handles=handles,
+                loc="upper left",
+                bbox_to_anchor=(_LEFT_PX / fig_w, 1 - 34 / fig_h),
+                ncols=2,
+                frameon=False,
+                fontsize=8,
+                handlelength=3.2,
+                borderaxespad=0.0,
+                borderpad=0.0,
+                columnspacing=1.6,
+            )
+            legend.set_gid("legend")
+            legend_labels = [str(h.get_label()) for h in handles]
+
         n_subjects = len(nodes) - 1 + len(unattached)
+        as_leaves = f" ({len(leaves)} as leaves)" if leaves else ""
         fig.suptitle(
             title
             or (
                 f"job {result.get('job_id', '?')}: {method_label(result)} — "
-                f"{len(nodes) - 1} of {n_subjects} subjects attached, depth {depth}"
+                f"{len(nodes) - 1} of {n_subjects} subjects attached{as_leaves}, depth {depth}"
             ),
             x=_LEFT_PX / fig_w,
             y=1 - 14 / fig_h,
@@ -450,10 +515,14 @@ def render_tree(
                     "layer": n.layer,
                     "parent_shape_id": n.parent,
                     "error": n.error,
+                    "leaf": n.leaf,
+                    "confidence": n.confidence,
                     "x": n.x,
                 }
                 for n in nodes.values()
             ],
+            "leaves": [n.shape_id for n in leaves],
+            "legend": legend_labels,
             "unattached": [{"shape_id": sid, "name": name} for sid, name in unattached],
             "depth": depth,
             "norm": norm_kind,

@@ -45,6 +45,7 @@
     fromTree: false,       // the selection was made by clicking the tree (no zoom to it)
     selected: null,        // selected shape id
     sort: { key: "shape_id", dir: 1 },
+    filter: { show: "all", minConfidence: null },  // which subjects the table lists
     jobTimer: null,
     listTimer: null,
     needKey: false,
@@ -402,6 +403,10 @@
     if (r && r.summary) {
       const s = r.summary;
       if (s.attached !== undefined) items.push(fact("attached", `${s.attached} of ${s.subjects}`));
+      if (s.leaves) {
+        items.push(fact("low-confidence leaves", String(s.leaves),
+          "attached shapes the tree could not accept: each got its best registration, as a leaf (never a parent)"));
+      }
       if (s.depth !== undefined) items.push(fact("depth", String(s.depth)));
       if (s.all) items.push(fact("mean e, tree", fmtNum(s.all.mean)));
       if (s.direct && s.direct.all) items.push(fact("mean e, direct", fmtNum(s.direct.all.mean)));
@@ -763,7 +768,9 @@
       const up = shapeId === rootId ? 3 : 11;
       const down = shapeId === rootId ? 11 : 3;
       const area = { x: box.x - 3, y: box.y - up, width: box.width + 6, height: box.height + up + down };
+      const subject = state.subjectsById.get(shapeId);
       g.classList.add("rt-node");
+      if (subject && isLeaf(subject)) g.classList.add("rt-leaf");
       g.setAttribute("data-shape-id", String(shapeId));
       g.setAttribute("tabindex", "0");
       g.setAttribute("role", "button");
@@ -777,7 +784,9 @@
       hit.setAttribute("class", "rt-hit");
       g.insertBefore(hit, g.firstChild);
       const title = document.createElementNS(ns, "title");
-      title.textContent = `${nameOf(shapeId)} (shape ${shapeId})`;
+      title.textContent = `${nameOf(shapeId)} (shape ${shapeId})`
+        + (subject && isLeaf(subject) ? ", low-confidence leaf" : "")
+        + (subject && hasNumber(subject.confidence) ? `, confidence ${subject.confidence.toFixed(2)}` : "");
       g.append(title);
       tv.nodes.set(shapeId, { g, box: area });
     }
@@ -891,7 +900,16 @@
   }
 
   // --- unattached shapes, as buttons under the tree --------------------------------------------
+  // a low-confidence leaf is attached (it has a parent and a registration) but is no tree member
   const isAttached = (s) => s.attached !== false && s.layer !== null && s.layer !== undefined;
+  const isLeaf = (s) => s.leaf === true;
+  const hasNumber = (v) => typeof v === "number" && Number.isFinite(v);
+  const STATUS = { tree: "tree member", leaf: "low-confidence leaf", unattached: "unattached" };
+  const statusOf = (s) => (isLeaf(s) ? "leaf" : isAttached(s) ? "tree" : "unattached");
+  const statusBadgeOf = (s) => {
+    const status = statusOf(s);
+    return el("span", { class: `badge ${status}`, "data-status": status, text: STATUS[status] });
+  };
 
   function renderUnattached() {
     const section = $("ui-unattached");
@@ -924,7 +942,8 @@
     if (!r) return [];
     const out = [{ id: r.root_shape_id, name: nameOf(r.root_shape_id), where: "model" }];
     for (const s of r.subjects) {
-      out.push({ id: s.shape_id, name: s.name || `#${s.shape_id}`, where: isAttached(s) ? `layer ${s.layer}` : "unattached" });
+      const where = isAttached(s) ? `layer ${s.layer}${isLeaf(s) ? " · leaf" : ""}` : "unattached";
+      out.push({ id: s.shape_id, name: s.name || `#${s.shape_id}`, where });
     }
     return out;
   }
@@ -1054,13 +1073,24 @@
   // --- subjects table -------------------------------------------------------------------------
   function sortValue(s, key) {
     if (key === "parent") return s.parent_shape_id === null || s.parent_shape_id === undefined ? "" : nameOf(s.parent_shape_id);
+    if (key === "status") return ["tree", "leaf", "unattached"].indexOf(statusOf(s));
     const v = s[key];
     return v === null || v === undefined ? null : v;
   }
 
+  // the subjects the table's filter lets through
+  function shownSubjects() {
+    const { show, minConfidence } = state.filter;
+    return state.result.subjects.filter((s) => (show === "all" || statusOf(s) === show)
+      && (minConfidence === null || (hasNumber(s.confidence) && s.confidence >= minConfidence)));
+  }
+
   function renderTable() {
     const { key, dir } = state.sort;
-    const rows = [...state.result.subjects].sort((a, b) => {
+    const shown = shownSubjects();
+    const total = state.result.subjects.length;
+    $("ui-subjects-count").textContent = shown.length === total ? `${total} subjects` : `${shown.length} of ${total} subjects`;
+    const rows = shown.sort((a, b) => {
       const va = sortValue(a, key);
       const vb = sortValue(b, key);
       if (va === null && vb === null) return a.shape_id - b.shape_id;
@@ -1072,10 +1102,12 @@
     });
     const body = $("ui-subjects").tBodies[0];
     body.replaceChildren(...rows.map((s) => {
-      const attached = s.attached !== false && s.layer !== null && s.layer !== undefined;
+      const attached = isAttached(s);
       const tr = el("tr", {
         "data-shape-id": String(s.shape_id),
-        class: [attached ? "" : "unattached", s.shape_id === state.selected ? "selected" : ""].join(" ").trim(),
+        "data-status": statusOf(s),
+        class: [attached ? "" : "unattached", isLeaf(s) ? "leaf" : "", s.shape_id === state.selected ? "selected" : ""].join(" ").trim(),
+        title: isLeaf(s) && s.reason ? s.reason : null,
       },
       el("td", { class: "num", text: String(s.shape_id) }),
       el("td", { text: s.name || "" }),
@@ -1083,7 +1115,9 @@
       el("td", { text: s.parent_shape_id === null || s.parent_shape_id === undefined ? "–" : nameOf(s.parent_shape_id) }),
       el("td", { class: "num", text: fmtNum(s.similarity) }),
       el("td", { class: "num", text: fmtNum(s.error) }),
-      el("td", { class: "num", text: fmtNum(s.direct_error) }));
+      el("td", { class: "num", text: fmtNum(s.direct_error) }),
+      el("td", { class: "num", text: hasNumber(s.confidence) ? s.confidence.toFixed(2) : "–" }),
+      el("td", { class: "status-cell" }, statusBadgeOf(s)));
       tr.addEventListener("click", () => go(`#/jobs/${state.job.id}/subjects/${s.shape_id}`));
       return tr;
     }));
@@ -1097,10 +1131,23 @@
     for (const th of $("ui-subjects").tHead.rows[0].cells) {
       th.addEventListener("click", () => {
         const key = th.dataset.sort;
+        // confidence: the least confident first, the ones to look at
         state.sort = { key, dir: state.sort.key === key ? -state.sort.dir : 1 };
         if (state.result) renderTable();
       });
     }
+    $("ui-subjects-show").addEventListener("change", (event) => {
+      state.filter.show = event.target.value;
+      if (state.result) renderTable();
+    });
+    $("ui-subjects-min-confidence").addEventListener("input", (event) => {
+      const text = event.target.value.trim();
+      const value = text === "" ? null : Number(text);
+      const ok = value === null || (Number.isFinite(value) && value >= 0 && value <= 1);
+      event.target.setCustomValidity(ok ? "" : "a number from 0 to 1");
+      state.filter.minConfidence = ok ? value : null;
+      if (state.result) renderTable();
+    });
   }
 
   // --- a subject ------------------------------------------------------------------------------
@@ -1162,7 +1209,7 @@
       overlayStatus.textContent = "";
       return;
     }
-    const attached = s.attached !== false && s.layer !== null && s.layer !== undefined;
+    const attached = isAttached(s);
     title.textContent = s.name || `Shape ${shapeId}`;
     const parent = s.parent_shape_id;
     const parentValue = parent === null || parent === undefined
@@ -1184,7 +1231,10 @@
       number("parent", parentValue, "parent"),
       number("D", fmtNum(s.similarity), "similarity", "shape difference D to the parent (similarity distance)"),
       number("e", fmtNum(s.error), "error", "registration error e (eq. 10) through the tree"),
-      number("direct e", directValue, "direct_error", "e of direct CPD from the model"));
+      number("direct e", directValue, "direct_error", "e of direct CPD from the model"),
+      number("confidence", hasNumber(s.confidence) ? s.confidence.toFixed(2) : "–", "confidence",
+        "estimated probability that the correspondences are right (the weakest registration on the path from the model)"),
+      number("status", statusBadgeOf(s), "status"));
     const path = s.path_shape_ids && s.path_shape_ids.length > 2
       ? ` Path: ${s.path_shape_ids.map(nameOf).join(" → ")}.`
       : "";
@@ -1204,9 +1254,9 @@
     status.textContent = "drawing…";
     const box = $("ui-subject");
     // as wide as the card, but not so narrow that the panels' titles run into each other
-    // (an unattached subject's title is its reason, a long one); the <img> scales down
+    // (an unattached subject's or a leaf's title has its reason, a long one); the <img> scales down
     const s = state.subjectsById.get(shapeId);
-    const least = s && s.attached === false ? 1100 : 700;
+    const least = s && (s.attached === false || isLeaf(s)) ? 1100 : 700;
     const px = Math.max(least, Math.min(1600, Math.round((box.clientWidth * (window.devicePixelRatio || 1)) / 100) * 100));
     const ydir = $("ui-ydir").value;
     const query = `?width=${px}` + (ydir ? `&y_down=${ydir}` : "");

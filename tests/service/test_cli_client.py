@@ -228,7 +228,8 @@ def test_failures_exit_codes(service: Service, tmp_path: Path) -> None:
     # usage: exit 2 (argparse, and what the CLI checks before asking the service)
     for args in (
         ["watch", "abc"],
-        ["results", "1"],
+        ["results", "1", "--sort", "name"],
+        ["results", "1", "--min-confidence", "1.5"],
         ["run", "--collection", "c", "--model", "m", "--method", "nope"],
         ["run", "--collection", "c", "--model", "m", "--similarity-threshold", "-1"],
         ["upload", str(tmp_path), "--collection", "c", "--target-points", "0"],

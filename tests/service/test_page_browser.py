@@ -247,3 +247,67 @@ def test_results_page_end_to_end(
     expect(page.locator("#ui-key-form")).to_be_hidden()
 
     assert browser.errors == []
+
+
+def test_results_page_confidence_and_leaves(
+    browser: Browser, make_service: Callable[..., Service]
+) -> None:
+    """A job whose every subject is a low-confidence leaf (a tiny error threshold): the page
+    marks them in the tree, the table and the subject card, and sorts and filters by
+    confidence."""
+    from playwright.sync_api import expect
+
+    page = browser.page
+    svc = make_service(workers=1).start()
+    with svc.client() as client:
+        collection_id = create_collection(client, "leaves")
+        ids = upload_family(client, collection_id, family(n_chains=2, chain_length=3))
+        job_id = submit_job(client, collection_id, ids[0], error_threshold=1e-9)["id"]
+        assert wait_job(client, job_id)["status"] == "succeeded"
+        result = client.get(f"/v1/jobs/{job_id}/result").json()
+    subjects = result["subjects"]
+    assert subjects and all(s["leaf"] for s in subjects)
+
+    page.goto(f"{svc.base_url}/ui#/jobs/{job_id}")
+    rows = page.locator("#ui-subjects tbody tr")
+    expect(rows).to_have_count(len(subjects))
+    expect(page.locator("#ui-subjects tbody tr.leaf")).to_have_count(len(subjects))
+    expect(page.locator("#ui-subjects tbody .badge.leaf").first).to_have_text("low-confidence leaf")
+    expect(page.locator("#ui-job-facts")).to_contain_text("low-confidence leaves")
+    # leaves are in the tree (attached), marked
+    expect(page.locator("#ui-tree-svg g.rt-node.rt-leaf")).to_have_count(len(subjects))
+    expect(page.locator("#ui-tree-svg g#leaf-edges")).to_have_count(1)
+    expect(page.locator("#ui-unattached")).to_be_hidden()
+
+    # sorted by confidence: a click on its header, the least confident first
+    page.click("#ui-subjects th[data-sort='confidence']")
+    shown = [float(t) for t in rows.locator("td:nth-child(8)").all_inner_texts()]
+    assert shown == sorted(shown) and len(shown) == len(subjects)
+    assert shown == pytest.approx(sorted(s["confidence"] for s in subjects), abs=0.006)
+
+    # filtered: at least a confidence, then by status
+    threshold = sorted(s["confidence"] for s in subjects)[3]
+    expected = sum(1 for s in subjects if s["confidence"] >= round(threshold, 2))
+    page.fill("#ui-subjects-min-confidence", f"{round(threshold, 2)}")
+    expect(rows).to_have_count(expected)
+    expect(page.locator("#ui-subjects-count")).to_have_text(
+        f"{expected} of {len(subjects)} subjects"
+    )
+    page.fill("#ui-subjects-min-confidence", "")
+    page.select_option("#ui-subjects-show", "tree")
+    expect(rows).to_have_count(0)
+    page.select_option("#ui-subjects-show", "leaf")
+    expect(rows).to_have_count(len(subjects))
+
+    # a leaf's card: its confidence, its status and its reason
+    leaf = min(subjects, key=lambda s: s["confidence"])
+    page.click(f"#ui-subjects tr[data-shape-id='{leaf['shape_id']}']")
+    numbers = page.locator("#ui-subject-numbers")
+    expect(numbers.locator("[data-field=status]")).to_have_text("low-confidence leaf")
+    shown_confidence = float(numbers.locator("[data-field=confidence]").inner_text())
+    assert shown_confidence == pytest.approx(leaf["confidence"], abs=0.006)
+    expect(page.locator("#ui-subject-reason")).to_contain_text("low-confidence leaf")
+    overlay = page.locator(f"#ui-overlay[data-shape-id='{leaf['shape_id']}']")
+    expect(overlay).to_be_visible(timeout=60_000)
+    assert overlay.evaluate("img => img.naturalWidth") >= 1100  # room for the reason
+    assert browser.errors == []

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from collections.abc import Mapping, Sequence
+from typing import Annotated, Any, Literal, get_args
 
 import numpy as np
 from fastapi import APIRouter, Query, Request, Response, status
@@ -251,11 +252,76 @@ def _succeeded_job(session: Session, job_id: int) -> Job:
     return job
 
 
+#: ``sort`` of ``GET /v1/jobs/{id}/result``: a key, descending with a leading "-".
+SubjectSort = Literal["position", "confidence", "-confidence", "error", "-error"]
+SUBJECT_SORTS: tuple[str, ...] = get_args(SubjectSort)
+
+
+def _number(value: Any) -> float | None:
+    """A subject's number for sorting and filtering: None unless a finite int or float."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if np.isfinite(value) else None
+
+
+def select_subjects(
+    subjects: Sequence[Mapping[str, Any]],
+    *,
+    sort: str = "position",
+    min_confidence: float | None = None,
+    leaf: bool | None = None,
+) -> list[Mapping[str, Any]]:
+    """The subjects a result request asks for, in the order it asks for.
+
+    ``min_confidence`` keeps subjects whose ``confidence`` is at least that (a subject
+    without one, e.g. unattached, is left out); ``leaf`` keeps only low-confidence leaves
+    (True) or only the others (False). ``sort`` orders by ``position`` (the job's input
+    order, as stored), or by ``confidence`` / ``error``, ascending, or descending with a
+    leading "-"; subjects without that value come last either way, and ties keep their
+    position order.
+    """
+    if sort not in SUBJECT_SORTS:
+        raise ValueError(f"sort must be one of {', '.join(SUBJECT_SORTS)}; got {sort!r}")
+    chosen = [s for s in subjects if isinstance(s, Mapping)]
+    if leaf is not None:
+        chosen = [s for s in chosen if bool(s.get("leaf", False)) is leaf]
+    if min_confidence is not None:
+        chosen = [
+            s
+            for s in chosen
+            if (c := _number(s.get("confidence"))) is not None and c >= min_confidence
+        ]
+    if sort == "position":
+        return chosen
+    key = sort.removeprefix("-")
+    sign = -1.0 if sort.startswith("-") else 1.0
+
+    def order(item: tuple[int, Mapping[str, Any]]) -> tuple[int, float, int]:
+        k, s = item
+        value = _number(s.get(key))
+        return (1, 0.0, k) if value is None else (0, sign * value, k)
+
+    return [s for _, s in sorted(enumerate(chosen), key=order)]
+
+
+RESULT_DESCRIPTION = (
+    "The tree and, per subject, its place (layer, parent, path), similarity D, error e, "
+    "confidence (the estimated probability, 0 to 1, that its correspondences are right; null "
+    "for an unattached subject), whether it is a low-confidence leaf (a subject the tree "
+    "could not accept, given its best registration once the tree stopped growing; never a "
+    "parent; its reason says why), and quality (the checks of its last registration). "
+    "The summary counts subjects, attached ones (leaves included), leaves and unattached "
+    "ones over the whole result, whatever the subjects are filtered by. "
+    "min_confidence, leaf and sort choose and order the subjects listed."
+)
+
+
 @router.get(
     "/{job_id}/result",
     response_model=ResultOut,
-    responses=problem_responses(404, 409),
+    responses=problem_responses(404, 409, 422),
     summary="Read a job's result",
+    description=RESULT_DESCRIPTION,
 )
 def get_result(
     job_id: DbInt,
@@ -263,6 +329,31 @@ def get_result(
     full: Annotated[
         bool, Query(description="Include warped points, correspondences and transforms.")
     ] = False,
+    min_confidence: Annotated[
+        float | None,
+        Query(
+            ge=0,
+            le=1,
+            description="List only subjects whose confidence is at least this (0 to 1). "
+            "Subjects without a confidence (unattached ones) are left out when it is given.",
+        ),
+    ] = None,
+    leaf: Annotated[
+        bool | None,
+        Query(
+            description="true: list only low-confidence leaves; false: only the other "
+            "subjects (tree members and unattached ones). Not given: all."
+        ),
+    ] = None,
+    sort: Annotated[
+        SubjectSort,
+        Query(
+            description="Order of the subjects: position (the default: the order of the "
+            "job's shapes), confidence or error ascending, -confidence or -error descending. "
+            "Subjects without that value (unattached ones) come last either way; ties keep "
+            "the position order."
+        ),
+    ] = "position",
 ) -> dict[str, Any]:
     with db.read() as session:
         _succeeded_job(session, job_id)
@@ -277,6 +368,9 @@ def get_result(
                 .order_by(ResultSubject.position)
             ).all()
             document["subjects"] = [r.document for r in rows]
+    document["subjects"] = select_subjects(
+        document.get("subjects") or [], sort=sort, min_confidence=min_confidence, leaf=leaf
+    )
     return document
 
 

@@ -31,7 +31,7 @@ router = APIRouter(prefix="/jobs", tags=["pictures"])
 logger = logging.getLogger("regtree.pictures")
 
 #: Bump when a picture changes for the same input, so clients do not keep a stale copy.
-RENDER_VERSION = "2"
+RENDER_VERSION = "3"
 
 
 WidthQuery = Annotated[
@@ -123,7 +123,8 @@ def _tree(job_id: int, fmt: str, width: int | None, request: Request, db: DbDep)
     responses=_image_responses("image/svg+xml", 404, 409, 422),
     summary="The registration tree as SVG",
     description="Shapes by layer (the model on top), edges coloured by the child's error e, "
-    "shapes no member could register in a box apart. Each shape's name is a `<text>` in a "
+    "low-confidence leaves on a dashed edge as hollow grey nodes (with a legend), shapes no "
+    "member could register in a box apart. Each shape's name is a `<text>` in a "
     'group `<g id="node-<shape_id>">` (`unattached-<shape_id>` in the box), so a page can '
     "make the nodes clickable.",
 )
@@ -166,7 +167,8 @@ def summary_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = 
     responses=_image_responses("image/png", 404, 409, 410, 422),
     summary="A subject with the model warped onto it",
     description="The subject's points (grey), the model warped onto it through the tree (red) "
-    "and a sample of correspondence lines (green); beside it, on the same axes, direct CPD's "
+    "and a sample of correspondence lines (green), titled with its layer, e and confidence "
+    "(and a low-confidence leaf's reason); beside it, on the same axes, direct CPD's "
     "registration when the job computed it. An unattached subject is drawn alone with the "
     "reason. 410 when the subject's shape was deleted after the job ran.",
 )
