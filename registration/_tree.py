@@ -605,9 +605,10 @@ def _attach_leaves(
     When the tree stops growing, each waiting subject is registered from the root and
     from its most similar members not yet tried (up to `max_candidates`); with the
     registrations rejected while the tree grew, the one with the highest confidence
-    (then the lowest e) that does not fold is kept. The subject is attached as a leaf:
-    never a parent, its confidence and the reason it was not accepted reported. It stays
-    unattached only when every registration folds.
+    (then the lowest e) that does not fold is kept; when every one folds, the one with
+    the lowest e (its confidence is 0). The subject is attached as a leaf: never a
+    parent, its confidence and the reason it was not accepted reported. It stays
+    unattached only when no registration could be run.
     """
     pairs = [(m, s) for s in waiting for m in nodes
              if (m, s) not in tried and (allowed is None or (m, s) in allowed)]
@@ -632,17 +633,19 @@ def _attach_leaves(
         pool = rejected.get(s, [])
         usable = [o for o in pool if o.min_jacobian > 0]
         r = results[s]
-        if not usable:
-            r.reason = (
-                f"unattached: all {len(pool)} registrations fold the model" if pool
-                else "unattached: no registration could be tried"
-            )
+        if not pool:
+            r.reason = "unattached: no registration could be tried"
             continue
-        best = max(usable, key=lambda o: (
-            min(nodes[o.member].confidence, o.quality.confidence), -o.error))
+        if usable:
+            best = max(usable, key=lambda o: (
+                min(nodes[o.member].confidence, o.quality.confidence), -o.error))
+        else:  # every one folds somewhere: the closest fit, with confidence 0, says so
+            best = min(pool, key=lambda o: o.error)
         parent = nodes[best.member]
         res, _ = _subject_from_outcome(coll, best, parent, layer=parent.layer + 1, leaf=True)
         why = next((a.reason for a in reversed(r.attempts) if a.member == best.member), None)
+        if not usable:
+            why = f"every one of the {len(pool)} registrations folds the model somewhere"
         res.attempts = r.attempts
         res.reason = (
             f"low-confidence leaf: best of {len(pool)} registrations, from "

@@ -287,3 +287,25 @@ def test_refinement_can_be_turned_off(family):
     res = build_dynamic_tree(family.shapes[:8], 0, cpd=FAST_CPD, refine=False,
                              executor=SerialExecutor())
     assert not any("refine" in a.reason for s in res.subjects for a in s.attempts)
+
+
+def test_when_every_registration_folds_the_closest_fit_is_a_zero_confidence_leaf(
+    family, monkeypatch
+):
+    import dataclasses
+
+    import registration._tree as tree_module
+
+    real = tree_module._register_task
+
+    def folding(task):
+        out = real(task)
+        quality = dataclasses.replace(out.quality, min_jacobian=-1.0)
+        return dataclasses.replace(out, min_jacobian=-1.0, quality=quality)
+
+    monkeypatch.setattr(tree_module, "_register_task", folding)
+    res = build_dynamic_tree(family.shapes[:4], 0, cpd=FAST_CPD, executor=SerialExecutor())
+    for s in res.subjects:
+        assert s.leaf and s.parent == 0 and s.confidence == 0.0
+        assert "folds the model" in s.reason
+        assert s.error == min(a.error for a in s.attempts)
