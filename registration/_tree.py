@@ -604,9 +604,10 @@ def _attach_leaves(
 
     When the tree stops growing, each waiting subject is registered from the root and
     from its most similar members not yet tried (up to `max_candidates`); with the
-    registrations rejected while the tree grew, the one with the highest confidence
-    (then the lowest e) that does not fold is kept; when every one folds, the one with
-    the lowest e (its confidence is 0). The subject is attached as a leaf: never a
+    registrations rejected while the tree grew, the one with the highest path confidence
+    (then the lowest e) that does not fold is kept; when all fold, the best by the
+    confidence model with the fold set aside (a leaf is never a parent, so a local fold
+    does not spread), reporting confidence 0. The subject is attached as a leaf: never a
     parent, its confidence and the reason it was not accepted reported. It stays
     unattached only when no registration could be run.
     """
@@ -636,16 +637,18 @@ def _attach_leaves(
         if not pool:
             r.reason = "unattached: no registration could be tried"
             continue
-        if usable:
-            best = max(usable, key=lambda o: (
-                min(nodes[o.member].confidence, o.quality.confidence), -o.error))
-        else:  # every one folds somewhere: the closest fit, with confidence 0, says so
-            best = min(pool, key=lambda o: o.error)
+        # unfolded first; among those that all fold, by the confidence model's estimate
+        # with the fold set aside (a leaf is never a parent: a local fold does not spread)
+        best = max(pool, key=lambda o: (
+            o.min_jacobian > 0, min(nodes[o.member].confidence, o.quality.fit_confidence),
+            -o.error))
         parent = nodes[best.member]
         res, _ = _subject_from_outcome(coll, best, parent, layer=parent.layer + 1, leaf=True)
         why = next((a.reason for a in reversed(r.attempts) if a.member == best.member), None)
-        if not usable:
-            why = f"every one of the {len(pool)} registrations folds the model somewhere"
+        if not best.min_jacobian > 0:
+            why = (f"its warp folds the model locally (min Jacobian determinant "
+                   f"{best.min_jacobian:.3g}): confidence 0; {len(usable)} of the {len(pool)} "
+                   "registrations tried do not fold")
         res.attempts = r.attempts
         res.reason = (
             f"low-confidence leaf: best of {len(pool)} registrations, from "

@@ -289,7 +289,7 @@ def test_refinement_can_be_turned_off(family):
     assert not any("refine" in a.reason for s in res.subjects for a in s.attempts)
 
 
-def test_when_every_registration_folds_the_closest_fit_is_a_zero_confidence_leaf(
+def test_when_every_registration_folds_the_best_is_still_given_with_confidence_zero(
     family, monkeypatch
 ):
     import dataclasses
@@ -307,5 +307,4 @@ def test_when_every_registration_folds_the_closest_fit_is_a_zero_confidence_leaf
     res = build_dynamic_tree(family.shapes[:4], 0, cpd=FAST_CPD, executor=SerialExecutor())
     for s in res.subjects:
         assert s.leaf and s.parent == 0 and s.confidence == 0.0
-        assert "folds the model" in s.reason
-        assert s.error == min(a.error for a in s.attempts)
+        assert "folds the model locally" in s.reason and s.warped is not None
