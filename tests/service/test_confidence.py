@@ -35,8 +35,6 @@ from tests.service.conftest import (
 from tests.service.test_cli_client import regtree
 from tests.service.test_plots import SVG, document_subject, handmade, svg_group, svg_texts
 
-pytest.importorskip("registration._tree", reason="the registration library has not landed")
-
 LEAF_REASON = "low-confidence leaf: best of 2 registrations, from b; not accepted (e >= 1e-9)"
 
 
