@@ -151,7 +151,7 @@ class _RegOutcome:
     correspondence: IntArray
     probability: FloatArray
     steps: tuple[PointTransform, ...]
-    pose: str  # which start was kept: "as given", "rotated" or "none" (no pre-alignment)
+    pose: str  # which start was kept: "as given", "rotated" or "plain" (prealign=False)
     pose_angle: float  # rotation of the pre-alignment, degrees (0 without one)
     pose_errors: dict[str, float]  # e reached from every start tried
     quality: RegistrationQuality
@@ -552,11 +552,14 @@ def _refine_parents(
             y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd, prealign=prealign,
             pose=pose, spacing2=coll.spacing2[s],
         ))
+    moved: set[int] = set()
     for out in sorted(_run_tasks(tasks, executor, progress, "refine"), key=lambda o: o.subject):
         s = out.subject
         old = results[s]
-        if s in parents or s in nodes[out.member].chain.path:
-            continue  # a move earlier in this pass made it a parent, or put it above m
+        if s in parents or out.member in moved or s in nodes[out.member].chain.path:
+            # a move earlier in this pass made s a parent, moved m (this registration
+            # started from m's former warped model), or put s above m
+            continue
         limit = math.inf if tau_err is None else (
             tau_err if explicit_error else max(tau_err, floors[s]))
         parent = nodes[out.member]
@@ -582,6 +585,7 @@ def _refine_parents(
         results[s] = res
         nodes[s] = node
         parents.add(out.member)
+        moved.add(s)
 
 
 def _attach_leaves(
@@ -830,13 +834,16 @@ def build_dynamic_tree(
             waiting.discard(s)
             new_frontier.append(s)
         frontier = new_frontier
+    # leaves first: they may reuse registrations made while the tree grew, which start
+    # from their member's warped model as it was then; refinement then moves no member
+    # that has a child, leaves included, so every chain stays the one it was built on
+    if waiting:
+        _attach_leaves(coll, sim, nodes, results, waiting, rejected, tried, allowed, cpd,
+                       prealign, spec, max_candidates, executor, progress)
     if refine:
         _refine_parents(coll, sim, sim_rule, nodes, results, tried, tau_err, floors,
                         error_threshold is not None, fold_check, cpd, prealign, spec, executor,
                         progress)
-    if waiting:
-        _attach_leaves(coll, sim, nodes, results, waiting, rejected, tried, allowed, cpd,
-                       prealign, spec, max_candidates, executor, progress)
     out_subjects = [results[s] for s in subjects_idx]
     direct = (
         _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None

@@ -269,7 +269,7 @@ def test_cpd_options_reject_an_unknown_dtype():
         CPDOptions(dtype="float16")
 
 
-def test_tree_paths_stay_consistent_after_refinement(dynamic):
+def test_tree_paths_stay_consistent_after_refinement(dynamic, family):
     # every subject's path starts at the root, has no repeated shape, ends with its
     # parent, and runs through its parent's own path: no cycles, no stale chains
     by_index = {s.index: s for s in dynamic.subjects}
@@ -279,6 +279,9 @@ def test_tree_paths_stay_consistent_after_refinement(dynamic):
         if s.parent != dynamic.root:
             assert by_index[s.parent].path == s.path[:-1]
             assert not by_index[s.parent].leaf  # leaves are never parents
+        # the chain reproduces the registration it was built from
+        np.testing.assert_allclose(dynamic.transform_for(s.index).apply(family.shapes[0]),
+                                   s.warped, atol=1e-6 * 500)
     refined = [a for s in dynamic.subjects for a in s.attempts if "refine" in a.reason]
     assert all(a.accepted == a.reason.startswith("refined:") for a in refined)
 
@@ -308,3 +311,19 @@ def test_when_every_registration_folds_the_best_is_still_given_with_confidence_z
     for s in res.subjects:
         assert s.leaf and s.parent == 0 and s.confidence == 0.0
         assert "folds the model locally" in s.reason and s.warped is not None
+
+
+def test_every_chain_reproduces_its_registration_with_leaves_and_refinement():
+    # leaves reuse registrations made while the tree grew; a member that refinement
+    # moved afterwards used to leave its leaf with a chain through the new path and a
+    # warped model from the old one (this family and threshold did, before the fix)
+    from registration.synthetic import base_outline, deformation_chains
+
+    fam = deformation_chains(base_outline(1500), n_chains=3, chain_length=4, n_points=120,
+                             step=0.15, seed=0)
+    res = build_dynamic_tree(fam.shapes, 0, error_threshold=2e-3, cpd=FAST_CPD,
+                             executor=SerialExecutor())
+    assert res.summary()["leaves"] > 0
+    for s in res.subjects:
+        np.testing.assert_allclose(res.transform_for(s.index).apply(fam.shapes[0]), s.warped,
+                                   atol=1e-6)
