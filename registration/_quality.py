@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from ._transform import PointTransform
+from ._transform import PointTransform, jacobian_matrices
 
 FloatArray = NDArray[np.float64]
 
@@ -113,17 +113,6 @@ class RegistrationQuality:
         return d
 
 
-def _jacobians(transform: PointTransform, points: FloatArray, h: float = 1e-4) -> FloatArray:
-    """Jacobian matrices (n, 2, 2) of `transform` at `points` by central differences."""
-    ex = np.array([h, 0.0])
-    ey = np.array([0.0, h])
-    out = transform.apply(np.concatenate([points + ex, points - ex, points + ey, points - ey]))
-    n = points.shape[0]
-    jx = (out[:n] - out[n:2 * n]) / (2 * h)  # d(out)/dx
-    jy = (out[2 * n:3 * n] - out[3 * n:]) / (2 * h)  # d(out)/dy
-    return np.stack([jx, jy], axis=2)
-
-
 def _similarity_rotation(src: FloatArray, dst: FloatArray) -> float:
     """Rotation in degrees of the least-squares similarity map src -> dst (Procrustes)."""
     a = src - src.mean(axis=0)
@@ -161,7 +150,7 @@ def measure_quality(
     -------
     RegistrationQuality
     """
-    J = _jacobians(warp, prealigned)
+    J = jacobian_matrices(warp, prealigned)
     det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
     min_jac = float(det.min())
     logdet = np.log(np.maximum(det, 1e-6))

@@ -155,12 +155,18 @@ def jacobian_determinants(
     """
     if not h > 0:
         raise ValueError(f"h must be positive; got {h}")
-    p = as_points(points, name="points", min_points=1)
+    J = jacobian_matrices(transform, as_points(points, name="points", min_points=1), h=h)
+    return J[:, 0, 0] * J[:, 1, 1] - J[:, 1, 0] * J[:, 0, 1]
+
+
+def jacobian_matrices(transform: PointTransform, points: FloatArray, *, h: float = 1e-4
+                      ) -> FloatArray:
+    """Jacobian matrices, shape (n, 2, 2), of `transform` at (n, 2) `points` by central
+    differences: ``J[k, a, b] = d out_a / d x_b`` (no input checks: internal)."""
     ex = np.array([h, 0.0])
     ey = np.array([0.0, h])
-    stacked = np.concatenate([p + ex, p - ex, p + ey, p - ey])
-    out = transform.apply(stacked)
-    n = p.shape[0]
-    dx = (out[:n] - out[n : 2 * n]) / (2 * h)
-    dy = (out[2 * n : 3 * n] - out[3 * n :]) / (2 * h)
-    return dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0]
+    out = transform.apply(np.concatenate([points + ex, points - ex, points + ey, points - ey]))
+    n = points.shape[0]
+    dx = (out[:n] - out[n : 2 * n]) / (2 * h)  # d out / dx
+    dy = (out[2 * n : 3 * n] - out[3 * n :]) / (2 * h)  # d out / dy
+    return np.stack([dx, dy], axis=2)
