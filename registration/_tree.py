@@ -505,6 +505,24 @@ def _check_threshold(name: str, value: float | None) -> None:
         raise ValueError(f"{name} must be a positive finite number or None; got {value}")
 
 
+def _error_limit(tau_err: float, explicit: bool, floor: float) -> float:
+    """The e a subject's registration must stay below: the explicit threshold, or the
+    automatic one raised to the subject's sampling floor."""
+    return tau_err if explicit else max(tau_err, floor)
+
+
+def _rejection(out: _RegOutcome, limit: float, fold_check: bool) -> str | None:
+    """Why the tree's rule refuses a registration (None: it accepts it): a fold, e at or
+    above `limit`, or a confidence below ``MIN_CONFIDENCE``, checked in that order."""
+    if fold_check and not out.min_jacobian > 0:
+        return "folded (Jacobian determinant <= 0)"
+    if not out.error < limit:
+        return f"e={out.error:.4g} >= error threshold {limit:.4g}"
+    if not out.quality.confidence >= MIN_CONFIDENCE:
+        return f"confidence {out.quality.confidence:.2f} < {MIN_CONFIDENCE}"
+    return None
+
+
 def _refine_parents(
     coll: _Collection,
     sim: Similarity,
@@ -560,12 +578,10 @@ def _refine_parents(
             # a move earlier in this pass made s a parent, moved m (this registration
             # started from m's former warped model), or put s above m
             continue
-        limit = math.inf if tau_err is None else (
-            tau_err if explicit_error else max(tau_err, floors[s]))
+        limit = math.inf if tau_err is None else _error_limit(tau_err, explicit_error, floors[s])
         parent = nodes[out.member]
         conf = min(parent.confidence, out.quality.confidence)
-        ok = (out.error < limit and not (fold_check and not out.min_jacobian > 0)
-              and out.quality.confidence >= MIN_CONFIDENCE)
+        ok = _rejection(out, limit, fold_check) is None
         assert old.confidence is not None and old.error is not None
         better = conf > old.confidence + REFINE_TIE or (
             conf >= old.confidence - REFINE_TIE and out.error < old.error)
@@ -800,17 +816,10 @@ def build_dynamic_tree(
             tau_err = _auto_error_threshold(outcomes)
         best: dict[int, _RegOutcome] = {}
         for out in outcomes:
-            folded = fold_check and not out.min_jacobian > 0
-            limit = tau_err if error_threshold is not None else max(tau_err, floors[out.subject])
-            confident = out.quality.confidence >= MIN_CONFIDENCE
-            ok = out.error < limit and not folded and confident
-            reason = (
-                "accepted candidate" if ok
-                else "folded (Jacobian determinant <= 0)" if folded
-                else f"e={out.error:.4g} >= error threshold {limit:.4g}"
-                if out.error >= limit
-                else f"confidence {out.quality.confidence:.2f} < {MIN_CONFIDENCE}"
-            )
+            limit = _error_limit(tau_err, error_threshold is not None, floors[out.subject])
+            rejection = _rejection(out, limit, fold_check)
+            ok = rejection is None
+            reason = rejection or "accepted candidate"
             if not ok:
                 rejected.setdefault(out.subject, []).append(out)
             results[out.subject].attempts.append(
