@@ -327,3 +327,30 @@ def test_every_chain_reproduces_its_registration_with_leaves_and_refinement():
     for s in res.subjects:
         np.testing.assert_allclose(res.transform_for(s.index).apply(fam.shapes[0]), s.warped,
                                    atol=1e-6)
+
+
+def test_a_leaf_keeps_the_lowest_e_registration_even_when_it_folds(family, monkeypatch):
+    # every candidate registers the same subject, so e compares like with like: every
+    # registration onto subject 5 is made to fold, so the tree rejects it from each member
+    # and attaches it as a leaf through the registration with the lowest e
+    import dataclasses
+
+    import registration._tree as tree_module
+
+    real = tree_module._register_task
+    seen: list[tuple[float, int]] = []
+
+    def recording(task):
+        out = real(task)
+        if task.subject == 5:
+            quality = dataclasses.replace(out.quality, min_jacobian=-0.5)
+            out = dataclasses.replace(out, min_jacobian=-0.5, quality=quality)
+            seen.append((out.error, task.member))
+        return out
+
+    monkeypatch.setattr(tree_module, "_register_task", recording)
+    res = build_dynamic_tree(family.shapes[:8], 0, cpd=FAST_CPD, executor=SerialExecutor())
+    s = res.subject(5)
+    assert s.leaf and s.confidence == 0.0
+    assert len(seen) >= 3  # from the root and from several members
+    assert (s.error, s.parent) == min(seen)
