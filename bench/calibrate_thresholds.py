@@ -34,11 +34,12 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
-from registration import LocalProcessExecutor, normalise
+from registration import CPDOptions, LocalProcessExecutor, normalise
 from registration._icp import pairwise_affine_icp, prepare_shape
 from registration._pose import PoseSpec
 from registration._quality import _FEATURES, GOOD_ERROR
-from registration._tree import CPDOptions, _register_from, _RegTask, _spacing2, _Start
+from registration._tree._rules import _spacing2
+from registration._tree._tasks import _register_from, _RegTask, _Start
 from registration.synthetic import chained_family, deformation_chains
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -297,7 +297,7 @@ def test_when_every_registration_folds_the_best_is_still_given_with_confidence_z
 ):
     import dataclasses
 
-    import registration._tree as tree_module
+    import registration._tree._tasks as tree_module
 
     real = tree_module._register_task
 
@@ -335,7 +335,7 @@ def test_a_leaf_keeps_the_lowest_e_registration_even_when_it_folds(family, monke
     # and attaches it as a leaf through the registration with the lowest e
     import dataclasses
 
-    import registration._tree as tree_module
+    import registration._tree._tasks as tree_module
 
     real = tree_module._register_task
     seen: list[tuple[float, int]] = []

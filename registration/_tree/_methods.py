@@ -1,0 +1,426 @@
+"""The three methods: the dynamic tree (Du et al. 2016), the static tree (Du et al. 2015)
+and direct CPD from the root."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict
+
+from numpy.typing import ArrayLike
+
+from .._executor import Executor
+from .._pose import PoseSpec
+from .._result import Attempt, CollectionResult, SubjectResult
+from .._similarity import ProgressCallback, Similarity
+from ._collection import (
+    _Collection,
+    _ensure_frontier,
+    _subject_from_outcome,
+    _TreeStart,
+)
+from ._passes import _attach_leaves, _refine_parents
+from ._rules import (
+    ERROR_FACTOR,
+    SPACING_FACTOR,
+    _auto_error_threshold,
+    _check_threshold,
+    _error_limit,
+    _rejection,
+    _similarity_report,
+    _spacing_floor,
+)
+from ._tasks import (
+    CPDOptions,
+    _options_dict,
+    _owns_executor,
+    _RegOutcome,
+    _RegTask,
+    _run_tasks,
+    _starts,
+)
+
+
+@_owns_executor
+def build_dynamic_tree(
+    shapes: Sequence[ArrayLike],
+    root: int = 0,
+    *,
+    similarity_threshold: float | None = None,
+    error_threshold: float | None = None,
+    cpd: CPDOptions | None = None,
+    max_candidates: int = 3,
+    candidates: int | None = None,
+    prealign: bool = True,
+    pose: str | None = None,
+    max_rotation: float | None = None,
+    fold_check: bool = True,
+    refine: bool = True,
+    compare_direct: bool = False,
+    names: Sequence[str] | None = None,
+    executor: Executor | None = None,
+    progress: ProgressCallback | None = None,
+) -> CollectionResult:
+    """Register the root model to every shape through a dynamic tree (Du et al. 2016).
+
+    Parameters
+    ----------
+    shapes : sequence of array_like, shape (n_i, 2)
+        The collection, in the user's coordinates; each shape is size-normalised first.
+    root : int
+        Index of the model shape.
+    similarity_threshold : float, optional
+        A subject is similar to a member when ``D[member, subject]`` (eq. 9, normalised
+        shapes) is at most this. Default: automatic, per pair: the largest of CPD's
+        measured capture range (D = 0.01), the D from the subject's 4th nearest shape and
+        the D to the member's 4th nearest shape (see `_SimilarityRule`).
+    error_threshold : float, optional
+        A registration is accepted when e (eq. 10, normalised shapes) is below this.
+        Default: automatic, ``3 x`` the lower quartile of the second layer's e, and never
+        below half the subject's squared point spacing.
+    cpd : CPDOptions, optional
+    max_candidates : int
+        When several members are similar to a waiting subject, the `max_candidates`
+        most similar (smallest D) members not yet tried for it are tried in one layer
+        and the accepted registration with the smallest e is kept.
+    candidates : int, optional
+        Only pairs joining each shape to its `candidates` nearest by a cheap descriptor
+        are considered (and the root to every subject). Default: all pairs for up to 64
+        shapes, 12 nearest beyond.
+    prealign : bool
+        Pose handling: CPD from the pose as given, and also from the similarity's
+        affine-ICP map when that is another pose that fits clearly better (see `pose`).
+        False: CPD from the pose as given only (the paper's plain CPD).
+    pose : {"rotation", "as_given", "upright", "affine"}, optional
+        Which poses may be tried (see :mod:`registration._pose`): any rotation (default),
+        the shapes as given only, rotations within +-`max_rotation` of them, or any affine
+        map including reflections (the paper's ``det(A) != 0``). Outside "affine" the
+        affine ICP never mirrors. The pose as given is always registered; another pose is
+        tried when its D is below 0.6 of the pose as given's and replaces it only when
+        CPD from it reaches less than half the pose as given's e.
+    max_rotation : float, optional
+        Half-width in degrees of the "upright" mode (default 30); given alone, it
+        selects that mode (glyph scans, aligned outlines).
+    fold_check : bool
+        Also reject registrations whose displacement field folds the model (Jacobian
+        determinant <= 0 at a model point): e can be small while correspondences are wrong.
+    refine : bool
+        After the tree stops growing, a subject without children may move to a member
+        that joined the tree after it and is more similar to it than its parent, when
+        the registration from there is better (higher confidence, or as confident with a
+        lower e). No cycles: a subject never moves below itself.
+    compare_direct : bool
+        Also run direct CPD from the root on every subject, for comparison.
+    names : sequence of str, optional
+    executor : Executor, optional
+        Where ICP and CPD run; default: serial for small jobs, else a local process pool.
+    progress : callable(stage, done, total), optional
+        Called as work completes; an exception it raises stops the run and propagates.
+
+    Returns
+    -------
+    CollectionResult
+
+    Raises
+    ------
+    ValueError
+        On invalid shapes, root, names or thresholds.
+    """
+    _check_threshold("similarity_threshold", similarity_threshold)
+    _check_threshold("error_threshold", error_threshold)
+    if max_candidates < 1:
+        raise ValueError(f"max_candidates must be at least 1; got {max_candidates}")
+    cpd = cpd if cpd is not None else CPDOptions()
+    spec = PoseSpec.resolve(pose, max_rotation)
+    start = _TreeStart.prepare(shapes, root, names, similarity_threshold, candidates, spec,
+                               executor, progress)
+    coll, sim, allowed, sim_rule = start.coll, start.sim, start.allowed, start.rule
+    subjects_idx, nodes, results = start.subjects, start.nodes, start.results
+    tau_err = error_threshold
+    floors = {s: _spacing_floor(coll.spacing2[s]) for s in subjects_idx}
+    waiting = set(subjects_idx)
+    tried: set[tuple[int, int]] = set()
+    rejected: dict[int, list[_RegOutcome]] = {}
+    frontier = [root]
+    layer = 1
+    while waiting and frontier:
+        layer += 1
+        _ensure_frontier(sim, frontier, waiting, allowed, executor, progress, layer)
+        tasks: list[_RegTask] = []
+        for s in sorted(waiting):
+            cands = sorted(
+                (float(sim.D[m, s]), m)
+                for m in nodes
+                if (m, s) not in tried and sim_rule.similar(sim, m, s)
+            )[:max_candidates]
+            for d, m in cands:
+                tried.add((m, s))
+                tasks.append(
+                    _RegTask(
+                        subject=s, member=m, layer=layer, similarity=d, q=nodes[m].q,
+                        y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
+                        prealign=prealign, pose=spec, spacing2=coll.spacing2[s],
+                    )
+                )
+        if not tasks:
+            break
+        outcomes = _run_tasks(tasks, executor, progress, f"layer {layer}")
+        if tau_err is None:
+            tau_err = _auto_error_threshold(outcomes)
+        best: dict[int, _RegOutcome] = {}
+        for out in outcomes:
+            limit = _error_limit(tau_err, error_threshold is not None, floors[out.subject])
+            rejection = _rejection(out, limit, fold_check)
+            ok = rejection is None
+            reason = rejection or "accepted candidate"
+            if not ok:
+                rejected.setdefault(out.subject, []).append(out)
+            results[out.subject].attempts.append(
+                Attempt(member=out.member, layer=layer, similarity=out.similarity,
+                        error=out.error, limit=limit, min_jacobian=out.min_jacobian,
+                        accepted=False,
+                        reason=reason)
+            )
+            if ok and (out.subject not in best or out.error < best[out.subject].error):
+                best[out.subject] = out
+        new_frontier = []
+        for s, out in sorted(best.items()):
+            res, node = _subject_from_outcome(coll, out, nodes[out.member])
+            res.attempts = [
+                Attempt(**{**asdict(a), "accepted": a.member == out.member and a.layer == layer})
+                for a in results[s].attempts
+            ]
+            res.reason = f"registered from {coll.names[out.member]} (layer {out.layer - 1})"
+            results[s] = res
+            nodes[s] = node
+            waiting.discard(s)
+            new_frontier.append(s)
+        frontier = new_frontier
+    # leaves first: they may reuse registrations made while the tree grew, which start
+    # from their member's warped model as it was then; refinement then moves no member
+    # that has a child, leaves included, so every chain stays the one it was built on
+    if waiting:
+        _attach_leaves(coll, sim, nodes, results, waiting, rejected, tried, allowed, cpd,
+                       prealign, spec, max_candidates, executor, progress)
+    if refine:
+        _refine_parents(coll, sim, sim_rule, nodes, results, tried, tau_err, floors,
+                        error_threshold is not None, fold_check, cpd, prealign, spec, executor,
+                        progress)
+    out_subjects = [results[s] for s in subjects_idx]
+    direct = (
+        _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None
+    )
+    return CollectionResult(
+        method="dynamic_tree",
+        root=root,
+        names=coll.names,
+        subjects=out_subjects,
+        thresholds={
+            **_similarity_report(sim_rule),
+            "error": tau_err,
+            "error_rule": "explicit" if error_threshold is not None
+            else f"auto: max({ERROR_FACTOR} x lower quartile of layer-2 e, "
+            f"{SPACING_FACTOR} x the subject's squared point spacing)",
+            "fold_check": fold_check,
+        },
+        options=_options_dict(cpd, prealign, max_candidates, spec),
+        direct=direct,
+        similarity_pairs=sim.computed,
+    )
+
+
+@_owns_executor
+def build_static_tree(
+    shapes: Sequence[ArrayLike],
+    root: int = 0,
+    *,
+    similarity_threshold: float | None = None,
+    error_threshold: float | None = None,
+    cpd: CPDOptions | None = None,
+    candidates: int | None = None,
+    prealign: bool = True,
+    pose: str | None = None,
+    max_rotation: float | None = None,
+    compare_direct: bool = False,
+    names: Sequence[str] | None = None,
+    executor: Executor | None = None,
+    progress: ProgressCallback | None = None,
+) -> CollectionResult:
+    """The static (heuristic) tree of Du et al. 2015: built once, no rejection.
+
+    The tree grows layer by layer over the similarity graph (``D <= similarity
+    threshold``, automatic as in :func:`build_dynamic_tree`); each subject joins the
+    most similar member of the previous layer. Then CPD runs along its edges, each edge
+    starting from the root model as warped onto the parent. `error_threshold` is accepted
+    for a uniform interface and ignored: no registration is rejected. Subjects the
+    similarity graph does not reach from the root are reported unattached.
+
+    Parameters
+    ----------
+    shapes, root, similarity_threshold, candidates, cpd, prealign, pose, max_rotation, names,
+    compare_direct, executor, progress
+        As for :func:`build_dynamic_tree`.
+    error_threshold : float, optional
+        Ignored (the static tree rejects nothing); accepted for a uniform interface.
+
+    Returns
+    -------
+    CollectionResult
+        ``method == "static_tree"``; every attempt is accepted.
+
+    Raises
+    ------
+    ValueError
+        On invalid shapes, root, names or thresholds.
+    """
+    _check_threshold("similarity_threshold", similarity_threshold)
+    del error_threshold
+    cpd = cpd if cpd is not None else CPDOptions()
+    spec = PoseSpec.resolve(pose, max_rotation)
+    start = _TreeStart.prepare(shapes, root, names, similarity_threshold, candidates, spec,
+                               executor, progress)
+    coll, sim, allowed, sim_rule = start.coll, start.sim, start.allowed, start.rule
+    subjects_idx, nodes, results = start.subjects, start.nodes, start.results
+    # 1. the tree, from the similarity alone
+    parent: dict[int, int] = {}
+    layers: list[list[int]] = [[root]]
+    waiting = set(subjects_idx)
+    while waiting and layers[-1]:
+        frontier = layers[-1]
+        _ensure_frontier(sim, frontier, waiting, allowed, executor, progress, len(layers) + 1)
+        new = []
+        for s in sorted(waiting):
+            cands = [(float(sim.D[m, s]), m) for m in frontier if sim_rule.similar(sim, m, s)]
+            if cands:
+                parent[s] = min(cands)[1]
+                new.append(s)
+        waiting -= set(new)
+        layers.append(new)
+    # 2. CPD along the edges, a layer at a time
+    for depth, members in enumerate(layers[1:], start=2):
+        tasks = [
+            _RegTask(subject=s, member=parent[s], layer=depth,
+                     similarity=float(sim.D[parent[s], s]), q=nodes[parent[s]].q,
+                     y=coll.normed[s], starts=_starts(sim, parent[s], s),
+                     cpd=cpd, prealign=prealign, pose=spec, spacing2=coll.spacing2[s])
+            for s in members
+        ]
+        for out in _run_tasks(tasks, executor, progress, f"layer {depth}"):
+            res, node = _subject_from_outcome(coll, out, nodes[out.member])
+            res.reason = f"static edge from {coll.names[out.member]}"
+            results[out.subject] = res
+            nodes[out.subject] = node
+    for s in waiting:
+        results[s].reason = "not reached: no similar shape on a path from the root"
+    direct = (
+        _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None
+    )
+    return CollectionResult(
+        method="static_tree",
+        root=root,
+        names=coll.names,
+        subjects=[results[s] for s in subjects_idx],
+        thresholds={
+            **_similarity_report(sim_rule),
+            "error": None,
+            "error_rule": "none: the static tree does not reject",
+        },
+        options=_options_dict(cpd, prealign, 1, spec),
+        direct=direct,
+        similarity_pairs=sim.computed,
+    )
+
+
+def _direct_results(
+    coll: _Collection,
+    sim: Similarity,
+    cpd: CPDOptions,
+    prealign: bool,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+) -> list[SubjectResult]:
+    r = coll.root
+    subjects_idx = [k for k in range(coll.n) if k != r]
+    if prealign:
+        sim.ensure([(r, s) for s in subjects_idx], executor=executor, progress=progress,
+                   stage="similarity direct")
+    tasks = [
+        _RegTask(subject=s, member=r, layer=2, similarity=float(sim.D[r, s]),
+                 q=coll.normed[r], y=coll.normed[s], starts=_starts(sim, r, s),
+                 cpd=cpd, prealign=prealign, pose=sim.pose, spacing2=coll.spacing2[s])
+        for s in subjects_idx
+    ]
+    root_node = coll.root_node()
+    out_by_subject = {}
+    for out in _run_tasks(tasks, executor, progress, "direct"):
+        res, _ = _subject_from_outcome(coll, out, root_node)
+        res.reason = "direct CPD from the root"
+        out_by_subject[out.subject] = res
+    return [out_by_subject[s] for s in subjects_idx]
+
+
+@_owns_executor
+def register_direct(
+    shapes: Sequence[ArrayLike],
+    root: int = 0,
+    *,
+    similarity_threshold: float | None = None,
+    error_threshold: float | None = None,
+    cpd: CPDOptions | None = None,
+    prealign: bool = True,
+    pose: str | None = None,
+    max_rotation: float | None = None,
+    compare_direct: bool = False,
+    names: Sequence[str] | None = None,
+    executor: Executor | None = None,
+    progress: ProgressCallback | None = None,
+) -> CollectionResult:
+    """Direct CPD from the root model to every subject (the paper's baseline).
+
+    With `prealign` (default) the pose handling of :func:`build_dynamic_tree` applies (CPD
+    from the pose as given, and from a clearly better other pose when ICP finds one); the
+    paper's plain CPD is ``prealign=False``: no pose search of any kind.
+    Every subject is at layer 2 with the root as parent.
+
+    Parameters
+    ----------
+    shapes : sequence of array_like, shape (n_i, 2)
+        The collection, in the user's coordinates; each shape is size-normalised first.
+    root : int
+        Index of the model shape.
+    similarity_threshold, error_threshold, compare_direct
+        Ignored; accepted so that the three methods take the same arguments.
+    cpd : CPDOptions, optional
+    prealign : bool
+        Pose handling as in :func:`build_dynamic_tree`; False for plain CPD.
+    pose, max_rotation
+        As for :func:`build_dynamic_tree`.
+    names : sequence of str, optional
+    executor : Executor, optional
+    progress : callable(stage, done, total), optional
+
+    Returns
+    -------
+    CollectionResult
+        ``method == "direct"``.
+
+    Raises
+    ------
+    ValueError
+        On invalid shapes, root or names.
+    """
+    del similarity_threshold, error_threshold, compare_direct
+    cpd = cpd if cpd is not None else CPDOptions()
+    spec = PoseSpec.resolve(pose, max_rotation)
+    coll = _Collection.prepare(shapes, root, names)
+    sim = Similarity.empty(coll.normed, pose=spec)
+    subjects = _direct_results(coll, sim, cpd, prealign, executor, progress)
+    return CollectionResult(
+        method="direct",
+        root=root,
+        names=coll.names,
+        subjects=subjects,
+        thresholds={"similarity": None, "error": None, "error_rule": "none"},
+        options=_options_dict(cpd, prealign, 1, spec),
+        direct=None,
+        similarity_pairs=sim.computed,
+    )

@@ -1,0 +1,173 @@
+"""The passes after the tree stops growing: every waiting subject attached as a leaf
+through its best registration, then childless subjects moved to better parents."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from .._executor import Executor
+from .._pose import PoseSpec
+from .._result import Attempt, SubjectResult
+from .._similarity import ProgressCallback, Similarity
+from ._collection import _Collection, _Node, _subject_from_outcome
+from ._rules import REFINE_TIE, _error_limit, _rejection, _SimilarityRule
+from ._tasks import CPDOptions, _RegOutcome, _RegTask, _run_tasks, _starts
+
+
+def _refine_parents(
+    coll: _Collection,
+    sim: Similarity,
+    sim_rule: _SimilarityRule,
+    nodes: dict[int, _Node],
+    results: dict[int, SubjectResult],
+    tried: set[tuple[int, int]],
+    tau_err: float | None,
+    floors: dict[int, float],
+    explicit_error: bool,
+    fold_check: bool,
+    cpd: CPDOptions,
+    prealign: bool,
+    pose: PoseSpec,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+) -> None:
+    """Move childless subjects to a later, more similar member when that registers better.
+
+    The layers fix a subject's parent at the first layer with an acceptable
+    registration; a member that joined later can be more similar to it (a smaller D:
+    a smaller deformation for CPD to bridge). For every subject without children, the
+    most similar such member not yet tried (and not the subject itself or below it) is
+    tried; the subject moves when the new registration passes the tree's rule and is
+    better: a higher path confidence, or one within ``REFINE_TIE`` with a lower e.
+    """
+    parents = {r.parent for r in results.values() if r.parent is not None}
+    tasks: list[_RegTask] = []
+    for s, r in sorted(results.items()):
+        if s in parents or r.parent is None or r.leaf or r.layer is None:
+            continue
+        d_parent = float(sim.D[r.parent, s])
+        later = sorted(
+            (float(sim.D[m, s]), m) for m, node in nodes.items()
+            if m != s and node.layer >= r.layer and (m, s) not in tried
+            and s not in node.chain.path and np.isfinite(sim.D[m, s])
+            and sim.D[m, s] < d_parent and sim_rule.similar(sim, m, s)
+        )
+        if not later:
+            continue
+        d, m = later[0]
+        tried.add((m, s))
+        tasks.append(_RegTask(
+            subject=s, member=m, layer=nodes[m].layer + 1, similarity=d, q=nodes[m].q,
+            y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd, prealign=prealign,
+            pose=pose, spacing2=coll.spacing2[s],
+        ))
+    moved: set[int] = set()
+    for out in sorted(_run_tasks(tasks, executor, progress, "refine"), key=lambda o: o.subject):
+        s = out.subject
+        old = results[s]
+        if s in parents or out.member in moved or s in nodes[out.member].chain.path:
+            # a move earlier in this pass made s a parent, moved m (this registration
+            # started from m's former warped model), or put s above m
+            continue
+        limit = math.inf if tau_err is None else _error_limit(tau_err, explicit_error, floors[s])
+        parent = nodes[out.member]
+        conf = min(parent.confidence, out.quality.confidence)
+        ok = _rejection(out, limit, fold_check) is None
+        assert old.confidence is not None and old.error is not None
+        better = conf > old.confidence + REFINE_TIE or (
+            conf >= old.confidence - REFINE_TIE and out.error < old.error)
+        accepted = ok and better
+        old.attempts.append(Attempt(
+            member=out.member, layer=out.layer, similarity=out.similarity, error=out.error,
+            limit=limit, min_jacobian=out.min_jacobian, accepted=accepted,
+            reason=("refined: moved here, more similar and a better registration" if accepted
+                    else "refinement not taken: not better than the registration it had"),
+        ))
+        if not accepted:
+            continue
+        res, node = _subject_from_outcome(coll, out, parent, layer=parent.layer + 1)
+        res.attempts = [replace(a, accepted=a is old.attempts[-1]) for a in old.attempts]
+        res.reason = (f"registered from {coll.names[out.member]} (layer {parent.layer}), "
+                      f"moved there from {coll.names[old.parent or 0]} by refinement")
+        results[s] = res
+        nodes[s] = node
+        parents.add(out.member)
+        moved.add(s)
+
+
+def _attach_leaves(
+    coll: _Collection,
+    sim: Similarity,
+    nodes: dict[int, _Node],
+    results: dict[int, SubjectResult],
+    waiting: set[int],
+    rejected: dict[int, list[_RegOutcome]],
+    tried: set[tuple[int, int]],
+    allowed: set[tuple[int, int]] | None,
+    cpd: CPDOptions,
+    prealign: bool,
+    pose: PoseSpec,
+    max_candidates: int,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+) -> None:
+    """Give every subject the tree could not take its best registration, as a leaf.
+
+    When the tree stops growing, each waiting subject is registered from the root and
+    from its most similar members not yet tried (up to `max_candidates`); with the
+    registrations rejected while the tree grew, the one with the lowest e is kept. All
+    candidates register the same subject, so their e values compare like with like; on
+    26 leaves with ground truth (glyph chains, Chui fish and Chinese) the lowest e gave a
+    lower correspondence error than preferring unfolded registrations by confidence in
+    every family (bench/RESULTS.md). A warp that folds locally is kept when its e is the
+    lowest (a leaf is never a parent, so the fold does not spread), reporting confidence
+    0. The subject is attached as a leaf: never a parent, its confidence and the reason
+    it was not accepted reported. It stays unattached only when no registration could be
+    run.
+    """
+    pairs = [(m, s) for s in waiting for m in nodes
+             if (m, s) not in tried and (allowed is None or (m, s) in allowed)]
+    sim.ensure(pairs, executor=executor, progress=progress, stage="similarity leaves")
+    tasks: list[_RegTask] = []
+    for s in sorted(waiting):
+        untried = sorted((float(sim.D[m, s]), m) for m in nodes
+                         if (m, s) not in tried and np.isfinite(sim.D[m, s]))
+        chosen = [m for _, m in untried[:max_candidates]]
+        if (coll.root, s) not in tried and coll.root not in chosen:
+            chosen.append(coll.root)
+        for m in chosen:
+            tried.add((m, s))
+            tasks.append(_RegTask(
+                subject=s, member=m, layer=nodes[m].layer + 1, similarity=float(sim.D[m, s]),
+                q=nodes[m].q, y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
+                prealign=prealign, pose=pose, spacing2=coll.spacing2[s],
+            ))
+    for out in _run_tasks(tasks, executor, progress, "leaves"):
+        rejected.setdefault(out.subject, []).append(out)
+    for s in sorted(waiting):
+        pool = rejected.get(s, [])
+        usable = [o for o in pool if o.min_jacobian > 0]
+        r = results[s]
+        if not pool:
+            r.reason = "unattached: no registration could be tried"
+            continue
+        # the lowest e: every candidate registers the same subject, so e compares like
+        # with like; a local fold does not disqualify (a leaf is never a parent)
+        best = min(pool, key=lambda o: (o.error, -nodes[o.member].confidence))
+        parent = nodes[best.member]
+        res, _ = _subject_from_outcome(coll, best, parent, layer=parent.layer + 1, leaf=True)
+        why = next((a.reason for a in reversed(r.attempts) if a.member == best.member), None)
+        if not best.min_jacobian > 0:
+            why = (f"its warp folds the model locally (min Jacobian determinant "
+                   f"{best.min_jacobian:.3g}): confidence 0; {len(usable)} of the {len(pool)} "
+                   "registrations tried do not fold")
+        res.attempts = r.attempts
+        res.reason = (
+            f"low-confidence leaf: the lowest e of {len(pool)} registrations, from "
+            f"{coll.names[best.member]}; not accepted into the tree"
+            + (f" ({why})" if why else " (the tree stopped growing before reaching it)")
+        )
+        results[s] = res

@@ -1,0 +1,155 @@
+"""The tree's threshold rules: which pairs are similar, the automatic error threshold and
+its sampling floor, and the one acceptance rule for a registration."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from .._similarity import Similarity
+from ._tasks import _RegOutcome
+
+FloatArray = NDArray[np.float64]
+
+# Automatic thresholds (see `_SimilarityRule` and `_auto_error_threshold`).
+CAPTURE_D = 0.01
+SIMILAR_NEIGHBOURS = 4
+ERROR_FACTOR = 3.0
+SPACING_FACTOR = 0.5
+
+
+# A registration is accepted into the tree only with at least this confidence (the
+# calibrated probability that its correspondences are right; `_quality`). Measured in
+# bench/calibrate_thresholds.py: 1.1% of the registrations scored below 0.2 were good
+# (95 of 742, mostly turned, mirrored and slid ones that e alone accepts).
+MIN_CONFIDENCE = 0.2
+# Refinement moves a subject when the new path confidence is higher by more than this, or
+# within it and with a lower e.
+REFINE_TIE = 0.02
+
+
+@dataclass(frozen=True)
+class _SimilarityRule:
+    """Which (member, subject) pairs count as similar.
+
+    Explicit: ``D <= threshold`` for every pair, as in the paper. Automatic: ``D`` at
+    most the largest of ``CAPTURE_D``, the D from the subject's ``SIMILAR_NEIGHBOURS``-th
+    nearest shape and the D to the member's ``SIMILAR_NEIGHBOURS``-th nearest shape
+    (a k-nearest-neighbour graph, both ways), so that
+
+    - a pair within CPD's capture range is always similar: measured on data with ground
+      truth (bench/calibrate_thresholds.py), after the affine pre-alignment 95% of pairs
+      with D < 0.01 registered with an RMS correspondence error under 5% of the shape's
+      size, against 65% for 0.01-0.02 and 26% for 0.02-0.04;
+    - every shape, the root included, has a few similar shapes whatever the scale of D in
+      the collection (D grows with genuine shape variety and shrinks with denser
+      sampling), so a far subject waits for one of its nearest shapes to join the tree
+      and is registered from it, which is the point of the tree.
+    """
+
+    explicit: float | None
+    into: dict[int, float]  # subject -> D from its k-th nearest shape
+    out_of: dict[int, float]  # member -> D to its k-th nearest shape
+
+    @classmethod
+    def build(cls, sim: Similarity, explicit: float | None) -> _SimilarityRule:
+        if explicit is not None:
+            return cls(explicit=explicit, into={}, out_of={})
+        n = sim.D.shape[0]
+        off = ~np.eye(n, dtype=bool)
+
+        def kth(values: FloatArray) -> float:
+            v = np.sort(values[np.isfinite(values)])
+            return float(v[min(SIMILAR_NEIGHBOURS, v.size) - 1]) if v.size else 0.0
+
+        return cls(
+            explicit=None,
+            into={s: kth(sim.D[:, s][off[:, s]]) for s in range(n)},
+            out_of={m: kth(sim.D[m, :][off[m, :]]) for m in range(n)},
+        )
+
+    def limit(self, member: int, subject: int) -> float:
+        if self.explicit is not None:
+            return self.explicit
+        return max(CAPTURE_D, self.into[subject], self.out_of[member])
+
+    def similar(self, sim: Similarity, member: int, subject: int) -> bool:
+        d = sim.D[member, subject]
+        return bool(np.isfinite(d) and d <= self.limit(member, subject))
+
+
+def _similarity_report(rule: _SimilarityRule) -> dict[str, Any]:
+    values = list(rule.into.values())
+    return {
+        "similarity": rule.explicit if rule.explicit is not None
+        else max(CAPTURE_D, float(np.median(values))) if values else None,
+        "similarity_rule": "explicit" if rule.explicit is not None
+        else f"auto, per pair: max({CAPTURE_D}, D from the subject's {SIMILAR_NEIGHBOURS}th "
+        f"nearest shape, D to the member's {SIMILAR_NEIGHBOURS}th nearest shape); "
+        "'similarity' is the median over subjects",
+    }
+
+
+def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:
+    """``ERROR_FACTOR`` times the lower quartile of the second layer's e.
+
+    Those are registrations of the root to the subjects similar to it. The best of them
+    measure what "registered" means for this collection (its point density, noise and
+    genuine shape variation); failed registrations sit an order of magnitude above
+    (generated families: 2e-4 to 5e-4 against about 5e-3). The lower quartile rather
+    than the median, because every shape's few nearest shapes count as similar, so the
+    root's similar subjects can include far ones that fail. Applied per subject together
+    with a floor from the subject's own sampling (:func:`_spacing_floor`).
+    """
+    errs = [o.error for o in outcomes if math.isfinite(o.error)]
+    if not errs:
+        return math.inf
+    return ERROR_FACTOR * float(np.percentile(errs, 25))
+
+
+def _spacing2(normalised: FloatArray) -> float:
+    """Mean squared nearest-neighbour spacing h^2 of a shape's points."""
+    d, _ = cKDTree(normalised).query(normalised, k=2)
+    return float(np.mean(d[:, 1] ** 2))
+
+
+def _spacing_floor(spacing2: float) -> float:
+    """``SPACING_FACTOR`` times the subject's mean squared nearest-neighbour spacing h^2.
+
+    An e below it means the warped model lies on the subject as closely as the sampling
+    allows. Measured on data with ground truth (bench/calibrate_thresholds.py): every
+    registration with an RMS correspondence error under 5% of the shape's size had
+    e < 0.5 h^2. Without this floor a collection whose easiest subjects register almost
+    exactly (synthetic deformations of the same points) gets an error threshold so small
+    that even correct registrations of its harder subjects are refused.
+    """
+    return SPACING_FACTOR * spacing2
+
+
+def _check_threshold(name: str, value: float | None) -> None:
+    if value is not None and not (value > 0 and math.isfinite(value)):
+        raise ValueError(f"{name} must be a positive finite number or None; got {value}")
+
+
+def _error_limit(tau_err: float, explicit: bool, floor: float) -> float:
+    """The e a subject's registration must stay below: the explicit threshold, or the
+    automatic one raised to the subject's sampling floor."""
+    return tau_err if explicit else max(tau_err, floor)
+
+
+def _rejection(out: _RegOutcome, limit: float, fold_check: bool) -> str | None:
+    """Why the tree's rule refuses a registration (None: it accepts it): a fold, e at or
+    above `limit`, or a confidence below ``MIN_CONFIDENCE``, checked in that order."""
+    if fold_check and not out.min_jacobian > 0:
+        return "folded (Jacobian determinant <= 0)"
+    if not out.error < limit:
+        return f"e={out.error:.4g} >= error threshold {limit:.4g}"
+    if not out.quality.confidence >= MIN_CONFIDENCE:
+        return f"confidence {out.quality.confidence:.2f} < {MIN_CONFIDENCE}"
+    return None
