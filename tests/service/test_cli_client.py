@@ -24,8 +24,6 @@ from PIL import Image, ImageDraw
 from service.client import RegtreeClient
 from tests.service.conftest import REPO, Service, free_port
 
-pytest.importorskip("registration._tree", reason="the registration library has not landed")
-
 CLI = [sys.executable, "-m", "service.cli"]
 
 

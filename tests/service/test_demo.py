@@ -7,11 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 from tests.service.conftest import REPO
-
-pytest.importorskip("registration._tree", reason="the registration library has not landed")
 
 
 def test_demo_end_to_end(tmp_path: Path) -> None:
