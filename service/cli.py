@@ -76,7 +76,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     overrides = {"database_url": args.database_url} if args.database_url else {}
     settings = Settings(**overrides)
-    configure_logging(settings.log_level, json_lines=settings.log_json)
+    if args.command == "demo" and "log_level" not in settings.model_fields_set:
+        # the demo shows its progress and result; the server's and workers' INFO lines (each
+        # poll, each job claimed) would bury them. REGTREE_LOG_LEVEL still brings them back.
+        settings = settings.model_copy(update={"log_level": "WARNING"})
+    configure_logging(settings.log_level, settings.log_style)
 
     if args.command == "serve":
         from service.embedded import serve

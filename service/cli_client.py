@@ -31,12 +31,13 @@ import json
 import math
 import os
 import re
-import shutil
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
+
+from service.progress import Progress
 
 if TYPE_CHECKING:
     from service.client import Collection, JobStatus, RegtreeClient, RegtreeError, Shape
@@ -614,82 +615,6 @@ def cmd_run(args: argparse.Namespace, rt: RegtreeClient) -> int:
 
 def cmd_watch(args: argparse.Namespace, rt: RegtreeClient) -> int:
     return watch_job(rt, args.job, poll=args.poll, cancel_on_interrupt=args.cancel_on_interrupt)
-
-
-def _clock(seconds: float) -> str:
-    minutes, secs = divmod(int(seconds), 60)
-    hours, minutes = divmod(minutes, 60)
-    return f"{hours}:{minutes:02d}:{secs:02d}" if hours else f"{minutes}:{secs:02d}"
-
-
-def progress_text(state: JobStatus) -> str:
-    """``running layer 3 4/7 (57%)``: status, stage and done/total when known."""
-    text = state.status
-    if state.cancel_requested and not state.finished:
-        text += " (cancel requested)"
-    if state.stage:
-        text += f" {state.stage}"
-    if state.total:
-        text += f" {state.done}/{state.total} ({100 * state.done // state.total}%)"
-    return text
-
-
-class Progress:
-    """Draws a job's progress: one redrawn line with a bar on a terminal, else one plain line
-    per change (status, stage, done or total) and at least one every ``heartbeat`` seconds."""
-
-    heartbeat = 30.0
-
-    def __init__(self, job_id: int, out: TextIO, *, tty: bool | None = None) -> None:
-        self.job_id = job_id
-        self.out = out
-        self.tty = out.isatty() if tty is None else tty
-        self.started = time.monotonic()
-        self._last_key: tuple[Any, ...] | None = None
-        self._last_line = self.started
-        self._drawn = False
-
-    def elapsed(self) -> float:
-        return time.monotonic() - self.started
-
-    def update(self, state: JobStatus) -> None:
-        if self.tty:
-            self._draw_line(state)
-            return
-        key = (state.status, state.stage, state.done, state.total, state.cancel_requested)
-        now = time.monotonic()
-        if key != self._last_key or now - self._last_line >= self.heartbeat:
-            self._last_key = key
-            self._last_line = now
-            self.out.write(f"[{self.elapsed():7.1f} s] job {self.job_id} {progress_text(state)}\n")
-            self.out.flush()
-
-    def _draw_line(self, state: JobStatus) -> None:
-        columns = shutil.get_terminal_size((80, 24)).columns
-        head = f"job {self.job_id} {state.status}"
-        if state.cancel_requested and not state.finished:
-            head += " (cancel requested)"
-        if state.stage:
-            head += f" · {state.stage}"
-        tail = f" {_clock(self.elapsed())}"
-        if state.total:
-            tail = f" {state.done}/{state.total}" + tail
-            width = max(10, min(30, columns - len(head) - len(tail) - 5))
-            filled = round(width * min(1.0, state.done / state.total))
-            bar = f" [{'#' * filled}{'.' * (width - filled)}]"
-        else:
-            bar = ""
-        line = (head + bar + tail)[: max(1, columns - 1)]
-        self.out.write("\r\x1b[K" + line)
-        self.out.flush()
-        self._drawn = True
-
-    def end_line(self) -> None:
-        """Leave the redrawn line (before printing anything else)."""
-        if self.tty and self._drawn:
-            self.out.write("\r\x1b[K")
-            self.out.flush()
-            self._drawn = False
 
 
 def watch_job(

@@ -12,13 +12,14 @@ import sys
 import time
 from importlib import resources
 from io import BytesIO
-from typing import Any
+from typing import Any, TextIO
 
 import httpx
 import numpy as np
 
 from service.core.config import Settings
 from service.embedded import BackgroundStack
+from service.progress import Progress
 
 
 def load_demo_shapes() -> tuple[str, dict[str, np.ndarray]]:
@@ -74,9 +75,40 @@ def summarise(result: dict[str, Any], out: Any = sys.stdout) -> None:
         )
 
 
-def run_demo(settings: Settings, *, workers: int = 1, method: str = "dynamic_tree") -> int:
+def follow_job(
+    client: httpx.Client, location: str, out: TextIO, *, poll: float = 0.5
+) -> dict[str, Any]:
+    """Poll a job until it ends, drawing its progress as ``regtree watch`` does."""
+    from service.client import JobStatus
+
+    job_id = int(location.rstrip("/").rsplit("/", 1)[1])
+    progress = Progress(job_id, out)
+    try:
+        while True:
+            state: dict[str, Any] = client.get(location).raise_for_status().json()
+            progress.update(JobStatus.from_json(state))
+            if state["status"] in ("succeeded", "failed", "cancelled"):
+                return state
+            time.sleep(poll)
+    finally:
+        progress.end_line()
+
+
+def run_demo(
+    settings: Settings,
+    *,
+    workers: int = 1,
+    method: str = "dynamic_tree",
+    out: TextIO | None = None,
+) -> int:
+    """Upload the demo shapes, run a job, show its progress and print the result on ``out``
+    (stdout)."""
+    out = out if out is not None else sys.stdout
     name, shapes = load_demo_shapes()
-    print(f"demo collection {name!r}: {len(shapes)} shapes; database {settings.database_url}")
+    print(
+        f"demo collection {name!r}: {len(shapes)} shapes; database {settings.database_url}",
+        file=out,
+    )
     with BackgroundStack(settings, workers=max(1, workers)) as stack:
         headers = {}
         if settings.api_key is not None:
@@ -105,22 +137,16 @@ def run_demo(settings: Settings, *, workers: int = 1, method: str = "dynamic_tre
                 },
             ).raise_for_status()
             location = job.headers["Location"]
-            print(f"job {location}: queued")
-            last = None
-            while True:
-                state = client.get(location).raise_for_status().json()
-                progress = state["progress"]
-                line = f"  {state['status']:9} {progress['stage'] or '':24} "
-                line += f"{progress['done']}/{progress['total']}"
-                if line != last:
-                    print(line, flush=True)
-                    last = line
-                if state["status"] in ("succeeded", "failed", "cancelled"):
-                    break
-                time.sleep(0.5)
+            state = follow_job(client, location, out)
             if state["status"] != "succeeded":
                 print(f"job ended {state['status']}: {state['error']}", file=sys.stderr)
                 return 1
             result = client.get(f"{location}/result").raise_for_status().json()
-    summarise(result)
+    print(f"job {state['id']} succeeded", file=out)
+    summarise(result, out)
+    print(
+        "\nsee it: `regtree serve`, then open /ui (the results page) and pick the collection "
+        f"'demo: {name}'",
+        file=out,
+    )
     return 0

@@ -7,11 +7,13 @@ import multiprocessing
 import os
 import signal
 import socket
+import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from multiprocessing.process import BaseProcess
+from typing import TextIO
 
 import uvicorn
 
@@ -61,7 +63,45 @@ def stop_workers(processes: list[BaseProcess], *, timeout: float = 15.0) -> None
             process.join(5)
 
 
-def make_server(settings: Settings, host: str, port: int) -> uvicorn.Server:
+class _Server(uvicorn.Server):
+    """uvicorn's server, calling ``on_started`` once it listens."""
+
+    def __init__(self, config: uvicorn.Config, on_started: Callable[[], None] | None) -> None:
+        super().__init__(config)
+        self.on_started = on_started
+
+    async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+        await super().startup(sockets=sockets)
+        if self.started and self.on_started is not None:
+            self.on_started()
+
+
+def public_url(host: str, port: int) -> str:
+    """The address to open for a server listening on ``host`` (any-address: this machine)."""
+    if host in ("", "0.0.0.0", "::", "[::]"):
+        host = "127.0.0.1"
+    elif ":" in host and not host.startswith("["):
+        host = f"[{host}]"
+    return f"http://{host}:{port}"
+
+
+def announce(settings: Settings, host: str, port: int, out: TextIO | None = None) -> None:
+    """Print where the service is: the results page, the API docs and the database."""
+    url = public_url(host, port)
+    print(
+        f"regtree is serving at {url}\n"
+        f"  results page  {url}/ui\n"
+        f"  API docs      {url}/docs\n"
+        f"  database      {settings.database_url}\n"
+        "Stop it with Ctrl-C.",
+        file=out if out is not None else sys.stdout,
+        flush=True,
+    )
+
+
+def make_server(
+    settings: Settings, host: str, port: int, *, on_started: Callable[[], None] | None = None
+) -> uvicorn.Server:
     config = uvicorn.Config(
         create_app(settings),
         host=host,
@@ -71,7 +111,7 @@ def make_server(settings: Settings, host: str, port: int) -> uvicorn.Server:
         proxy_headers=True,
         timeout_graceful_shutdown=10,
     )
-    return uvicorn.Server(config)
+    return _Server(config, on_started)
 
 
 @contextmanager
@@ -102,7 +142,9 @@ def serve(settings: Settings, *, host: str, port: int, workers: int, migrate_db:
     processes = start_workers(settings, workers)
     try:
         with _sigterm_returns():
-            make_server(settings, host, port).run()
+            make_server(
+                settings, host, port, on_started=lambda: announce(settings, host, port)
+            ).run()
     finally:
         stop_workers(processes)
     logger.info("stopped")

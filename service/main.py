@@ -19,6 +19,7 @@ from service.api.middleware import (
 )
 from service.api.problems import Problem, ProblemError, install_problem_handlers
 from service.api.routes import collections, jobs, pages, pictures, shapes
+from service.api.routes.docs import install_docs
 from service.core.config import Settings, get_settings
 from service.core.limits import limits_description, resolve_limits
 from service.db import Database
@@ -68,6 +69,8 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
         description=DESCRIPTION + limits_description(),
         openapi_tags=TAGS,
         lifespan=lifespan,
+        docs_url=None,  # served from the package by install_docs, not from a CDN
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.db = database
@@ -87,6 +90,7 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
     v1.include_router(pictures.router)
     app.include_router(v1)
     app.include_router(pages.router)  # the results page at /ui
+    install_docs(app)  # /docs and /redoc
 
     @app.get("/healthz", tags=["health"], summary="Liveness and database check")
     def healthz() -> dict[str, str]:

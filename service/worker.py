@@ -101,7 +101,7 @@ def run_worker_process(settings: Settings, parent_pid: int | None = None) -> Non
     """Entry point of a worker process (``regtree worker`` and the embedded workers)."""
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
-    configure_logging(settings.log_level, json_lines=settings.log_json)
+    configure_logging(settings.log_level, settings.log_style)
     worker = Worker(settings, parent_pid=parent_pid)
     worker.install_signal_handlers()
     try:

@@ -13,16 +13,15 @@ from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.problems import BodyTooLarge, problem_response
+from service.api.routes.docs import DOCS_PATHS
 from service.api.routes.pages import PAGE_PATHS
 
 logger = logging.getLogger("regtree.access")
 
-#: Paths answered without an API key: liveness probes, the API documentation (the schema
-#: describes the service, it holds no data) and the results page's files (the page asks for
-#: the key and sends it with every API call).
-PUBLIC_PATHS = frozenset(
-    {"/healthz", "/openapi.json", "/docs", "/docs/oauth2-redirect", "/redoc", *PAGE_PATHS}
-)
+#: Paths answered without an API key: liveness probes, the API documentation and its pages'
+#: files (the schema describes the service, it holds no data) and the results page's files
+#: (the page asks for the key and sends it with every API call).
+PUBLIC_PATHS = frozenset({"/healthz", "/openapi.json", *DOCS_PATHS, *PAGE_PATHS})
 
 
 #: The order methods are listed in an ``Allow`` header.

@@ -84,7 +84,23 @@ class Settings(BaseSettings):
 
     # --- logging ---------------------------------------------------------------------------
     log_level: str = "INFO"
-    log_json: bool = True
+    log_format: Literal["auto", "json", "text"] = Field(
+        default="auto",
+        description="Log lines on stderr: `text` (readable), `json` (one object per line), or "
+        "`auto`: text on a terminal, JSON otherwise.",
+    )
+    log_json: bool | None = Field(
+        default=None,
+        description="Older switch, kept working: true = `json`, false = `text`; overrides "
+        "log_format when set.",
+    )
+
+    @property
+    def log_style(self) -> str:
+        """The log format in force: ``log_json`` when set, else ``log_format``."""
+        if self.log_json is not None:
+            return "json" if self.log_json else "text"
+        return self.log_format
 
     @model_validator(mode="after")
     def _consistent_limits(self) -> Settings:

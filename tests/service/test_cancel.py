@@ -28,8 +28,6 @@ from tests.service.conftest import (
     wait_job,
 )
 
-pytest.importorskip("registration._tree", reason="the registration library has not landed")
-
 #: Generous bounds for a loaded 2-core CI machine; measured: about 1 s for both.
 CANCELLED_WITHIN = 15.0
 NEXT_JOB_WITHIN = 15.0

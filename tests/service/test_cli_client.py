@@ -24,8 +24,6 @@ from PIL import Image, ImageDraw
 from service.client import RegtreeClient
 from tests.service.conftest import REPO, Service, free_port
 
-pytest.importorskip("registration._tree", reason="the registration library has not landed")
-
 CLI = [sys.executable, "-m", "service.cli"]
 
 
@@ -85,7 +83,15 @@ def write_folder(folder: Path) -> list[str]:
     return names
 
 
-PROGRESS = re.compile(r"^\[\s*[\d.]+ s\] job (\d+) (\w+)(?: (.+?) (\d+)/(\d+) \(\d+%\))?$")
+PROGRESS = re.compile(
+    r"^\[\s*[\d.]+ s\] job (\d+) (\w+)(?: (.+?) (\d+)/(\d+) (?:pairs|registrations) \(\d+%\))?"
+    r"(?:; (\d+) subjects)?(?:; overall (\d+)%(?:, about [\d:]+ left)?)?$"
+)
+
+
+def overall_percentages(stdout: str) -> list[int]:
+    """The overall percentage of each plain progress line that has one."""
+    return [int(m[7]) for m in map(PROGRESS.match, stdout.splitlines()) if m and m[7]]
 
 
 def progress_lines(stdout: str) -> list[tuple[str, str | None, int, int]]:
@@ -160,6 +166,10 @@ def test_upload_run_watch_results(service: Service, tmp_path: Path) -> None:
         by_stage.setdefault(stage, []).append(done)
     assert all(v == sorted(v) for v in by_stage.values()), by_stage
     assert len({d for v in by_stage.values() for d in v}) >= 3, run.stdout  # it moved
+    # the overall percentage never goes back and ends at 100; the subjects are counted right
+    overall = overall_percentages(run.stdout)
+    assert overall == sorted(overall) and overall[-1] == 100, run.stdout
+    assert re.search(r"; 7 subjects; overall 100%$", run.stdout, re.M), run.stdout
     assert re.search(
         rf"^job {job_id} succeeded after [\d.]+ s: \d+ of 7 subjects", run.stdout, re.M
     )
@@ -167,7 +177,7 @@ def test_upload_run_watch_results(service: Service, tmp_path: Path) -> None:
     # on a terminal: one line redrawn with a bar
     code, screen = run_in_pty([*CLI, "watch", str(job_id)], cli_env(url))
     assert code == 0, screen
-    assert "\r\x1b[K" in screen and re.search(r"\[#+\] 7/7", screen), screen
+    assert "\r\x1b[K" in screen and re.search(r"7 subjects .* \[#+\]\s+100%", screen), screen
     assert f"job {job_id} succeeded" in screen
 
     out = tmp_path / "out"

@@ -22,8 +22,6 @@ from tests.service.conftest import (
     wait_job,
 )
 
-pytest.importorskip("registration._tree", reason="the registration library has not landed")
-
 
 def test_job_runs_to_completion_and_result_reads_back(client: httpx.Client) -> None:
     shapes = family(n_chains=2, chain_length=3, n_points=60)

@@ -5,8 +5,6 @@ from __future__ import annotations
 import signal
 from collections.abc import Callable
 
-import pytest
-
 from tests.service.conftest import (
     Service,
     create_collection,
@@ -15,8 +13,6 @@ from tests.service.conftest import (
     upload_family,
     wait_job,
 )
-
-pytest.importorskip("registration._tree", reason="the registration library has not landed")
 
 
 def test_worker_killed_mid_job_is_recovered_once(make_service: Callable[..., Service]) -> None:

@@ -66,8 +66,6 @@ from tests.service.conftest import (  # noqa: E402
     wait_job,
 )
 
-pytest.importorskip("registration._tree", reason="the registration library has not landed")
-
 SEED = 20160701
 MAX_EXAMPLES = int(os.environ.get("REGTREE_SCHEMATHESIS_EXAMPLES", "25"))
 UPLOAD_EXAMPLES = 4 * MAX_EXAMPLES

@@ -1,0 +1,127 @@
+"""service/progress.py: the progress line that ``regtree watch``, ``run --wait`` and ``demo``
+share, on a captured stream."""
+
+from __future__ import annotations
+
+import io
+import re
+from typing import Any
+
+import pytest
+
+from service.client import JobStatus
+from service.progress import Progress, clock, overall_fraction
+
+#: The stages a dynamic-tree job with direct comparison reports, in order (from the library).
+STAGES = [
+    ("similarity", 240),
+    ("layer 2", 4),
+    ("similarity layer 3", 30),
+    ("layer 3", 6),
+    ("layer 4", 3),
+    ("similarity leaves", 10),
+    ("leaves", 2),
+    ("refine", 6),
+    ("similarity direct", 12),
+    ("direct", 15),
+]
+
+
+def _state(status: str, stage: str | None = None, done: int = 0, total: int = 0,
+           **extra: Any) -> JobStatus:  # fmt: skip
+    return JobStatus.from_json(
+        {
+            "id": 7,
+            "collection_id": 1,
+            "model_shape_id": 1,
+            "method": extra.pop("method", "dynamic_tree"),
+            "status": status,
+            "n_shapes": 16,
+            "params": {"compare_direct": extra.pop("compare_direct", True)},
+            "progress": {"stage": stage, "done": done, "total": total},
+            **extra,
+        }
+    )
+
+
+def _run() -> list[JobStatus]:
+    states = [_state("queued")]
+    for stage, total in STAGES:
+        states += [_state("running", stage, done, total) for done in (0, total // 2, total)]
+    return [*states, _state("succeeded", "direct", 15, 15)]
+
+
+@pytest.mark.parametrize("compare_direct", [True, False])
+def test_overall_fraction_only_grows_through_a_run(compare_direct: bool) -> None:
+    stages = [s for s in STAGES if "direct" not in s[0] or compare_direct]
+    fractions = [
+        overall_fraction("dynamic_tree", stage, done, total, compare_direct=compare_direct)
+        for stage, total in stages
+        for done in range(total + 1)
+    ]
+    assert all(f is not None for f in fractions)
+    assert fractions == sorted(fractions)  # type: ignore[type-var]
+    assert fractions[0] == 0.0
+    assert fractions[-1] == pytest.approx(1.0)
+    # deeper layers take less of what is left: layer 9 is past layer 8, both before leaves
+    deep = [overall_fraction("dynamic_tree", f"layer {k}", 1, 1, compare_direct=False)
+            for k in (8, 9)]  # fmt: skip
+    leaves = overall_fraction("dynamic_tree", "leaves", 0, 1, compare_direct=False)
+    assert deep[0] < deep[1] < leaves  # type: ignore[operator]
+
+
+def test_overall_fraction_of_direct_and_unknown_stages() -> None:
+    assert overall_fraction("direct", "similarity direct", 5, 10, compare_direct=False) == (
+        pytest.approx(0.1)
+    )
+    assert overall_fraction("direct", "direct", 15, 15, compare_direct=False) == 1.0
+    assert overall_fraction("dynamic_tree", "something new", 1, 2, compare_direct=True) is None
+    assert overall_fraction("dynamic_tree", None, 0, 0, compare_direct=True) == 0.0
+
+
+def test_plain_lines_give_stage_counts_subjects_and_overall() -> None:
+    out = io.StringIO()
+    progress = Progress(7, out, tty=False)
+    for state in _run():
+        progress.update(state)
+    lines = out.getvalue().splitlines()
+    assert "\r" not in out.getvalue() and "\x1b" not in out.getvalue()
+    assert re.fullmatch(r"\[\s*[\d.]+ s\] job 7 queued; 15 subjects", lines[0])
+    assert "similarity 120/240 pairs (50%); 15 subjects; overall" in lines[2]
+    assert any("layer 3 3/6 registrations (50%)" in line for line in lines)
+    overall = [int(m) for m in re.findall(r"overall (\d+)%", out.getvalue())]
+    assert overall == sorted(overall) and overall[-1] == 100
+    assert lines[-1].endswith("job 7 succeeded direct 15/15 registrations (100%); "
+                              "15 subjects; overall 100%")  # fmt: skip
+    # a repeated state draws no new line
+    progress.update(_run()[-1])
+    assert out.getvalue().splitlines() == lines
+
+
+def test_time_left_follows_the_elapsed_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    now = [1000.0]
+    monkeypatch.setattr("service.progress.time.monotonic", lambda: now[0])
+    progress = Progress(7, io.StringIO(), tty=False)
+    progress.update(_state("running", "similarity", 0, 100))
+    assert progress.estimate(_state("running", "similarity", 0, 100)).remaining is None
+    now[0] += 30.0
+    # half the similarity of a job that compares: 10% of it, after 30 s -> 270 s left
+    estimate = progress.estimate(_state("running", "similarity", 50, 100))
+    assert estimate.fraction == pytest.approx(0.1)
+    assert estimate.remaining == pytest.approx(270.0)
+    assert clock(270.0) == "4:30" and clock(3725.0) == "1:02:05"
+
+
+def test_terminal_line_is_redrawn_with_a_bar() -> None:
+    out = io.StringIO()
+    progress = Progress(7, out, tty=True)
+    for state in _run():
+        progress.update(state)
+    progress.end_line()
+    screen = out.getvalue()
+    frames = [f for f in screen.split("\r\x1b[K") if f]
+    assert "\n" not in screen
+    assert re.search(r"job 7 running · 15 subjects · layer 3 3/6 \[#+\.*\]\s+\d+%", screen)
+    assert re.fullmatch(r"job 7 succeeded · 15 subjects · direct 15/15 \[#+\] 100% [\d:]+",
+                        frames[-1])  # fmt: skip
+    assert screen.endswith("\r\x1b[K")  # the line is cleared before anything else is printed
