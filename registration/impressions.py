@@ -38,6 +38,7 @@ BoolArray = NDArray[np.bool_]
 __all__ = [
     "PrintVariation",
     "Recut",
+    "draw_strokes",
     "identical_moulds",
     "mould_from_points",
     "recut_stroke_end",
@@ -509,3 +510,38 @@ def _differing_share(a: BoolArray, b: BoolArray, shift: int) -> float:
             pb[dy: dy + b.shape[0], dx: dx + b.shape[1]] = b
             best = min(best, float((pa ^ pb).sum()))
     return best / float(min(a.sum(), b.sum()))
+
+
+def draw_strokes(
+    strokes: ArrayLike, *, size: int = 128, width: float | ArrayLike = 0.08
+) -> BoolArray:
+    """A binary glyph drawn from straight strokes with round ends (a mould for tests).
+
+    Parameters
+    ----------
+    strokes : array_like, shape (k, 4)
+        ``(x0, y0, x1, y1)`` of each stroke in [0, 1] (y down), scaled to the image.
+    size : int
+        Side of the square image in pixels.
+    width : float or array_like of shape (k,)
+        Stroke width as a fraction of `size`.
+    """
+    s = np.asarray(strokes, dtype=np.float64)
+    if s.ndim != 2 or s.shape[1] != 4 or len(s) == 0 or not np.isfinite(s).all():
+        raise ValueError(f"strokes must be a finite array of shape (k, 4), k >= 1; "
+                         f"got shape {s.shape}")
+    if not isinstance(size, int | np.integer) or size < 16:
+        raise ValueError(f"size must be an integer >= 16; got {size!r}")
+    w = np.broadcast_to(np.asarray(width, dtype=np.float64), (len(s),))
+    if not (np.isfinite(w).all() and (w > 0).all()):
+        raise ValueError(f"width must be positive; got {width!r}")
+    yy, xx = (np.mgrid[0:size, 0:size] + 0.5) / size
+    img = np.zeros((size, size), dtype=bool)
+    for (x0, y0, x1, y1), wk in zip(s, w, strict=True):
+        dx, dy = x1 - x0, y1 - y0
+        L2 = dx * dx + dy * dy
+        u = np.clip(((xx - x0) * dx + (yy - y0) * dy) / L2, 0, 1) if L2 > 0 else 0.0
+        img |= np.hypot(xx - (x0 + u * dx), yy - (y0 + u * dy)) <= wk / 2
+    if not img.any():
+        raise ValueError("the strokes draw no pixel: widen them or enlarge the image")
+    return img
