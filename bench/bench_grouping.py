@@ -35,8 +35,8 @@ from registration import group_instances
 from registration.impressions import (
     draw_strokes,
     identical_moulds,
+    impression_set,
     recut_stroke_end,
-    simulate_impressions,
 )
 from service.ingest import points_from_image
 
@@ -69,17 +69,6 @@ def to_points(img: np.ndarray) -> np.ndarray:
     buf = io.BytesIO()
     Image.fromarray(img).save(buf, format="PNG")
     return points_from_image(buf.getvalue(), mode="contour", target_points=TARGET_POINTS)
-
-
-def impressions(moulds: list[np.ndarray], n: int, seed: int
-                ) -> tuple[list[np.ndarray], np.ndarray]:
-    rng = np.random.default_rng(seed)
-    shapes, truth = [], []
-    for k, m in enumerate(moulds):
-        for img in simulate_impressions(m, n, seed=rng):
-            shapes.append(to_points(img))
-            truth.append(k)
-    return shapes, np.asarray(truth)
 
 
 def yong_moulds(count: int, seed: int) -> list[np.ndarray]:
@@ -155,7 +144,7 @@ def distance_quantiles(D: np.ndarray, truth: np.ndarray) -> str:
 def run(name: str, moulds: int, n: int, seed: int) -> dict[str, float]:
     t0 = time.perf_counter()
     ms = SETTINGS["yong" if name == "time" else name](moulds, seed)
-    shapes, truth = impressions(ms, n, seed)
+    shapes, truth = impression_set(ms, n, to_points=to_points, seed=seed)
     t1 = time.perf_counter()
     res = group_instances(shapes)
     t2 = time.perf_counter()

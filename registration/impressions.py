@@ -24,6 +24,7 @@ through exactly the path a user's scans go through.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -40,6 +41,7 @@ __all__ = [
     "Recut",
     "draw_strokes",
     "identical_moulds",
+    "impression_set",
     "mould_from_points",
     "recut_stroke_end",
     "simulate_impressions",
@@ -545,3 +547,26 @@ def draw_strokes(
     if not img.any():
         raise ValueError("the strokes draw no pixel: widen them or enlarge the image")
     return img
+
+
+def impression_set(
+    moulds: Sequence[ArrayLike],
+    n: int,
+    *,
+    to_points: Callable[[NDArray[np.uint8]], ArrayLike],
+    variation: PrintVariation | None = None,
+    seed: int | np.random.Generator | None = None,
+) -> tuple[list[FloatArray], NDArray[np.intp]]:
+    """``n`` impressions of every mould, as points, with the true mould of each.
+
+    `to_points` turns a grey scan into points (for example the service's image ingestion
+    of the scan encoded as PNG). Returns the point sets, mould by mould, and the mould
+    index of each."""
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    shapes: list[FloatArray] = []
+    truth: list[int] = []
+    for k, m in enumerate(moulds):
+        for img in simulate_impressions(m, n, variation=variation, seed=rng):
+            shapes.append(as_points(to_points(img), name=f"points of mould {k}"))
+            truth.append(k)
+    return shapes, np.asarray(truth, dtype=np.intp)

@@ -9,7 +9,12 @@ import pytest
 from skimage.measure import find_contours
 
 from registration import GroupingResult, group_instances
-from registration.impressions import draw_strokes, recut_stroke_end, simulate_impressions
+from registration.impressions import (
+    draw_strokes,
+    impression_set,
+    recut_stroke_end,
+    simulate_impressions,
+)
 
 # three "characters" of a few strokes each, and a variant of the first with one stroke
 # end moved (another carver)
@@ -27,13 +32,7 @@ def contour_points(img: np.ndarray, n: int = 800) -> np.ndarray:
 
 
 def prints(moulds: list[np.ndarray], n: int, seed: int) -> tuple[list[np.ndarray], np.ndarray]:
-    rng = np.random.default_rng(seed)
-    shapes, truth = [], []
-    for k, m in enumerate(moulds):
-        for img in simulate_impressions(m, n, seed=rng):
-            shapes.append(contour_points(img))
-            truth.append(k)
-    return shapes, np.asarray(truth)
+    return impression_set(moulds, n, to_points=contour_points, seed=seed)
 
 
 def same_partition(a: np.ndarray, b: np.ndarray) -> bool:
