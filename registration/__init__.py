@@ -17,6 +17,7 @@ Typical use::
 from ._cpd import CPDResult, NonrigidTransform, cpd_nonrigid
 from ._error import registration_error
 from ._executor import Executor, LocalProcessExecutor, SerialExecutor, default_executor
+from ._grouping import GroupingResult, MouldGroup, group_instances
 from ._icp import AffineICPResult, affine_icp, bidirectional_distance, fit_affine
 from ._points import Normalization, as_points, normalise, resample
 from ._result import Attempt, CollectionResult, SubjectResult, error_statistics
@@ -33,7 +34,9 @@ __all__ = [
     "ChainTransform",
     "CollectionResult",
     "Executor",
+    "GroupingResult",
     "LocalProcessExecutor",
+    "MouldGroup",
     "NonrigidTransform",
     "Normalization",
     "ProgressCallback",
@@ -49,6 +52,7 @@ __all__ = [
     "default_executor",
     "error_statistics",
     "fit_affine",
+    "group_instances",
     "jacobian_determinants",
     "normalise",
     "register_direct",

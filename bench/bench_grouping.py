@@ -1,0 +1,180 @@
+"""Grouping impressions by mould (issue 11): adjusted Rand index and time.
+
+Settings (each: moulds x impressions, simulated by :mod:`registration.impressions`, each
+scan encoded as PNG and turned into points by the service's image ingestion,
+``service.ingest.points_from_image``, mode ``contour``):
+
+- ``yong``: 40 distinct 永 designs (``../shared/data/glyphs_yong/png``, thresholded at
+  128; designs that render identically are merged first) x 5 impressions;
+- ``yong-recut``: 20 designs, each with a twin whose one stroke end is recut (one stroke
+  width shorter or longer), x 5 impressions: 40 moulds that differ in pairs by one stroke;
+- ``strokes``: a second character drawn procedurally (``draw_strokes``), 40 "carvers"
+  that place its strokes differently (ends moved by up to 4 % of the size), x 5;
+- ``mpeg7``: 40 MPEG-7 silhouettes (``../shared/data/mpeg7``) as moulds, x 5;
+- ``time``: 200 instances (40 x 5 of ``yong``), wall time of ``group_instances``.
+
+For every setting: same-mould and different-mould distance quantiles (the data for the
+automatic threshold), the threshold chosen, ARI against the true moulds.
+
+    .venv/bin/python bench/bench_grouping.py [--settings yong,yong-recut,...] [--seed 0]
+        [--moulds 40] [--impressions 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from registration import group_instances
+from registration.impressions import (
+    draw_strokes,
+    identical_moulds,
+    impression_set,
+    recut_stroke_end,
+)
+from service.ingest import points_from_image
+
+# ../shared/data beside the project (or beside the folder holding its worktrees)
+DATA = next((p / "shared" / "data" for p in Path(__file__).resolve().parents[1:]
+             if (p / "shared" / "data").is_dir()),
+            Path(__file__).resolve().parents[1].parent / "shared" / "data")
+GLYPHS = DATA / "glyphs_yong" / "png"
+MPEG7 = DATA / "mpeg7"
+TARGET_POINTS = 3000
+
+
+def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
+    """Hubert and Arabie's adjusted Rand index of two labelings."""
+    _, ai = np.unique(a, return_inverse=True)
+    _, bi = np.unique(b, return_inverse=True)
+    table = np.zeros((ai.max() + 1, bi.max() + 1))
+    np.add.at(table, (ai, bi), 1)
+
+    def pairs(x: np.ndarray) -> float:
+        return float((x * (x - 1) / 2).sum())
+
+    index, rows, cols = pairs(table), pairs(table.sum(1)), pairs(table.sum(0))
+    expected = rows * cols / (len(a) * (len(a) - 1) / 2)
+    top = (rows + cols) / 2
+    return 1.0 if top == expected else (index - expected) / (top - expected)
+
+
+def to_points(img: np.ndarray) -> np.ndarray:
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    return points_from_image(buf.getvalue(), mode="contour", target_points=TARGET_POINTS)
+
+
+def yong_moulds(count: int, seed: int) -> list[np.ndarray]:
+    files = sorted(GLYPHS.glob("*.png"))
+    masks = [np.asarray(Image.open(f).convert("L")) < 128 for f in files]
+    groups = identical_moulds(masks)
+    print(f"  {len(files)} designs, {len(groups)} distinct after merging identical renders")
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(groups), size=min(count, len(groups)), replace=False)
+    return [masks[groups[int(g)][0]] for g in pick]
+
+
+def recut_moulds(count: int, seed: int) -> list[np.ndarray]:
+    base = yong_moulds(count // 2, seed + 1)
+    out = []
+    for k, m in enumerate(base):
+        r = recut_stroke_end(m, seed=seed + k)
+        out += [m, r.mould]
+    return out
+
+
+STROKES_BASE = np.array([  # a character like 王 with a dot: 4 horizontals, 1 vertical, dot
+    [0.18, 0.20, 0.82, 0.20], [0.25, 0.50, 0.75, 0.50], [0.12, 0.82, 0.88, 0.82],
+    [0.50, 0.20, 0.50, 0.82], [0.70, 0.60, 0.78, 0.70], [0.30, 0.30, 0.38, 0.40],
+])
+
+
+def stroke_moulds(count: int, seed: int) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        s = STROKES_BASE + rng.uniform(-0.04, 0.04, STROKES_BASE.shape)
+        out.append(draw_strokes(s, size=200, width=rng.uniform(0.05, 0.09)))
+    return out
+
+
+def mpeg7_moulds(count: int, seed: int) -> list[np.ndarray]:
+    from matplotlib.path import Path as MPath
+
+    files = sorted(MPEG7.glob("*/*.npy"))
+    rng = np.random.default_rng(seed)
+    out = []
+    for f in rng.choice(len(files), size=min(count, len(files)), replace=False):
+        c = np.load(files[int(f)]).astype(np.float64)
+        c = (c - c.min(0)) * (220.0 / np.ptp(c, axis=0).max()) + 18
+        yy, xx = np.mgrid[0:256, 0:256] + 0.5
+        inside = MPath(c).contains_points(np.c_[xx.ravel(), yy.ravel()])
+        out.append(inside.reshape(256, 256))
+    return out
+
+
+SETTINGS: dict[str, Callable[[int, int], list[np.ndarray]]] = {
+    "yong": yong_moulds, "yong-recut": recut_moulds, "strokes": stroke_moulds,
+    "mpeg7": mpeg7_moulds,
+}
+NEEDS_DATA = {"yong", "yong-recut", "mpeg7", "time"}
+
+
+def distance_quantiles(D: np.ndarray, truth: np.ndarray) -> str:
+    same = truth[:, None] == truth[None, :]
+    iu = np.triu_indices(len(truth), 1)
+    known = ~np.isnan(D[iu])
+    s = D[iu][known & same[iu]]
+    d = D[iu][known & ~same[iu]]
+
+    def q(x: np.ndarray, p: float) -> str:
+        return f"{np.quantile(x, p):.3f}" if len(x) else "-"
+
+    return (f"same n={len(s)} median {q(s, .5)} p95 {q(s, .95)} max {q(s, 1)} | "
+            f"different n={len(d)} min {q(d, 0)} p5 {q(d, .05)} median {q(d, .5)}")
+
+
+def run(name: str, moulds: int, n: int, seed: int) -> dict[str, float]:
+    t0 = time.perf_counter()
+    ms = SETTINGS["yong" if name == "time" else name](moulds, seed)
+    shapes, truth = impression_set(ms, n, to_points=to_points, seed=seed)
+    t1 = time.perf_counter()
+    res = group_instances(shapes)
+    t2 = time.perf_counter()
+    ari = adjusted_rand_index(res.labels, truth)
+    print(f"  {len(shapes)} instances ({np.mean([len(s) for s in shapes]):.0f} points), "
+          f"simulated + ingested in {t1 - t0:.1f} s")
+    print(f"  {distance_quantiles(res.distances, truth)}")
+    print(f"  noise level {res.noise_level:.4f}, threshold {res.threshold:.4f} "
+          f"({res.threshold_source}), {res.n_groups} groups for {len(set(truth))} moulds, "
+          f"{res.pairs_computed} pairs, ARI {ari:.3f}, group_instances {t2 - t1:.1f} s")
+    return {"ari": ari, "seconds": t2 - t1, "threshold": res.threshold}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--settings", default="yong,yong-recut,strokes,mpeg7,time")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--moulds", type=int, default=40)
+    ap.add_argument("--impressions", type=int, default=5)
+    args = ap.parse_args()
+    for name in args.settings.split(","):
+        if name not in SETTINGS and name != "time":
+            raise SystemExit(f"unknown setting {name!r}")
+        print(f"== {name}")
+        if name in NEEDS_DATA and not DATA.is_dir():
+            print(f"  SKIPPED: {DATA} is missing (the shared data folder sits beside the "
+                  "project; see its README.md)")
+            continue
+        run(name, args.moulds, args.impressions, args.seed)
+
+
+if __name__ == "__main__":
+    main()
