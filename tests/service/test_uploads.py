@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import io
 from collections.abc import Callable
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -284,3 +285,37 @@ def test_default_names(client: httpx.Client) -> None:
     assert (
         named.startswith("shape-") and assert_problem(as_csv, 409)["existing"][0]["name"] == named
     )
+
+
+# --------------------------------------------------------------------------- client and CLI
+
+
+def test_client_and_cli_upload_a_folder_twice(service: Service, tmp_path: Path) -> None:
+    from service.client import Conflict, RegtreeClient
+    from tests.service.test_cli_client import assert_error, regtree
+
+    folder = tmp_path / "glyphs"
+    folder.mkdir()
+    for n, r in (("a", 1.0), ("b", 2.0)):
+        np.savetxt(folder / f"{n}.txt", circle(12, r))
+    with RegtreeClient(service.base_url) as rt:
+        coll = rt.create_collection("twice")
+        first = rt.upload_folder(coll.id, folder)
+        with pytest.raises(Conflict) as refused:
+            rt.upload_folder(coll.id, folder)
+        assert refused.value.problem["existing"] == [{"id": s.id, "name": s.name} for s in first]
+        assert [s.id for s in rt.list_shapes(coll.id)] == [s.id for s in first]
+        replaced = rt.upload_folder(coll.id, folder, on_conflict="replace")
+        assert [s.name for s in rt.list_shapes(coll.id)] == ["a", "b"]
+        assert {s.id for s in replaced}.isdisjoint(s.id for s in first)
+        with pytest.raises(Conflict):
+            rt.upload_points(coll.id, "a", circle(7))
+        rt.upload_points(coll.id, "a", circle(7), on_conflict="keep")
+        assert [s.name for s in rt.list_shapes(coll.id)] == ["a", "b", "a"]
+
+    url = service.base_url
+    args = ("upload", str(folder), "--collection", "twice")
+    assert_error(regtree(*args, url=url), 1, "already has shape(s) named", "--on-conflict")
+    done = regtree(*args, "--on-conflict", "keep", url=url)
+    assert done.returncode == 0, done.stderr
+    assert "uploaded 2 shape(s)" in done.stdout and "now holds 5" in done.stdout
