@@ -223,6 +223,14 @@ def add_commands(sub: Any) -> None:
         help="at most N points per image (default: the service's)",
     )
     upload.add_argument(
+        "--on-conflict",
+        choices=("refuse", "replace", "keep"),
+        default="refuse",
+        help="when the collection already holds a shape of a file's name: refuse (default: "
+        "nothing of that batch is stored, so a folder uploaded twice is not doubled), replace "
+        "it, or keep both",
+    )
+    upload.add_argument(
         "--batch-size", type=_positive_int, default=100, metavar="N", help="files per request"
     )
 
@@ -542,12 +550,15 @@ def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
             files,
             mode=args.mode,
             target_points=args.target_points,
+            on_conflict=args.on_conflict,
             batch_size=args.batch_size,
             on_batch=on_batch,
         )
     except RegtreeError as e:
         code = EXIT_FAILED if e.status is not None else EXIT_CONNECTION
         message = describe_error(e) if e.status is not None else f"{e}"
+        if e.type == "/problems/name-conflict":
+            message += "; to upload anyway: --on-conflict replace or --on-conflict keep"
         raise CLIError(
             f"{message}; collection {collection.name!r} (id {collection.id}) keeps the "
             f"{len(e.stored)} shape(s) of the earlier batches",

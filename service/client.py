@@ -67,6 +67,9 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 ImageMode = Literal["contour", "edges", "skeleton"]
+#: What an upload does with a name the collection already holds (the service's default:
+#: refuse, a 409 :class:`Conflict` naming the existing shapes).
+OnConflict = Literal["refuse", "replace", "keep"]
 Method = Literal["dynamic_tree", "static_tree", "direct"]
 #: How the affine pre-alignment may pose a shape: see :meth:`RegtreeClient.start_job`.
 Pose = Literal["as_given", "upright", "rotation", "affine"]
@@ -714,14 +717,20 @@ class RegtreeClient:
         name: str,
         points: ArrayLike,
         *,
+        on_conflict: OnConflict = "refuse",
         idempotency_key: str | None = None,
     ) -> Shape:
-        """Upload one shape given as an (n, 2) array of (x, y) points."""
+        """Upload one shape given as an (n, 2) array of (x, y) points.
+
+        ``on_conflict``: if the collection holds a shape of this name, ``refuse`` (an error,
+        nothing stored), ``replace`` it (the new shape gets a new id) or ``keep`` both.
+        """
         response = self._request(
             "POST",
             f"/v1/collections/{collection_id}/shapes",
             retry=True,
             idempotency_key=idempotency_key or uuid.uuid4().hex,
+            params={"on_conflict": on_conflict},
             json={"name": name, "points": _points_list(points)},
         )
         return Shape.from_json(response.json())
@@ -733,6 +742,7 @@ class RegtreeClient:
         *,
         mode: ImageMode = "contour",
         target_points: int | None = None,
+        on_conflict: OnConflict = "refuse",
         batch_size: int = 100,
         max_batch_bytes: int = 16 * 1024 * 1024,
         on_batch: Callable[[int, int], None] | None = None,
@@ -743,7 +753,8 @@ class RegtreeClient:
         files or ``max_batch_bytes`` (keep it under the service's body limit). If a batch is
         refused, the exception says which batch and carries the shapes stored by the earlier
         batches in ``exc.stored``. ``on_batch(done_files, total_files)`` is called after each.
-        The shape name is the file name without its extension.
+        The shape name is the file name without its extension; ``on_conflict`` says what
+        happens to names the collection holds already (see :meth:`upload_points`).
         """
         if batch_size < 1:
             raise ValueError("batch_size must be >= 1")
@@ -783,6 +794,7 @@ class RegtreeClient:
                     f"/v1/collections/{collection_id}/shapes",
                     retry=True,
                     idempotency_key=uuid.uuid4().hex,
+                    params={"on_conflict": on_conflict},
                     files=parts,
                     data=data,
                 )
@@ -808,6 +820,7 @@ class RegtreeClient:
         pattern: str = "*",
         mode: ImageMode = "contour",
         target_points: int | None = None,
+        on_conflict: OnConflict = "refuse",
         batch_size: int = 100,
         recursive: bool = False,
         on_batch: Callable[[int, int], None] | None = None,
@@ -825,6 +838,7 @@ class RegtreeClient:
             files,
             mode=mode,
             target_points=target_points,
+            on_conflict=on_conflict,
             batch_size=batch_size,
             on_batch=on_batch,
         )

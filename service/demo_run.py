@@ -2,8 +2,10 @@
 
 It starts the same API server and worker processes as ``regtree serve`` (on a free local
 port, with the configured database, ``./var/regtree.sqlite`` by default), uploads the demo
-shapes over HTTP, submits a dynamic-tree job with the first shape as model, polls it while
-printing progress, and prints a summary of the result.
+shapes over HTTP (run again on the same database, it reuses its collection ``demo: NAME``
+and the shapes of the demo's names there, uploading only those missing), submits a
+dynamic-tree job with the first shape as model, polls it while printing progress, and prints
+a summary of the result.
 """
 
 from __future__ import annotations
@@ -94,6 +96,42 @@ def follow_job(
         progress.end_line()
 
 
+def _all(client: httpx.Client, path: str) -> list[dict[str, Any]]:
+    """Every item of a paged list."""
+    items: list[dict[str, Any]] = []
+    while True:
+        page = client.get(path, params={"offset": len(items)}).raise_for_status().json()
+        items.extend(page["items"])
+        if not page["items"] or len(items) >= page["total"]:
+            return items
+
+
+def _demo_collection(
+    client: httpx.Client, title: str, shapes: dict[str, np.ndarray], out: TextIO
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The demo's collection and its shapes in demo order: reused when an earlier run left
+    them (by name), so running the demo twice does not make two collections of one name."""
+    found = [c for c in _all(client, "/v1/collections") if c["name"] == title]
+    if found:
+        collection = found[0]
+        print(f"reusing collection {title!r} (id {collection['id']}) of an earlier demo run",
+              file=out)
+    else:
+        collection = (
+            client.post("/v1/collections", json={"name": title, "description": "regtree demo"})
+            .raise_for_status()
+            .json()
+        )
+    url = f"/v1/collections/{collection['id']}/shapes"
+    held = {s["name"]: s for s in _all(client, url)}
+    missing = [k for k in shapes if k not in held]
+    if missing:
+        batch = {"shapes": [{"name": k, "points": shapes[k].tolist()} for k in missing]}
+        for s in client.post(url, json=batch).raise_for_status().json()["items"]:
+            held[s["name"]] = s
+    return collection, [held[k] for k in shapes]
+
+
 def run_demo(
     settings: Settings,
     *,
@@ -114,19 +152,7 @@ def run_demo(
         if settings.api_key is not None:
             headers["X-API-Key"] = settings.api_key.get_secret_value()
         with httpx.Client(base_url=stack.base_url, headers=headers, timeout=60) as client:
-            collection = (
-                client.post(
-                    "/v1/collections", json={"name": f"demo: {name}", "description": "regtree demo"}
-                )
-                .raise_for_status()
-                .json()
-            )
-            batch = {"shapes": [{"name": k, "points": v.tolist()} for k, v in shapes.items()]}
-            uploaded = (
-                client.post(f"/v1/collections/{collection['id']}/shapes", json=batch)
-                .raise_for_status()
-                .json()["items"]
-            )
+            collection, uploaded = _demo_collection(client, f"demo: {name}", shapes, out)
             job = client.post(
                 "/v1/jobs",
                 json={

@@ -19,6 +19,7 @@ success into ``cancelled`` too.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 import traceback
@@ -295,6 +296,20 @@ def run_registration(
     return doc
 
 
+_POSITION = re.compile(r"\bshapes\[(\d+)\]")
+
+
+def name_shapes(message: str, shape_ids: list[int], names: list[str]) -> str:
+    """``message`` with the library's ``shapes[k]`` (a position in the job's input) written
+    as ``shape ID 'NAME'``, which the user can find in the collection."""
+
+    def named(match: re.Match[str]) -> str:
+        k = int(match[1])
+        return f"shape {shape_ids[k]} {names[k]!r}" if k < len(shape_ids) else match[0]
+
+    return _POSITION.sub(named, message)
+
+
 def _stop(executor: Any) -> None:
     """Stop an executor's tasks now, without waiting for them (a pool is killed)."""
     terminate = getattr(executor, "terminate", None)
@@ -370,7 +385,7 @@ def run_claimed(
                 outcome = _interrupted(db, claim, reason)
             else:
                 logger.error("job failed", exc_info=exc, extra=log)
-                message = f"{type(exc).__name__}: {exc}"
+                message = name_shapes(f"{type(exc).__name__}: {exc}", shape_ids, names)
                 if not str(exc):
                     message += "\n" + "".join(traceback.format_exception(exc)[-3:])
                 outcome = "failed" if queue.fail(db, claim, message) else "lost"

@@ -285,3 +285,31 @@ def wait_job(
         if time.monotonic() > deadline:
             raise AssertionError(f"job {job_id} did not get there in {timeout}s: {job}")
         time.sleep(0.1)
+
+
+def insert_legacy_shape(service: Service, collection_id: int, name: str, points: Any) -> int:
+    """Store a shape straight in the service's database, past the upload checks: a shape
+    stored before they existed (for example one whose points all coincide). Its id."""
+    from service.db import Database
+    from service.models import Shape, points_to_npy
+
+    pts = np.asarray(points, dtype=np.float64)
+    db = Database(service.database_url)
+    try:
+        with db.write() as session:
+            row = Shape(
+                collection_id=collection_id,
+                name=name,
+                source_format="json",
+                n_points=len(pts),
+                min_x=float(pts[:, 0].min()),
+                min_y=float(pts[:, 1].min()),
+                max_x=float(pts[:, 0].max()),
+                max_y=float(pts[:, 1].max()),
+                points_npy=points_to_npy(pts),
+            )
+            session.add(row)
+            session.flush()
+            return int(row.id)
+    finally:
+        db.dispose()

@@ -28,6 +28,9 @@ def png_ellipse(fmt: str = "PNG") -> bytes:
     return buffer.getvalue()
 
 
+TRIANGLE = [[0, 0], [1, 0], [0, 1]]
+
+
 def csv_text(points: np.ndarray) -> str:
     return "x,y\n" + "\n".join(f"{x:.6f},{y:.6f}" for x, y in points)
 
@@ -83,8 +86,13 @@ def test_upload_every_format(client: httpx.Client) -> None:
         ("files", ("e.png", png_ellipse("PNG"), "image/png")),
         ("files", ("f.jpg", png_ellipse("JPEG"), "image/jpeg")),
     ]
-    for mode in ("contour", "edges", "skeleton"):
-        r = client.post(url, files=files, data={"mode": mode, "target_points": "40"})
+    for mode in ("contour", "edges", "skeleton"):  # the same names thrice: keep them all
+        r = client.post(
+            url,
+            files=files,
+            data={"mode": mode, "target_points": "40"},
+            params={"on_conflict": "keep"},
+        )
         assert r.status_code == 201, r.text
         items = r.json()["items"]
         assert [i["name"] for i in items] == ["a", "b", "c", "d", "e", "f"]
@@ -286,7 +294,7 @@ def test_bad_shape_uploads_are_4xx_problems(
         ),
         ("POST", "/v1/collections", {"json": {"name": "x" * 201}}, 422),
         ("GET", "/v1/collections/999999/shapes", {}, 404),
-        ("POST", "/v1/collections/999999/shapes", {"json": {"points": [[0, 0]] * 3}}, 404),
+        ("POST", "/v1/collections/999999/shapes", {"json": {"points": TRIANGLE}}, 404),
         ("GET", "/v1/jobs/999999", {}, 404),
         ("GET", "/v1/jobs?status=bogus", {}, 422),
         ("POST", "/v1/jobs/999999/cancel", {}, 404),

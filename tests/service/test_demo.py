@@ -3,11 +3,14 @@ its progress and result and nothing of the server's logs."""
 
 from __future__ import annotations
 
+import io
 import os
 import re
 import subprocess
 import sys
 from pathlib import Path
+
+import httpx
 
 from tests.service.conftest import REPO
 
@@ -33,3 +36,28 @@ def test_demo_end_to_end(tmp_path: Path) -> None:
     assert re.search(running, done.stdout, re.M), done.stdout
     assert "layer >= 3" in done.stdout and "direct" in done.stdout
     assert (tmp_path / "var" / "regtree.sqlite").is_file()
+
+
+def test_demo_run_twice_reuses_its_collection(client: httpx.Client) -> None:
+    """A second run finds the collection and shapes of the first (by name) and stores
+    nothing new; a shape missing from it is uploaded again."""
+    from service.demo_run import _all, _demo_collection, load_demo_shapes
+
+    name, shapes = load_demo_shapes()
+    title = f"demo: {name}"
+    first, first_shapes = _demo_collection(client, title, shapes, io.StringIO())
+    second, second_shapes = _demo_collection(client, title, shapes, io.StringIO())
+    assert second["id"] == first["id"]
+    assert [s["id"] for s in second_shapes] == [s["id"] for s in first_shapes]
+    assert [s["name"] for s in first_shapes] == list(shapes)
+    assert [c["name"] for c in _all(client, "/v1/collections")].count(title) == 1
+    url = f"/v1/collections/{first['id']}/shapes"
+    assert len(_all(client, url)) == len(shapes)
+
+    gone = first_shapes[1]
+    assert client.delete(f"{url}/{gone['id']}").status_code == 204
+    _, third_shapes = _demo_collection(client, title, shapes, io.StringIO())
+    assert third_shapes[1]["name"] == gone["name"] and third_shapes[1]["id"] != gone["id"]
+    assert [s["id"] for i, s in enumerate(third_shapes) if i != 1] == [
+        s["id"] for i, s in enumerate(first_shapes) if i != 1
+    ]

@@ -308,11 +308,12 @@ def test_configured_limits_are_enforced_as_documented(limited: Service) -> None:
             "max_image_pixels",
         )
 
-        # Shapes in a collection: this one holds 9, the limit is 12.
-        stored(client.post(url, json={"shapes": batch[:3]}))
+        # Shapes in a collection: this one holds 9, the limit is 12 (names repeat: keep).
+        keep = {"on_conflict": "keep"}
+        stored(client.post(url, json={"shapes": batch[:3]}, params=keep))
         assert count() == 12
         refused(
-            lambda: client.post(url, json={"points": polygon(4)}),
+            lambda: client.post(url, json={"points": polygon(4)}, params=keep),
             422,
             "limit of 12",
             "max_shapes_per_collection",

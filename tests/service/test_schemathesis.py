@@ -325,6 +325,8 @@ def api_schema(seeded: tuple[Service, Known]) -> Any:
             if body is not None:
                 case.body = body
                 case.path_parameters = {"collection_id": known.collection_id}
+                # the same names again (multipart parts may even share one): keep them all
+                case.query = {**(case.query or {}), "on_conflict": "keep"}
             return case
 
         return st.sampled_from([None, *bodies]).map(with_body)

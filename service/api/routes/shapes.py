@@ -9,8 +9,20 @@ One upload endpoint takes every supported form:
 * a raw body typed ``text/csv``, ``text/plain``, ``application/octet-stream`` (``.npy``),
   ``image/png`` or ``image/jpeg``, named with ``?name=``.
 
-Decoding and validation are :mod:`service.ingest`'s. A batch is all-or-nothing: the first bad
-file answers 422 naming the file, and nothing is stored.
+Names: a file's name without its extension (multipart), ``?name=`` (raw body) or the
+``"name"`` of a JSON shape; a shape uploaded without one is named ``shape-`` and 12 hex
+digits of the SHA-256 of its points (the same points get the same name in every format).
+
+Existing names: ``?on_conflict=`` says what happens when the collection already holds a shape
+of an uploaded name. ``refuse`` (the default: uploading a folder twice must not double the
+collection) answers 409 naming the existing shapes; ``replace`` deletes them and stores the
+new ones under new ids (409 if an unfinished job uses one); ``keep`` stores the new ones
+beside them, the name repeated. One upload naming two shapes alike is a 422 unless ``keep``.
+
+Decoding and validation are :mod:`service.ingest`'s (shapes whose points all coincide, or
+nearly, are refused); storing is :mod:`service.api.shape_store`'s. An upload is
+all-or-nothing: the first bad file answers 422 naming the file, and nothing is stored; a
+refused upload leaves the collection as it was.
 """
 
 from __future__ import annotations
@@ -18,23 +30,22 @@ from __future__ import annotations
 import json
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from dataclasses import dataclass
 from typing import Annotated, Any
 
-import numpy as np
 from fastapi import APIRouter, Query, Request, Response, status
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import FormData, UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service import ingest
-from service.api import idempotency
+from service.api import idempotency, shape_store
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
 from service.api.problems import ProblemError, not_found, problem_responses
 from service.api.routes.collections import get_collection_or_404
+from service.api.shape_store import NewShape, OnConflict, content_name
 from service.core.config import Settings
 from service.core.limits import bounds, example
-from service.models import TERMINAL_STATUSES, Job, Shape, points_to_npy
+from service.models import Shape
 from service.schemas import (
     NO_NUL,
     DbInt,
@@ -138,13 +149,6 @@ _UPLOAD_OPENAPI: dict[str, Any] = {
 }
 
 
-@dataclass
-class Decoded:
-    name: str
-    source_format: str
-    points: np.ndarray
-
-
 def _limits(settings: Settings) -> ingest.Limits:
     return ingest.Limits(
         min_points=settings.min_points,
@@ -160,32 +164,13 @@ def _invalid(detail: str, *, extra: dict[str, Any] | None = None) -> ProblemErro
     )
 
 
-def _source_format(data: bytes, filename: str | None, content_type: str | None, mode: str) -> str:
-    if data.startswith(b"\x89PNG"):
-        return f"png:{mode}"
-    if data.startswith(b"\xff\xd8\xff"):
-        return f"jpeg:{mode}"
-    if data.startswith(b"\x93NUMPY"):
-        return "npy"
-    try:
-        fmt = ingest.detect_format(filename, content_type, data)
-    except ingest.IngestError:
-        return "unknown"
-    if fmt == "image":
-        return f"image:{mode}"
-    if fmt == "text":
-        ext = (filename or "").rsplit(".", 1)[-1].lower() if filename and "." in filename else ""
-        ctype = (content_type or "").split(";")[0].strip().lower()
-        return "csv" if ext == "csv" or ctype == "text/csv" else "txt"
-    return fmt
-
-
-def _stem(filename: str | None, fallback: str) -> str:
+def _stem(filename: str | None) -> str | None:
+    """A file's name without folders and extension (None if nothing is left)."""
     if not filename:
-        return fallback
+        return None
     base = filename.replace("\x00", "").replace("\\", "/").rsplit("/", 1)[-1]
     stem = base.rsplit(".", 1)[0] if "." in base else base
-    return (stem or fallback)[:300]
+    return stem[:300] or None
 
 
 def _parse_target_points(raw: str | None) -> int | None:
@@ -223,7 +208,7 @@ def _too_many_files(count: str, max_batch_files: int, what: str = "files") -> Pr
 
 def _decode_json_body(
     body: bytes, limits: ingest.Limits, max_batch_files: int
-) -> tuple[list[Decoded], bool]:
+) -> tuple[list[NewShape], bool]:
     """Shapes from a JSON body, and whether it was a batch."""
     try:
         obj = json.loads(body)
@@ -239,7 +224,7 @@ def _decode_json_body(
     else:
         items = [obj]
         batch = False
-    decoded: list[Decoded] = []
+    decoded: list[NewShape] = []
     for i, item in enumerate(items):
         label = f"shapes[{i}]" if batch else "body"
         if not isinstance(item, dict):
@@ -253,7 +238,7 @@ def _decode_json_body(
             points = ingest.points_from_json(item, limits=limits)
         except ingest.IngestError as e:
             raise _invalid(f"{label}: {e}") from e
-        decoded.append(Decoded(name or f"shape-{i}", "json", points))
+        decoded.append(NewShape(name or content_name(points), "json", points, label))
     return decoded, batch
 
 
@@ -262,12 +247,12 @@ def _decode_files(
     mode: ImageMode,
     target_points: int | None,
     limits: ingest.Limits,
-) -> list[Decoded]:
-    decoded: list[Decoded] = []
+) -> list[NewShape]:
+    decoded: list[NewShape] = []
     for i, (filename, content_type, data) in enumerate(files):
         label = filename or f"file {i}"
         try:
-            points = ingest.decode_points(
+            upload = ingest.decode_upload(
                 data,
                 filename=filename,
                 content_type=content_type,
@@ -277,13 +262,8 @@ def _decode_files(
             )
         except ingest.IngestError as e:
             raise _invalid(f"{label}: {e}", extra={"file": label, "index": i}) from e
-        decoded.append(
-            Decoded(
-                _stem(filename, f"shape-{i}"),
-                _source_format(data, filename, content_type, mode),
-                points,
-            )
-        )
+        name = _stem(filename) or content_name(upload.points)
+        decoded.append(NewShape(name, upload.source_format, upload.points, label))
     return decoded
 
 
@@ -306,64 +286,25 @@ def shape_out(shape: Shape) -> ShapeOut:
     )
 
 
-def _store(
-    db: Any,
-    settings: Settings,
-    collection_id: int,
-    decoded: list[Decoded],
-    scope: str,
-    key: str | None,
-    request_hash: str,
-) -> list[ShapeOut]:
-    from sqlalchemy import func, select
-
-    with db.write() as session:
-        entry = idempotency.lookup(session, scope, key, request_hash)
-        if entry is not None:
-            shapes = [session.get(Shape, sid) for sid in entry.resource_ids]
-            return [shape_out(s) for s in shapes if s is not None]
-        # Row-locked on PostgreSQL, so concurrent uploads cannot both pass the size limit.
-        get_collection_or_404(session, collection_id, for_update=True)
-        existing = (
-            session.scalar(select(func.count(Shape.id)).where(Shape.collection_id == collection_id))
-            or 0
+def _refused(e: Exception) -> ProblemError:
+    """The problem document for an upload or delete that :mod:`shape_store` refused."""
+    if isinstance(e, shape_store.NameConflict):
+        existing = [{"id": sid, "name": name} for sid, name in e.existing]
+        return ProblemError(
+            409, str(e), type_="/problems/name-conflict", extra={"existing": existing}
         )
-        if existing + len(decoded) > settings.max_shapes_per_collection:
-            raise ProblemError(
-                422,
-                f"collection {collection_id} has {existing} shapes; adding {len(decoded)} would "
-                f"pass the limit of {settings.max_shapes_per_collection} "
-                "(setting max_shapes_per_collection)",
-                type_="/problems/collection-full",
-            )
-        rows = []
-        for item in decoded:
-            pts = item.points
-            lo, hi = pts.min(axis=0), pts.max(axis=0)
-            row = Shape(
-                collection_id=collection_id,
-                name=item.name,
-                source_format=item.source_format,
-                n_points=int(pts.shape[0]),
-                min_x=float(lo[0]),
-                min_y=float(lo[1]),
-                max_x=float(hi[0]),
-                max_y=float(hi[1]),
-                points_npy=points_to_npy(pts),
-            )
-            session.add(row)
-            rows.append(row)
-        session.flush()
-        idempotency.remember(
-            session,
-            scope,
-            key,
-            request_hash,
-            status_code=201,
-            resource_type="shapes",
-            resource_ids=[r.id for r in rows],
+    if isinstance(e, shape_store.DuplicateNames):
+        return ProblemError(
+            422,
+            str(e),
+            type_="/problems/duplicate-names",
+            extra={"name": e.name, "files": e.labels},
         )
-        return [shape_out(r) for r in rows]
+    if isinstance(e, shape_store.ShapesInUse):
+        return ProblemError(
+            409, str(e), type_="/problems/shape-in-use", extra={"shape_ids": list(e.using)}
+        )
+    return ProblemError(422, str(e), type_="/problems/collection-full")
 
 
 @asynccontextmanager
@@ -389,7 +330,7 @@ async def _form(request: Request, max_batch_files: int) -> AsyncIterator[FormDat
     "",
     status_code=status.HTTP_201_CREATED,
     response_model=ShapeOut | ShapeBatchOut,
-    responses=problem_responses(401, 404, 413, 415, 422),
+    responses=problem_responses(401, 404, 409, 413, 415, 422),
     openapi_extra=_UPLOAD_OPENAPI,
     summary="Upload one shape or a batch",
     description=(__doc__ or "") + _LIMITS_DOC,
@@ -403,7 +344,12 @@ async def upload_shapes(
     idempotency_key: IdempotencyKeyDep = None,
     name: Annotated[
         str | None,
-        Query(max_length=300, pattern=NO_NUL, description="Name of a raw upload."),
+        Query(
+            max_length=300,
+            pattern=NO_NUL,
+            description="Name of a raw upload (default: shape- and 12 hex digits of the "
+            "SHA-256 of its points).",
+        ),
     ] = None,
     mode: Annotated[ImageMode | None, Query(description="Image mode of a raw upload.")] = None,
     target_points: Annotated[
@@ -413,6 +359,14 @@ async def upload_shapes(
             json_schema_extra=_TARGET_POINTS_BOUNDS,
         ),
     ] = None,
+    on_conflict: Annotated[
+        OnConflict,
+        Query(
+            description="When the collection already holds a shape of an uploaded name: "
+            "refuse (409 naming it, nothing stored), replace (delete it, store the new "
+            "shape under a new id) or keep (store both, the name repeated)."
+        ),
+    ] = "refuse",
 ) -> ShapeOut | ShapeBatchOut:
     content_type = request.headers.get("content-type", "")
     media_type = content_type.split(";", 1)[0].strip().lower()
@@ -423,7 +377,7 @@ async def upload_shapes(
 
     if media_type == "application/json" or media_type.endswith("+json"):
         body = await request.body()
-        request_hash = idempotency.hash_bytes(b"json", body)
+        request_hash = idempotency.hash_bytes(b"json", on_conflict.encode(), body)
         decoded, batch = await run_in_threadpool(
             _decode_json_body, body, limits, settings.max_batch_files
         )
@@ -447,6 +401,7 @@ async def upload_shapes(
         target = _check_target_points(target, limits) if target is not None else target_points
         request_hash = idempotency.hash_bytes(
             b"multipart",
+            on_conflict.encode(),
             image_mode.encode(),
             str(target).encode(),
             *[part for f in files for part in ((f[0] or "").encode(), f[2])],
@@ -460,6 +415,7 @@ async def upload_shapes(
         filename = f"{name or 'shape'}.{ext}"
         request_hash = idempotency.hash_bytes(
             b"raw",
+            on_conflict.encode(),
             media_type.encode(),
             (name or "").encode(),
             image_mode.encode(),
@@ -469,7 +425,7 @@ async def upload_shapes(
         decoded = await run_in_threadpool(
             _decode_files, [(filename, media_type, body)], image_mode, target_points, limits
         )
-        decoded[0].name = name or decoded[0].name
+        decoded[0].name = name or content_name(decoded[0].points)
         batch = False
     else:
         raise ProblemError(
@@ -480,9 +436,29 @@ async def upload_shapes(
             type_="/problems/unsupported-media-type",
         )
 
-    stored = await run_in_threadpool(
-        _store, db, settings, collection_id, decoded, scope, idempotency_key, request_hash
-    )
+    try:
+        rows = await run_in_threadpool(
+            lambda: (
+                shape_store.add_shapes(
+                    db,
+                    collection_id,
+                    decoded,
+                    on_conflict=on_conflict,
+                    max_shapes=settings.max_shapes_per_collection,
+                    scope=scope,
+                    key=idempotency_key,
+                    request_hash=request_hash,
+                ).shapes
+            )
+        )
+    except (
+        shape_store.NameConflict,
+        shape_store.DuplicateNames,
+        shape_store.ShapesInUse,
+        shape_store.CollectionFull,
+    ) as e:
+        raise _refused(e) from e
+    stored = [shape_out(r) for r in rows]
     if batch:
         return ShapeBatchOut(items=stored, count=len(stored))
     response.headers["Location"] = f"/v1/collections/{collection_id}/shapes/{stored[0].id}"
@@ -496,32 +472,12 @@ async def upload_shapes(
     summary="List a collection's shapes (metadata only)",
 )
 def list_shapes(collection_id: DbInt, db: DbDep, page: PaginationDep) -> Page[ShapeOut]:
-    from sqlalchemy import func, select
-    from sqlalchemy.orm import defer
-
     with db.read() as session:
         get_collection_or_404(session, collection_id)
-        total = (
-            session.scalar(select(func.count(Shape.id)).where(Shape.collection_id == collection_id))
-            or 0
-        )
-        shapes = session.scalars(
-            select(Shape)
-            .options(defer(Shape.points_npy))
-            .where(Shape.collection_id == collection_id)
-            .order_by(Shape.id)
-            .limit(page.limit)
-            .offset(page.offset)
-        ).all()
+        total = shape_store.count_shapes(session, collection_id)
+        shapes = shape_store.list_shapes(session, collection_id, page.limit, page.offset)
         items = [shape_out(s) for s in shapes]
     return Page[ShapeOut](items=items, total=total, limit=page.limit, offset=page.offset)
-
-
-def _get_shape(session: Any, collection_id: int, shape_id: int) -> Shape:
-    shape = session.get(Shape, shape_id)
-    if shape is None or shape.collection_id != collection_id:
-        raise not_found(f"shape {shape_id} in collection", collection_id)
-    return shape
 
 
 @router.get(
@@ -532,7 +488,9 @@ def _get_shape(session: Any, collection_id: int, shape_id: int) -> Shape:
 )
 def get_shape(collection_id: DbInt, shape_id: DbInt, db: DbDep) -> ShapeDetail:
     with db.read() as session:
-        shape = _get_shape(session, collection_id, shape_id)
+        shape = shape_store.get_shape(session, collection_id, shape_id)
+        if shape is None:
+            raise not_found(f"shape {shape_id} in collection", collection_id)
         out = shape_out(shape)
         return ShapeDetail(**out.model_dump(), points=[tuple(p) for p in shape.points.tolist()])
 
@@ -544,27 +502,10 @@ def get_shape(collection_id: DbInt, shape_id: DbInt, db: DbDep) -> ShapeDetail:
     summary="Delete a shape",
 )
 def delete_shape(collection_id: DbInt, shape_id: DbInt, db: DbDep) -> Response:
-    from sqlalchemy import select
-
-    with db.write() as session:
-        shape = _get_shape(session, collection_id, shape_id)
-        active = session.scalars(
-            select(Job.id).where(
-                Job.collection_id == collection_id,
-                Job.status.not_in([s.value for s in TERMINAL_STATUSES]),
-            )
-        ).all()
-        using = [
-            jid
-            for jid in active
-            if (job := session.get(Job, jid)) is not None
-            and (job.model_shape_id == shape_id or shape_id in job.shape_ids)
-        ]
-        if using:
-            raise ProblemError(
-                409,
-                f"shape {shape_id} is used by unfinished job(s) {using}; cancel them or wait",
-                type_="/problems/shape-in-use",
-            )
-        session.delete(shape)
+    try:
+        deleted = shape_store.delete_shape(db, collection_id, shape_id)
+    except shape_store.ShapesInUse as e:
+        raise _refused(e) from e
+    if not deleted:
+        raise not_found(f"shape {shape_id} in collection", collection_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
