@@ -16,7 +16,13 @@ Typical use::
 
 from ._cpd import CPDOptions, CPDResult, NonrigidTransform, cpd_nonrigid
 from ._error import registration_error
-from ._executor import Executor, LocalProcessExecutor, SerialExecutor, default_executor
+from ._executor import (
+    Executor,
+    LocalProcessExecutor,
+    SerialExecutor,
+    WorkerProcessDied,
+    default_executor,
+)
 from ._icp import AffineICPResult, affine_icp, bidirectional_distance, fit_affine
 from ._points import Normalization, as_points, normalise, resample
 from ._result import Attempt, CollectionResult, SubjectResult, error_statistics
@@ -40,6 +46,7 @@ __all__ = [
     "SerialExecutor",
     "Similarity",
     "SubjectResult",
+    "WorkerProcessDied",
     "affine_icp",
     "as_points",
     "bidirectional_distance",
