@@ -14,16 +14,22 @@ Typical use::
     result.transform_for(5).apply(pts)  # root-model points mapped onto subject 5
 """
 
-from ._cpd import CPDResult, NonrigidTransform, cpd_nonrigid
+from ._cpd import CPDOptions, CPDResult, NonrigidTransform, cpd_nonrigid
 from ._error import registration_error
-from ._executor import Executor, LocalProcessExecutor, SerialExecutor, default_executor
+from ._executor import (
+    Executor,
+    LocalProcessExecutor,
+    SerialExecutor,
+    WorkerProcessDied,
+    default_executor,
+)
 from ._grouping import GroupingResult, MouldGroup, group_instances
 from ._icp import AffineICPResult, affine_icp, bidirectional_distance, fit_affine
 from ._points import Normalization, as_points, normalise, resample
 from ._result import Attempt, CollectionResult, SubjectResult, error_statistics
 from ._similarity import ProgressCallback, Similarity, similarity_matrix
 from ._transform import AffineTransform, ChainTransform, jacobian_determinants
-from ._tree import CPDOptions, build_dynamic_tree, build_static_tree, register_direct
+from ._tree import build_dynamic_tree, build_static_tree, register_direct
 
 __all__ = [
     "AffineICPResult",
@@ -43,6 +49,7 @@ __all__ = [
     "SerialExecutor",
     "Similarity",
     "SubjectResult",
+    "WorkerProcessDied",
     "affine_icp",
     "as_points",
     "bidirectional_distance",

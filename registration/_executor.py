@@ -2,20 +2,20 @@
 
 The algorithms only ever call :meth:`Executor.map_unordered` with a picklable top-level
 function and a list of picklable items, and consume ``(position, result)`` pairs as they
-complete. A local process pool is the default; a distributed engine (for example Dask's
-``Client.map`` with ``as_completed``) plugs in by implementing the same one method.
+complete. A local process pool (:class:`LocalProcessExecutor`, in :mod:`._pool`) is the
+default; a distributed engine (for example Dask's ``Client.map`` with ``as_completed``) plugs
+in by implementing the same protocol: that method, and :meth:`Executor.close` and
+:meth:`Executor.terminate`, which say how its owner stops it.
 """
 
 from __future__ import annotations
 
-import multiprocessing
-import os
-import threading
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from contextvars import ContextVar
 from typing import Protocol, TypeVar
+
+from ._pool import LocalProcessExecutor, WorkerProcessDied, available_cpus
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -24,22 +24,37 @@ __all__ = [
     "Executor",
     "LocalProcessExecutor",
     "SerialExecutor",
+    "WorkerProcessDied",
+    "available_cpus",
     "default_executor",
     "owned_executor",
 ]
 
 
 class Executor(Protocol):
-    """Runs independent tasks; results come back as they complete."""
+    """Runs independent tasks; results come back as they complete; stops when told.
+
+    A run is stopped early in one of two ways, and must then not start the tasks not yet
+    started: the consumer leaves the iteration of :meth:`map_unordered` (the library's
+    progress callback raised), or the executor's own check raises (``check`` of
+    :class:`LocalProcessExecutor` and :class:`SerialExecutor`). Who stops the executor
+    calls :meth:`terminate` if its tasks are not wanted any more, :meth:`close` when the
+    work is done.
+    """
 
     def map_unordered(
         self, fn: Callable[[T], R], items: Sequence[T]
     ) -> Iterator[tuple[int, R]]:
-        """Yield ``(position in items, fn(item))`` for every item, in completion order.
+        """Yield ``(position in items, fn(item))`` for every item, in completion order."""
+        ...
 
-        If the consumer stops early (for example because a progress callback raised to
-        cancel the run), tasks not yet started must not run.
-        """
+    def close(self) -> None:
+        """Release the executor's resources (processes, ...) once its work is done."""
+        ...
+
+    def terminate(self) -> None:
+        """Stop now: abandon the tasks in progress (kill or cancel them) and release the
+        resources. Must not wait for tasks to finish."""
         ...
 
 
@@ -87,100 +102,15 @@ class SerialExecutor:
                 _CHECK.reset(token)
             yield i, result
 
+    def close(self) -> None:
+        """Nothing to release."""
+
+    def terminate(self) -> None:
+        """Nothing runs in the background: a task in progress stops at its next
+        :func:`checkpoint` when ``check`` raises."""
+
     def __repr__(self) -> str:
         return "SerialExecutor()" if self.check is None else f"SerialExecutor(check={self.check!r})"
-
-
-class LocalProcessExecutor:
-    """A pool of local worker processes (``concurrent.futures``, spawn-safe).
-
-    Parameters
-    ----------
-    max_workers : int, optional
-        Number of processes; defaults to the CPUs available to this process.
-    max_pending : int, optional
-        Tasks submitted ahead of completion (bounded so a cancelled run stops quickly);
-        defaults to ``4 * max_workers``.
-    start_method : {"fork", "forkserver", "spawn"}, optional
-        How worker processes start. Default: "fork" where available while the calling
-        process runs a single thread (works in notebooks and in scripts without a
-        ``__main__`` guard), else "forkserver" (safe beside threads, but the calling
-        script must guard its entry point with ``if __name__ == "__main__":``).
-
-    Notes
-    -----
-    The pool is created on first use and reused until :meth:`close` (or the end of a
-    ``with`` block), so a collection's stages share one set of warm processes.
-    """
-
-    def __init__(
-        self,
-        max_workers: int | None = None,
-        *,
-        max_pending: int | None = None,
-        start_method: str | None = None,
-    ):
-        n = max_workers if max_workers is not None else _available_cpus()
-        if n < 1:
-            raise ValueError(f"max_workers must be at least 1; got {n}")
-        methods = multiprocessing.get_all_start_methods()
-        if start_method is not None and start_method not in methods:
-            raise ValueError(f"start_method must be one of {methods}; got {start_method!r}")
-        self.start_method = start_method
-        self.max_workers = n
-        self.max_pending = max_pending if max_pending is not None else 4 * n
-        self._pool: ProcessPoolExecutor | None = None
-
-    def _ensure_pool(self) -> ProcessPoolExecutor:
-        if self._pool is None:
-            method = self.start_method
-            if method is None:
-                single = threading.active_count() == 1
-                method = "fork" if single and "fork" in multiprocessing.get_all_start_methods() \
-                    else "forkserver"
-            ctx = multiprocessing.get_context(method)
-            self._pool = ProcessPoolExecutor(max_workers=self.max_workers, mp_context=ctx)
-        return self._pool
-
-    def map_unordered(
-        self, fn: Callable[[T], R], items: Sequence[T]
-    ) -> Iterator[tuple[int, R]]:
-        pool = self._ensure_pool()
-        pending: dict[Future[R], int] = {}
-        next_item = 0
-        try:
-            while next_item < len(items) or pending:
-                while next_item < len(items) and len(pending) < self.max_pending:
-                    pending[pool.submit(fn, items[next_item])] = next_item
-                    next_item += 1
-                done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
-                for fut in done:
-                    pos = pending.pop(fut)
-                    yield pos, fut.result()
-        finally:
-            for fut in pending:
-                fut.cancel()
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
-
-    def __enter__(self) -> LocalProcessExecutor:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def __repr__(self) -> str:
-        return f"LocalProcessExecutor(max_workers={self.max_workers})"
-
-
-def _available_cpus() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
 
 
 def default_executor(n_tasks: int, *, min_parallel_tasks: int = 64) -> Executor:
@@ -201,7 +131,7 @@ def default_executor(n_tasks: int, *, min_parallel_tasks: int = 64) -> Executor:
     Executor
         :class:`SerialExecutor` or :class:`LocalProcessExecutor`.
     """
-    if n_tasks < min_parallel_tasks or _available_cpus() < 2:
+    if n_tasks < min_parallel_tasks or available_cpus() < 2:
         return SerialExecutor()
     return LocalProcessExecutor()
 
@@ -217,5 +147,4 @@ def owned_executor(executor: Executor | None, n_tasks: int) -> Iterator[Executor
     try:
         yield created
     finally:
-        if isinstance(created, LocalProcessExecutor):
-            created.close()
+        created.close()

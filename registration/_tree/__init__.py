@@ -18,9 +18,8 @@ Direction of D: ``D[m, s]`` is computed with the member ``m`` as the moving mode
 subject ``s`` fixed, matching the direction of the registration that follows.
 """
 
-
+from .._cpd import CPDOptions
 from ._methods import build_dynamic_tree, build_static_tree, register_direct
-from ._tasks import CPDOptions
 
 __all__ = [
     "CPDOptions",

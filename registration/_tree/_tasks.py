@@ -11,7 +11,7 @@ from typing import Any, ParamSpec, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from .._cpd import cpd_nonrigid
+from .._cpd import CPDOptions, cpd_nonrigid
 from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._icp import affine_icp
@@ -35,37 +35,6 @@ R = TypeVar("R")
 POSE_DISTINCT_DEG = 20.0
 POSE_D_RATIO = 0.6
 POSE_MARGIN = 0.5
-
-
-@dataclass(frozen=True)
-class CPDOptions:
-    """Options of the CPD non-rigid registration used on every tree edge.
-
-    The algorithm's defaults follow the reference MATLAB implementation of Myronenko & Song
-    (2010); the E-step runs in float32 unless ``dtype="float64"``.
-    """
-
-    beta: float = 2.0
-    lmbda: float = 3.0
-    w: float = 0.1
-    max_iter: int = 150
-    tol: float = 1e-5
-    #: Precision of CPD's E-step (see :func:`cpd_nonrigid`). float32 by default: on the 73
-    #: 永 edge glyphs (400 points) it built the same tree as float64 (72 of 72 parents), e
-    #: within 2e-5 relative, 1.35x faster end to end (bench/RESULTS.md).
-    dtype: str = "float32"
-
-    def __post_init__(self) -> None:
-        if self.dtype not in ("float64", "float32"):
-            raise ValueError(f"dtype must be 'float64' or 'float32'; got {self.dtype!r}")
-        if not (self.beta > 0 and self.lmbda > 0):
-            raise ValueError(f"beta and lmbda must be positive; got {self.beta}, {self.lmbda}")
-        if not 0 <= self.w < 1:
-            raise ValueError(f"w must be in [0, 1); got {self.w}")
-        if self.max_iter < 1:
-            raise ValueError(f"max_iter must be at least 1; got {self.max_iter}")
-        if not self.tol > 0:
-            raise ValueError(f"tol must be positive; got {self.tol}")
 
 
 @dataclass(frozen=True)

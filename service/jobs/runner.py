@@ -5,11 +5,11 @@ shutting down, by raising from :meth:`JobControl.check`. A background thread hea
 lease every ``worker_heartbeat_seconds`` (carrying the latest progress, so progress writes
 stay at a bounded rate) and in between looks for a cancel request every
 ``cancel_poll_seconds``. ``check`` runs in the library's progress callback (after each
-completed task) and, with the process executor, every 0.1 s while the pool works
-(:mod:`service.jobs.executor`), whose processes are then killed; with the serial executor,
-at every CPD iteration (``SerialExecutor(check=...)``). Either way a cancel stops the job
-within about ``cancel_poll_seconds``, registrations in progress included, and frees the
-worker for its next job.
+completed task) and, with the process executor, every 0.1 s while the pool works (the
+library's ``LocalProcessExecutor(check=...)``), whose processes are then killed; with the
+serial executor, at every CPD iteration (``SerialExecutor(check=...)``). Either way a cancel
+stops the job within about ``cancel_poll_seconds``, registrations in progress included, and
+frees the worker for its next job.
 
 A cancel accepted while the job runs always ends it ``cancelled``: whatever the run raises
 once a cancel was seen is taken as the cancel, and :func:`queue.complete` turns a late
@@ -23,7 +23,7 @@ import re
 import threading
 import time
 import traceback
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from sqlalchemy import select
@@ -31,8 +31,10 @@ from sqlalchemy import select
 from service.core.config import Settings
 from service.db import Database
 from service.jobs import queue
-from service.jobs.executor import InterruptibleProcessExecutor
 from service.models import Job, Shape
+
+if TYPE_CHECKING:
+    from registration import Executor
 
 logger = logging.getLogger("regtree.runner")
 
@@ -171,13 +173,18 @@ class JobControl:
             self.check()
 
 
-def _executor(settings: Settings, control: JobControl) -> Any:
-    if settings.executor == "serial":
-        from registration import SerialExecutor
+def _executor(settings: Settings, control: JobControl) -> Executor:
+    """The job's executor; its ``check`` is the job's, so a cancel stops the registrations
+    in progress: at every CPD iteration (serial) or within 0.1 s (the pool is killed)."""
+    from registration import LocalProcessExecutor, SerialExecutor
 
-        # the check runs at every CPD iteration too: a cancel stops the registration in progress
+    if settings.executor == "serial":
         return SerialExecutor(check=control.check)
-    return InterruptibleProcessExecutor(control.check, max_workers=settings.executor_processes)
+    # The pool starts its processes inside JobControl, whose heartbeat thread runs: beside
+    # threads it uses a fork server with the library preloaded, never a plain fork.
+    return LocalProcessExecutor(
+        settings.executor_processes, check=control.check, poll_seconds=0.1
+    )
 
 
 def _index_to_id(value: Any, shape_ids: list[int]) -> int | None:
@@ -310,15 +317,12 @@ def name_shapes(message: str, shape_ids: list[int], names: list[str]) -> str:
     return _POSITION.sub(named, message)
 
 
-def _stop(executor: Any) -> None:
+def _stop(executor: Executor | None) -> None:
     """Stop an executor's tasks now, without waiting for them (a pool is killed)."""
-    terminate = getattr(executor, "terminate", None)
-    close = getattr(executor, "close", None)
+    if executor is None:
+        return
     try:
-        if callable(terminate):
-            terminate()
-        elif callable(close):
-            close()
+        executor.terminate()
     except Exception:
         logger.exception("could not stop the executor")
 
@@ -356,7 +360,7 @@ def run_claimed(
         return "failed"
 
     started = time.monotonic()
-    executor = None
+    executor: Executor | None = None
     completed = False
     with JobControl(db, claim, settings, shutdown) as control:
         try:
@@ -390,10 +394,8 @@ def run_claimed(
                     message += "\n" + "".join(traceback.format_exception(exc)[-3:])
                 outcome = "failed" if queue.fail(db, claim, message) else "lost"
         finally:
-            if completed:  # the pool is idle: close it the ordinary way
-                close = getattr(executor, "close", None)
-                if callable(close):
-                    close()
+            if completed and executor is not None:  # the pool is idle: close it the ordinary way
+                executor.close()
             else:  # interrupted or failed: its tasks are not wanted, kill them
                 _stop(executor)
     logger.info(

@@ -3,9 +3,10 @@ within seconds, even while registrations of large shapes are in progress.
 
 The end-to-end tests run the process executor (the default; conftest's servers use the
 serial one) with the default heartbeat, so the cancel is seen by the worker's cancel poll,
-not by a heartbeat. Before the poll and the interruptible pool (service.jobs.executor), a
-cancel of such a job took up to 11 s to reach ``cancelled`` and up to 44 s to free the worker,
-which waited for the registrations in progress.
+not by a heartbeat. Before the poll and the interruptible pool (the library's
+``LocalProcessExecutor`` with a check), a cancel of such a job took up to 11 s to reach
+``cancelled`` and up to 44 s to free the worker, which waited for the registrations in
+progress.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from service.jobs.executor import InterruptibleProcessExecutor, WorkerProcessDied
+from registration import LocalProcessExecutor, WorkerProcessDied
 from tests.service.conftest import (
     Service,
     assert_problem,
@@ -75,7 +76,7 @@ def test_pool_stops_within_a_poll_and_kills_running_tasks() -> None:
         if time.monotonic() > deadline:
             raise Stop
 
-    executor = InterruptibleProcessExecutor(check, max_workers=2, poll_seconds=0.05)
+    executor = LocalProcessExecutor(2, check=check, poll_seconds=0.05)
     assert dict(executor.map_unordered(_sleep, [0.0, 0.0])) == {0: 0.0, 1: 0.0}  # pool is up
     processes = executor.processes
     assert len(processes) == 2
@@ -99,7 +100,7 @@ def test_pool_stops_while_large_tasks_wait_to_be_read() -> None:
         if time.monotonic() > deadline:
             raise Stop
 
-    executor = InterruptibleProcessExecutor(check, max_workers=2, poll_seconds=0.05)
+    executor = LocalProcessExecutor(2, check=check, poll_seconds=0.05)
     big = [(30.0, b"x" * 4_000_000)] * 8
     started = time.monotonic()
     deadline = started + 1.0
@@ -110,14 +111,14 @@ def test_pool_stops_while_large_tasks_wait_to_be_read() -> None:
 
 
 def test_a_pool_process_that_dies_fails_the_run() -> None:
-    executor = InterruptibleProcessExecutor(lambda: None, max_workers=2)
+    executor = LocalProcessExecutor(2)
     with pytest.raises(WorkerProcessDied, match="exit code"):
         list(executor.map_unordered(_die, [0.2, 30.0]))
     assert executor.processes == []
 
 
 def test_pool_passes_results_and_task_errors() -> None:
-    executor = InterruptibleProcessExecutor(lambda: None, max_workers=2)
+    executor = LocalProcessExecutor(2)
     try:
         results = dict(executor.map_unordered(_sleep, [0.01 * i for i in range(8)]))
         assert results == {i: 0.01 * i for i in range(8)}
@@ -136,7 +137,7 @@ def test_pool_passes_results_and_task_errors() -> None:
 def test_pool_stops_when_the_consumer_stops() -> None:
     """The library's progress callback raising (the consumer leaves the loop) kills the pool
     too: tasks still running are not waited for."""
-    executor = InterruptibleProcessExecutor(lambda: None, max_workers=2)
+    executor = LocalProcessExecutor(2)
     started = time.monotonic()
     with pytest.raises(Stop):
         for _position, _value in executor.map_unordered(_sleep, [0.1, 30.0, 30.0, 30.0]):

@@ -1,35 +1,32 @@
-"""The worker's process pool: registrations that stop as soon as their job must.
+"""The local process pool: tasks in worker processes, stopped at once when they are not wanted.
 
-The library runs every heavy task (similarity, registrations) through an executor's
-``map_unordered`` and reports progress only when a task completes, so a run stopped from the
-progress callback goes on until the next registration ends, and a pool closed the ordinary
-way waits for the registrations still running: many seconds with large shapes. This pool
-instead
+The library reports progress only when a task completes, so a run stopped from the progress
+callback would go on until the next registration ends, and a pool closed the ordinary way
+waits for the registrations still running: many seconds with large shapes. This pool instead
 
-* waits for results in short slices and calls ``check`` between them (the job's
-  :meth:`~service.jobs.runner.JobControl.check`, which raises once the job was cancelled,
-  its lease was lost or the worker is shutting down), so the run stops within a slice;
-* kills its processes when the run stops early (interrupted, a task failed, or the consumer
+* waits for results in short slices and calls its ``check`` between them (the service passes
+  its job's check, which raises once the job was cancelled, its lease was lost or the worker
+  is shutting down), so a run stops within a slice;
+* kills its processes when a run stops early (interrupted, a task failed, or the consumer
   left), instead of waiting for the registrations in progress: their results are not wanted.
 
-It is built on plain ``multiprocessing`` processes, one pipe each and one task at a time
-per process, with nothing but the calling thread writing to the pipes. (Killing the
-processes of a ``concurrent.futures.ProcessPoolExecutor`` is not safe: its feeder thread can
-be blocked for ever writing a large task into a queue that nobody reads any more, and its
-shutdown then never returns.) A process that dies while running a task fails the run with
+It is built on plain ``multiprocessing`` processes, one pipe each and one task at a time per
+process, with nothing but the calling thread writing to the pipes. (Killing the processes of
+a ``concurrent.futures.ProcessPoolExecutor`` is not safe: its feeder thread can be blocked
+for ever writing a large task into a queue that nobody reads any more, and its shutdown then
+never returns.) A process that dies while running a task fails the run with
 :class:`WorkerProcessDied`.
-
-It implements the library's ``Executor`` protocol (``registration._executor``), like
-``LocalProcessExecutor``.
 """
 
 from __future__ import annotations
 
 import logging
 import multiprocessing
+import numbers
 import os
 import pickle
 import signal
+import threading
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -40,10 +37,13 @@ from typing import Any, TypeVar
 T = TypeVar("T")
 R = TypeVar("R")
 
+__all__ = ["LocalProcessExecutor", "WorkerProcessDied", "available_cpus"]
+
 logger = logging.getLogger("regtree.executor")
 
 
 def available_cpus() -> int:
+    """The CPUs this process may run on."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not Linux
@@ -54,9 +54,13 @@ class WorkerProcessDied(RuntimeError):
     """A process of the pool ended while it ran a task (killed, out of memory, crashed)."""
 
 
-def _serve(connection: Connection) -> None:
+def _serve(connection: Connection, inherited: list[Connection]) -> None:
     """A pool process: run ``(fn, item)`` tasks until the pipe closes or a ``None`` comes."""
-    # Ctrl-C reaches the whole process group: the worker above decides what stops, and
+    # A forked process holds copies of the pool's ends of every pipe: close them, so that
+    # this process sees the end of its pipe when the pool's process goes away.
+    for other in inherited:
+        other.close()
+    # Ctrl-C reaches the whole process group: the pool's owner decides what stops, and
     # kills this process if it must.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     while True:
@@ -87,32 +91,69 @@ class _Slot:
     position: int | None = None  # the task it runs, if any
 
 
-class InterruptibleProcessExecutor:
-    """A local process pool for one job, stopped at once when ``check`` raises.
+def _context(method: str | None) -> Any:
+    """The multiprocessing context (a SpawnContext-like object) for a start method."""
+    methods = multiprocessing.get_all_start_methods()
+    if method is None:
+        if threading.active_count() == 1 and "fork" in methods:
+            method = "fork"
+        else:  # no fork beside threads (they may hold locks): a fork server, else spawn
+            method = "forkserver" if "forkserver" in methods else "spawn"
+    context: Any = multiprocessing.get_context(method)
+    if method == "forkserver":
+        context.set_forkserver_preload(["registration"])
+    return context
+
+
+class LocalProcessExecutor:
+    """A pool of local worker processes, stopped at once when ``check`` raises.
 
     Parameters
     ----------
-    check : callable
-        Called in the calling thread between waits; whatever it raises stops the run (the
-        pool's processes are killed, and the exception propagates out of the library).
     max_workers : int, optional
-        Processes; the CPUs available by default.
+        Number of processes; defaults to the CPUs available to this process.
+    check : callable, optional
+        Called in the calling thread between waits for results, at most ``poll_seconds``
+        apart; whatever it raises stops the run: the processes are killed, and the
+        exception propagates out of the library. This is how a caller cancels a run
+        promptly, registrations in progress included.
     poll_seconds : float
         Longest wait for a result between two calls of ``check``.
+    start_method : {"fork", "forkserver", "spawn"}, optional
+        How worker processes start. Default: "fork" where available while the calling
+        process runs a single thread (works in notebooks and in scripts without a
+        ``__main__`` guard), else "forkserver" with the library preloaded (safe beside
+        threads, but the calling script must guard its entry point with
+        ``if __name__ == "__main__":``), else "spawn".
+
+    Notes
+    -----
+    The processes start on first use and are reused until :meth:`close` (or the end of a
+    ``with`` block), so a collection's stages share one set of warm processes. A run that
+    stops early (``check`` raised, a task failed, the consumer left) kills them
+    (:meth:`terminate`); the next run starts new ones.
     """
 
     def __init__(
         self,
-        check: Callable[[], None],
-        *,
         max_workers: int | None = None,
+        *,
+        check: Callable[[], None] | None = None,
         poll_seconds: float = 0.1,
+        start_method: str | None = None,
     ) -> None:
-        self.max_workers = max_workers if max_workers is not None else available_cpus()
-        if self.max_workers < 1:
-            raise ValueError(f"max_workers must be at least 1; got {self.max_workers}")
-        self.check = check
-        self.poll_seconds = poll_seconds
+        n = max_workers if max_workers is not None else available_cpus()
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+            raise ValueError(f"max_workers must be an integer >= 1; got {n!r}")
+        methods = multiprocessing.get_all_start_methods()
+        if start_method is not None and start_method not in methods:
+            raise ValueError(f"start_method must be one of {methods}; got {start_method!r}")
+        if not poll_seconds > 0:
+            raise ValueError(f"poll_seconds must be > 0; got {poll_seconds!r}")
+        self.max_workers: int = int(n)
+        self.check: Callable[[], None] | None = check
+        self.poll_seconds: float = poll_seconds
+        self.start_method: str | None = start_method
         self._slots: list[_Slot] = []
 
     @property
@@ -123,18 +164,15 @@ class InterruptibleProcessExecutor:
     def _start(self) -> None:
         if self._slots:
             return
-        # The worker runs threads (heartbeat, parent watch) and holds database connections,
-        # so no plain fork: a fork server with the library preloaded, else spawn.
-        methods = multiprocessing.get_all_start_methods()
-        method = "forkserver" if "forkserver" in methods else "spawn"
-        context: Any = multiprocessing.get_context(method)  # a SpawnContext-like context
-        if method == "forkserver":
-            context.set_forkserver_preload(["registration"])
+        context = _context(self.start_method)
+        forked = context.get_start_method() == "fork"
         try:
             for k in range(self.max_workers):
                 ours, theirs = context.Pipe(duplex=True)
+                inherited = [ours] + [s.connection for s in self._slots] if forked else []
                 process = context.Process(
-                    target=_serve, args=(theirs,), name=f"regtree-task-{k}", daemon=True
+                    target=_serve, args=(theirs, inherited), name=f"regtree-task-{k}",
+                    daemon=True
                 )
                 process.start()
                 theirs.close()
@@ -144,11 +182,13 @@ class InterruptibleProcessExecutor:
             raise
 
     def map_unordered(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R]]:
-        """``(position, fn(item))`` in completion order; see the library's ``Executor``."""
-        self.check()
+        """``(position, fn(item))`` in completion order; see :class:`~registration.Executor`."""
+        if self.check is not None:
+            self.check()
         if not items:
             return
         self._start()
+        timeout = self.poll_seconds if self.check is not None else None
         next_item = 0
         running = 0
         finished = False
@@ -163,14 +203,15 @@ class InterruptibleProcessExecutor:
                 busy = [slot for slot in self._slots if slot.position is not None]
                 ready = wait(
                     [s.connection for s in busy] + [s.process.sentinel for s in busy],
-                    timeout=self.poll_seconds,
+                    timeout=timeout,
                 )
                 for slot in busy:
                     if slot.connection in ready or slot.process.sentinel in ready:
                         position, result = self._collect(slot)
                         running -= 1
                         yield position, result
-                self.check()
+                if self.check is not None:
+                    self.check()
             finished = True
         finally:
             if not finished:
@@ -207,7 +248,8 @@ class InterruptibleProcessExecutor:
         return position, value
 
     def terminate(self) -> None:
-        """Kill the pool's processes now; tasks in progress are lost."""
+        """Stop now: kill the processes; tasks in progress are lost. The pool can be used
+        again (new processes start)."""
         slots, self._slots = self._slots, []
         for slot in slots:
             if slot.process.is_alive():
@@ -219,7 +261,7 @@ class InterruptibleProcessExecutor:
                 logger.warning("pool process did not stop", extra={"pid": slot.process.pid})
 
     def close(self) -> None:
-        """Stop the pool when the job is done: idle processes exit, busy ones are killed."""
+        """Stop when the work is done: idle processes exit, busy ones are killed."""
         slots, self._slots = self._slots, []
         for slot in slots:
             if slot.position is None:
@@ -234,5 +276,11 @@ class InterruptibleProcessExecutor:
                 slot.process.join(5.0)
             slot.connection.close()
 
+    def __enter__(self) -> LocalProcessExecutor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     def __repr__(self) -> str:
-        return f"InterruptibleProcessExecutor(max_workers={self.max_workers})"
+        return f"LocalProcessExecutor(max_workers={self.max_workers})"

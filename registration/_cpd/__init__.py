@@ -1,0 +1,33 @@
+"""Coherent Point Drift, non-rigid (Myronenko & Song 2010), in numpy/scipy.
+
+This package implements the Gaussian-RBF non-rigid CPD of the reference MATLAB code
+(``cpd_GRBF.m`` called from ``cpd_register.m``) with the same defaults and stopping rule,
+plus three optional accelerations, each exact to within a stated tolerance of the dense
+float64 computation:
+
+* a vectorised, chunked E-step: the exponents ``-|x - t|^2 / (2 sigma^2)`` of one block of
+  subject points come out of a single BLAS product of augmented 4-column matrices (no
+  ``M x N x D`` temporary), the exponential is taken in place, and ``P1``, ``Pt1`` and ``P X``
+  come out of one more product, without ever normalising ``P`` explicitly;
+* a low-rank kernel ``G ~= U U^T`` (randomised eigendecomposition, rank chosen from the
+  spectrum) with the Woodbury M-step of the paper's fast variant;
+* a truncated E-step once sigma is small: only pairs closer than a radius derived from a
+  rigorous bound on the dropped mass are evaluated (``scipy.spatial.cKDTree``), giving a
+  sparse ``P``.
+
+Conventions: ``model`` is ``Y`` in the CPD paper (M x 2, the GMM centroids, the set that
+moves) and ``subject`` is ``X`` (N x 2, the data).  The kernel is
+``G[i, j] = exp(-|y_i - y_j|^2 / (2 beta^2))`` and the transform is ``T = Y + G W``.
+
+Modules, by seam: :mod:`._nonrigid` (:func:`cpd_nonrigid`, its EM loop and
+:class:`CPDResult`), :mod:`._options` (:class:`CPDOptions` and the validation of every
+option), :mod:`._estep` (the E-step engine), :mod:`._mstep` (dense and low-rank M-step),
+:mod:`._field` (:class:`NonrigidTransform`) and :mod:`._pycpd` (the pycpd backend).
+"""
+
+from ._field import NonrigidTransform
+from ._nonrigid import CPDResult, cpd_nonrigid
+from ._options import DTYPES, CPDOptions, Range
+
+__all__ = ["DTYPES", "CPDOptions", "CPDResult", "NonrigidTransform", "Range",
+           "cpd_nonrigid"]

@@ -1,0 +1,221 @@
+"""CPD's E-step engine: dense (chunked BLAS) and truncated (sparse, k-d tree) posteriors.
+
+Both return the sums the M-step needs (``P1``, ``Pt1``, ``P X``) and the objective, never
+``P`` itself.  Coordinates are normalised (see :mod:`._nonrigid`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from ._field import _BLOCK_ELEMS, FloatArray, _gauss_kernel
+
+#: Relative bound on every posterior changed by the truncated E-step.
+TRUNCATION_EPS = 1e-10
+#: The truncated E-step's neighbour list is built with this multiple of the radius, so it
+#: can be reused while the centroids move by less than the difference.
+TRUNCATION_SKIN = 1.3
+#: ... and rebuilt when its radius exceeds this multiple of the current radius.
+TRUNCATION_SHRINK = 1.8
+_DEN_FLOOR = 1e-300
+
+
+@dataclass
+class _EStepOut:
+    p1: FloatArray  # (M,) row sums of P
+    pt1: FloatArray  # (N,) column sums of P
+    px: FloatArray  # (M, 2) P @ X
+    nll: float  # -sum(log den) + N D/2 log sigma2 (MATLAB's cpd_P objective)
+    nnz: int  # pairs evaluated (M*N when dense)
+
+
+def _outlier_const(sigma2: float, w: float, m: int, n: int) -> float:
+    # (2 pi sigma2)^(D/2) w/(1-w) M/N with D = 2
+    return 2.0 * math.pi * sigma2 * w / (1.0 - w) * m / n
+
+
+class _EStep:
+    """Workspace for repeated E-steps against a fixed subject ``x`` (normalised)."""
+
+    def __init__(self, x: FloatArray, m: int, w: float, dtype: str) -> None:
+        self.x = x
+        self.n = len(x)
+        self.m = m
+        self.w = w
+        self.dtype = np.dtype(dtype)
+        self.xsq = np.einsum("ij,ij->i", x, x)
+        self.block = max(1, min(self.n, _BLOCK_ELEMS // max(m, 1)))
+        self._buf64 = np.empty(m * self.block)
+        self._buf32 = np.empty(m * self.block, dtype=np.float32) if dtype == "float32" else None
+        self._tree_x: cKDTree | None = None
+        # neighbour list of the truncated E-step
+        self.max_density = 1.0
+        self.force_truncate = False
+        self._pi: NDArray[np.intp] | None = None
+        self._pj: NDArray[np.intp] | None = None
+        self._xj: FloatArray | None = None
+        self._t_build: FloatArray | None = None
+        self._r_build = 0.0
+
+    @property
+    def tree_x(self) -> cKDTree:
+        if self._tree_x is None:
+            self._tree_x = cKDTree(self.x)
+        return self._tree_x
+
+    # -- dense -------------------------------------------------------------------------
+    def dense(self, t: FloatArray, sigma2: float) -> _EStepOut:
+        m, n, x = self.m, self.n, self.x
+        c = _outlier_const(sigma2, self.w, m, n)
+        inv2s = 0.5 / sigma2
+        # exponent[m, n] = (t_m . x_n)/s2 - |t_m|^2/(2 s2) - |x_n|^2/(2 s2) = ta @ xa.T
+        ta = np.empty((m, 4))
+        ta[:, :2] = t
+        ta[:, 2] = -inv2s * np.einsum("ij,ij->i", t, t)
+        ta[:, 3] = 1.0
+        p1 = np.zeros(m)
+        px = np.zeros((m, 2))
+        pt1 = np.empty(n)
+        nll = 0.0
+        ones = np.ones(m, dtype=self.dtype)
+        for a in range(0, n, self.block):
+            b = min(n, a + self.block)
+            k = b - a
+            xa = np.empty((4, k))
+            xa[:2] = x[a:b].T / sigma2
+            xa[2] = 1.0
+            xa[3] = -inv2s * self.xsq[a:b]
+            e64 = self._buf64[: m * k].reshape(m, k)
+            np.matmul(ta, xa, out=e64)
+            np.minimum(e64, 0.0, out=e64)  # exact value is <= 0; drop rounding
+            if self._buf32 is not None:
+                e: NDArray[Any] = self._buf32[: m * k].reshape(m, k)
+                e[...] = e64
+            else:
+                e = e64
+            np.exp(e, out=e)
+            colsum = (ones @ e).astype(np.float64)
+            den = colsum + c
+            np.maximum(den, _DEN_FLOOR, out=den)
+            inv = 1.0 / den
+            rhs = np.empty((k, 3), dtype=self.dtype)
+            rhs[:, :2] = x[a:b] * inv[:, None]
+            rhs[:, 2] = inv
+            acc = (e @ rhs).astype(np.float64)
+            px += acc[:, :2]
+            p1 += acc[:, 2]
+            pt1[a:b] = colsum * inv
+            nll -= float(np.sum(np.log(den)))
+        nll += n * math.log(sigma2)  # N D/2 log sigma2, D = 2
+        return _EStepOut(p1, pt1, px, nll, m * n)
+
+    # -- truncated ---------------------------------------------------------------------
+    def radius(self, t: FloatArray, sigma2: float) -> float:
+        """Truncation radius: dropped terms change no posterior by more than TRUNCATION_EPS.
+
+        Every dropped term is ``<= tau = exp(-r^2 / (2 sigma2))`` and there are at most ``M``
+        of them per subject point, so the relative change of each denominator, hence of every
+        kept posterior, is ``<= M tau / den_min`` and every dropped posterior is
+        ``<= tau / den_min``.  With ``w > 0``, ``den >= c`` (outlier constant); with ``w = 0``
+        ``den_n >= exp(-d_n^2 / (2 sigma2))`` with ``d_n`` the distance from ``x_n`` to the
+        nearest centroid, so ``r^2 = max_n d_n^2 + 2 sigma2 log(M / eps)``.
+        """
+        m = self.m
+        if self.w > 0:
+            c = _outlier_const(sigma2, self.w, m, self.n)
+            return math.sqrt(2.0 * sigma2 * math.log(m / (TRUNCATION_EPS * min(c, 1.0))))
+        dmin, _ = cKDTree(t).query(self.x, k=1)
+        return math.sqrt(float(np.max(dmin)) ** 2
+                         + 2.0 * sigma2 * math.log(m / TRUNCATION_EPS))
+
+    def density(self, t: FloatArray, r: float, sample: NDArray[np.intp]) -> float:
+        """Estimated fraction of pairs within ``r`` (from a fixed sample of centroids)."""
+        counts = self.tree_x.query_ball_point(t[sample], r, return_length=True)
+        return float(np.mean(counts)) / self.n
+
+    def truncated(self, t: FloatArray, sigma2: float, r: float) -> _EStepOut | None:
+        """Sparse E-step over all pairs closer than ``r`` (and possibly a few more).
+
+        Candidate pairs come from a neighbour list built with a larger radius
+        ``r_build = TRUNCATION_SKIN * r`` around the centroids ``t_build`` (one
+        ``cKDTree.sparse_distance_matrix``).  The list stays valid while
+        ``r + max_m |t_m - t_build_m| <= r_build``: then every pair now closer than ``r``
+        was closer than ``r_build`` at build time (triangle inequality), so it is in the
+        list.  Extra pairs in the list are evaluated exactly, which only adds accuracy.
+        A list built for a radius more than ``TRUNCATION_SHRINK * r`` is rebuilt.
+        Returns None (caller falls back to dense) if a rebuilt list holds more than
+        ``max_density`` of all pairs.
+        """
+        m, n = self.m, self.n
+        if not self._list_valid(t, r):
+            if not self._build_list(t, TRUNCATION_SKIN * r):
+                return None
+        i, j, xj = self._pi, self._pj, self._xj
+        assert i is not None and j is not None and xj is not None
+        c = _outlier_const(sigma2, self.w, m, n)
+        ti = t[i]
+        ti -= xj
+        np.square(ti, out=ti)
+        e = ti[:, 0] + ti[:, 1]
+        e *= -0.5 / sigma2
+        np.exp(e, out=e)
+        colsum = np.bincount(j, weights=e, minlength=n)
+        den = colsum + c
+        np.maximum(den, _DEN_FLOOR, out=den)
+        inv = 1.0 / den
+        e *= inv[j]  # e is now P on the listed pairs
+        p1: FloatArray = np.bincount(i, weights=e, minlength=m).astype(np.float64)
+        px = np.empty((m, 2))
+        px[:, 0] = np.bincount(i, weights=e * xj[:, 0], minlength=m)
+        px[:, 1] = np.bincount(i, weights=e * xj[:, 1], minlength=m)
+        pt1 = colsum * inv
+        nll = -float(np.sum(np.log(den))) + n * math.log(sigma2)
+        return _EStepOut(p1, pt1, px, nll, len(e))
+
+    def _list_valid(self, t: FloatArray, r: float) -> bool:
+        if self._pi is None or self._t_build is None:
+            return False
+        if self._r_build > TRUNCATION_SHRINK * r:  # list much too loose: rebuild
+            return False
+        d = t - self._t_build
+        return r + math.sqrt(float(np.max(np.einsum("ij,ij->i", d, d)))) <= self._r_build
+
+    def _build_list(self, t: FloatArray, r_build: float) -> bool:
+        pairs = cKDTree(t).sparse_distance_matrix(self.tree_x, r_build, output_type="ndarray")
+        if len(pairs) > self.max_density * self.m * self.n and not self.force_truncate:
+            self._pi = None
+            return False
+        self._pi = pairs["i"].astype(np.intp)
+        self._pj = pairs["j"].astype(np.intp)
+        self._xj = self.x[self._pj]
+        self._t_build = t.copy()
+        self._r_build = r_build
+        return True
+
+
+def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float
+                   ) -> tuple[NDArray[np.intp], FloatArray]:
+    """For each centroid, ``argmax_n`` and ``max_n`` of ``P(m | x_n)`` (dense, chunked)."""
+    m, n = len(t), len(x)
+    c = _outlier_const(sigma2, w, m, n)
+    best = np.full(m, -1.0)
+    arg = np.zeros(m, dtype=np.intp)
+    step = max(1, _BLOCK_ELEMS // m)
+    for a in range(0, n, step):
+        b = min(n, a + step)
+        e = _gauss_kernel(t, x[a:b], math.sqrt(sigma2))
+        den = e.sum(axis=0) + c
+        np.maximum(den, _DEN_FLOOR, out=den)
+        e /= den
+        k = np.argmax(e, axis=1)
+        v = e[np.arange(m), k]
+        better = v > best
+        best[better] = v[better]
+        arg[better] = k[better] + a
+    return arg, np.clip(best, 0.0, 1.0)

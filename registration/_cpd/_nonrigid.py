@@ -1,0 +1,350 @@
+"""The public entry point :func:`cpd_nonrigid`, its EM loop and its result :class:`CPDResult`.
+
+The E-step engine is in :mod:`._estep`, the M-step in :mod:`._mstep`, the pycpd backend
+in :mod:`._pycpd`, the options and their validation in :mod:`._options`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .._executor import checkpoint
+from .._points import as_points
+from ._estep import TRUNCATION_SKIN, _EStep, _EStepOut, _posterior_max
+from ._field import FloatArray, NonrigidTransform, _gauss_kernel
+from ._mstep import _low_rank_factor, _mstep_dense, _mstep_low_rank
+from ._options import CPDOptions, check_run_options
+from ._pycpd import _run_pycpd
+
+# --- numerical constants (see the docstring of ``cpd_nonrigid`` for what they mean) -------
+#: sigma^2 floor, relative to the mean squared norm of the centred subject (which is 1 in
+#: normalised coordinates).  MATLAB's cpd_GRBF stops once sigma2 <= 1e-8 (normalised).
+SIGMA2_FLOOR_REL = 1e-8
+#: Automatic low-rank switches on for more model points than this (measured crossover of a
+#: per-iteration Cholesky against the one-off randomised eigendecomposition; bench_cpd.py).
+AUTO_LOW_RANK_MIN_M = 150
+#: Automatic truncation switches on when the estimated fraction of (model, subject) pairs
+#: within the truncation radius is below this (dense float64 / float32 E-step).
+AUTO_TRUNCATE_MAX_DENSITY = {"float64": 0.15, "float32": 0.05}
+#: BLAS threads used during a call (via threadpoolctl when it is installed; ``None`` leaves
+#: the BLAS alone).  The heavy BLAS calls here are memory-bound products with 3-4 columns,
+#: which gain little from threads, while a threaded OpenBLAS on an oversubscribed machine
+#: (several workers / test runs on 2 cores) was measured 5-10x slower than one thread.
+BLAS_THREADS: int | None = 1
+_controller: Any = None
+
+
+@contextlib.contextmanager
+def _blas_limit() -> Iterator[None]:
+    global _controller
+    if BLAS_THREADS is None:
+        yield
+        return
+    if _controller is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+        except ImportError:  # optional dependency
+            _controller = False
+        else:
+            _controller = ThreadpoolController()
+    if not _controller:
+        yield
+        return
+    with _controller.limit(limits=BLAS_THREADS, user_api="blas"):
+        yield
+
+
+@dataclass(frozen=True, eq=False)
+class CPDResult:
+    """Outcome of :func:`cpd_nonrigid`.
+
+    Attributes
+    ----------
+    warped : ndarray, shape (M, 2)
+        The model points moved onto the subject, in the caller's coordinates; equal to
+        ``transform.apply(model)``.
+    transform : NonrigidTransform
+        The fitted displacement field; warps any points.
+    correspondence : ndarray of int, shape (M,)
+        For each model point ``m``, the subject index ``n`` maximising the posterior
+        ``P(m | x_n)`` at the final ``warped`` positions and ``sigma2``.
+    probability : ndarray, shape (M,)
+        That maximum, ``max_n P(m | x_n)``, in ``[0, 1]``.  ``P(m | x_n)`` is the CPD
+        posterior of centroid ``m`` given data point ``x_n`` (it sums to at most 1 over ``m``,
+        the remainder being the outlier class), so a value near 1 means some subject point
+        is explained by this model point alone.
+    sigma2 : float
+        Final GMM variance, in the caller's subject units squared.
+    iterations : int
+        EM iterations performed.
+    converged : bool
+        True if the stopping rule fired (relative change of the objective ``<= tol``, or
+        sigma^2 reached its floor); False if ``max_iter`` was reached or the run stopped on a
+        non-finite value (the last finite iterate is returned).
+    objective : float
+        Negative log-likelihood plus ``lambda/2 tr(W^T G W)`` at the last E-step, in
+        normalised units (``nan`` for the pycpd backend, which does not compute it).
+    """
+
+    warped: FloatArray
+    transform: NonrigidTransform
+    correspondence: NDArray[np.intp]
+    probability: FloatArray
+    sigma2: float
+    iterations: int
+    converged: bool
+    objective: float = float("nan")
+
+
+# ----------------------------------------------------------------------------------------
+# normalisation
+# ----------------------------------------------------------------------------------------
+def _normalisation(pts: FloatArray) -> tuple[FloatArray, float]:
+    """Mean and RMS scale of ``pts`` (MATLAB's cpd_normalize); scale 1 if degenerate."""
+    shift = pts.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((pts - shift) ** 2, axis=1))))
+    ref = float(np.max(np.abs(pts))) if pts.size else 0.0
+    if not (scale > 1e-12 * max(ref, 1.0)):
+        scale = 1.0
+    return shift, scale
+
+
+# ----------------------------------------------------------------------------------------
+# main entry point
+# ----------------------------------------------------------------------------------------
+def cpd_nonrigid(
+    model: ArrayLike,
+    subject: ArrayLike,
+    *,
+    beta: float = 2.0,
+    lmbda: float = 3.0,
+    w: float = 0.1,
+    tol: float = 1e-5,
+    max_iter: int = 150,
+    sigma2: float | None = None,
+    normalize: bool = True,
+    low_rank: bool | None = None,
+    num_eig: int | None = None,
+    dtype: str = "float64",
+    truncate: bool | None = None,
+    backend: Literal["native", "pycpd"] = "native",
+    callback: Callable[[int, float, float], None] | None = None,
+) -> CPDResult:
+    """Non-rigid Coherent Point Drift: move ``model`` onto ``subject``.
+
+    Follows the reference MATLAB implementation (``cpd_GRBF.m``): EM on a Gaussian
+    mixture whose centroids ``T = Y + G W`` are the warped model points, with an outlier
+    component of weight ``w``.
+
+    Parameters
+    ----------
+    model : array_like, shape (M, 2)
+        Points to move (``Y`` in the CPD paper, the GMM centroids).  ``M >= 3``, finite.
+    subject : array_like, shape (N, 2)
+        Target points (``X`` in the CPD paper).  ``N >= 3``, finite.
+    beta : float, default 2.0
+        Width of the Gaussian kernel, in normalised units when ``normalize`` (else in the
+        caller's units).
+    lmbda : float, default 3.0
+        Regularisation weight (``lambda`` in the paper, ``alpha`` in pycpd).
+    w : float, default 0.1
+        Weight of the uniform outlier component, ``0 <= w < 1``.
+    tol : float, default 1e-5
+        Stop when the relative change of the objective ``|L - L_old| / |L| <= tol``, where
+        ``L`` is the negative log-likelihood plus ``lmbda/2 tr(W^T G W)`` (as MATLAB).
+        ``tol=0`` runs exactly ``max_iter`` iterations (unless sigma^2 reaches its floor).
+    max_iter : int, default 150
+        Maximum number of EM iterations.
+    sigma2 : float, optional
+        Initial variance, in the subject's units squared.  Default: the sum of all squared
+        model-subject distances divided by ``D M N``.
+    normalize : bool, default True
+        Normalise both sets to zero mean and unit RMS radius internally (MATLAB's
+        ``opt.normalize=1``).  Results are always returned in the caller's coordinates.
+        With ``False`` both sets are still shifted by the subject mean internally (CPD is
+        translation-equivariant, so this only improves rounding).
+    low_rank : bool, optional
+        Use the low-rank kernel ``G ~= U U^T`` and the Woodbury M-step.  ``None``: on when
+        ``M > AUTO_LOW_RANK_MIN_M`` (150).
+    num_eig : int, optional
+        Rank of the low-rank kernel.  ``None``: keep every eigenvalue above
+        ``1e-12 * lambda_max`` (numerically the exact kernel).
+    dtype : {"float64", "float32"}, default "float64"
+        Precision of the dense E-step's exponentials and products (exponents are always
+        formed in float64; the M-step is always float64).
+    truncate : bool, optional
+        Truncated (sparse) E-step: only pairs within a radius of roughly 9 sigma are
+        evaluated, chosen so that no posterior changes by more than ``1e-10`` relatively
+        (see ``_EStep.radius``).  ``None``: used on iterations where a cheap sample estimates
+        that less than 15% (float64) / 5% (float32) of the pairs lie within the radius.
+    backend : {"native", "pycpd"}, default "native"
+        ``"pycpd"`` runs ``pycpd.DeformableRegistration`` (alpha=lmbda, beta, w, tolerance,
+        max_iterations, sigma2) on the same normalised data as a reference.  Its stopping
+        rule is pycpd's (``|sigma2 - sigma2_old| <= tol``) and its callback objective is
+        that difference.  ``low_rank``, ``num_eig``, ``dtype`` and ``truncate`` are ignored.
+    callback : callable, optional
+        ``callback(iteration, sigma2, objective)`` after every iteration (``iteration``
+        counts from 1, ``sigma2`` in caller units squared, ``objective`` in normalised
+        units).  An exception raised by it propagates unchanged and aborts the run;
+        nothing the caller owns has been modified.
+
+    Returns
+    -------
+    CPDResult
+
+    Raises
+    ------
+    ValueError
+        If an input or parameter is invalid (the message names it).
+    FloatingPointError
+        Only for ``backend="pycpd"``, if pycpd produced non-finite values.
+
+    Notes
+    -----
+    * sigma^2 floor: if the update gives ``sigma2 < 1e-8 * s2`` (``s2`` = mean squared norm
+      of the centred subject, i.e. 1 in normalised units) or a non-positive value, sigma^2
+      is set to that floor and the run stops with ``converged=True`` (MATLAB stops at
+      ``sigma2 <= 1e-8``).
+    * Non-finite values: if an E- or M-step produces a non-finite objective, ``W`` or
+      sigma^2, the previous (finite) iterate is kept and the run stops with
+      ``converged=False``.  The result never contains NaN.
+    * Tolerances of the accelerations against dense float64 (measured, tests check them):
+      low-rank (automatic rank) and truncation change the warped points by less than
+      ``1e-6`` of the subject's RMS radius; float32 by less than ``1e-4``.
+      ``transform.apply(model)`` equals ``warped`` to ``1e-8`` relative in every mode.
+    """
+    with _blas_limit():
+        return _cpd_nonrigid(model, subject, beta=beta, lmbda=lmbda, w=w, tol=tol,
+                             max_iter=max_iter, sigma2=sigma2, normalize=normalize,
+                             low_rank=low_rank, num_eig=num_eig, dtype=dtype,
+                             truncate=truncate, backend=backend, callback=callback)
+
+
+def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any, w: Any,
+                  tol: Any, max_iter: Any, sigma2: Any, normalize: Any, low_rank: Any,
+                  num_eig: Any, dtype: Any, truncate: Any, backend: Any,
+                  callback: Callable[[int, float, float], None] | None) -> CPDResult:
+    y_in = as_points(model, name="model")
+    x_in = as_points(subject, name="subject")
+    m, n = len(y_in), len(x_in)
+    CPDOptions(beta=beta, lmbda=lmbda, w=w, max_iter=max_iter, tol=tol, dtype=dtype)
+    check_run_options(sigma2, num_eig, backend, low_rank, truncate, normalize, callback, m)
+    beta, lmbda, w, tol = float(beta), float(lmbda), float(w), float(tol)
+    max_iter = int(max_iter)
+
+    if normalize:
+        xd, xs = _normalisation(x_in)
+        yd, ys = _normalisation(y_in)
+    else:
+        xd = x_in.mean(axis=0)
+        yd, xs, ys = xd, 1.0, 1.0
+    x = (x_in - xd) / xs
+    y = (y_in - yd) / ys
+    s2_ref = float(np.mean(np.sum(x * x, axis=1))) if not normalize else 1.0
+    if not s2_ref > 0:
+        s2_ref = 1.0
+    floor = SIGMA2_FLOOR_REL * s2_ref
+
+    if sigma2 is None:
+        # sum_{m,n} |x_n - y_m|^2 / (D M N), expanded (MATLAB's cpd_GRBF)
+        s2 = float((m * np.sum(x * x) + n * np.sum(y * y)
+                    - 2.0 * np.dot(x.sum(axis=0), y.sum(axis=0))) / (2 * m * n))
+    else:
+        s2 = float(sigma2) / (xs * xs)
+    if not (math.isfinite(s2) and s2 > floor):
+        s2 = max(floor, s2_ref) if not math.isfinite(s2) else max(s2, floor)
+
+    if backend == "pycpd":
+        wmat, g, s2, it, converged = _run_pycpd(x, y, xs, beta, lmbda, w, tol, max_iter, s2,
+                                                callback)
+        return _finish(x, y, wmat=wmat, g=g, s2=s2, w=w, beta=beta, xd=xd, xs=xs, yd=yd,
+                       ys=ys, iterations=it, converged=converged, objective=float("nan"))
+
+    g = _gauss_kernel(y, y, beta)
+    use_low_rank = (m > AUTO_LOW_RANK_MIN_M) if low_rank is None else bool(low_rank)
+    basis = _low_rank_factor(g, num_eig) if use_low_rank else None
+
+    estep = _EStep(x, m, w, dtype)
+    estep.force_truncate = bool(truncate)
+    sample = np.unique(np.linspace(0, m - 1, min(m, 64)).astype(np.intp))
+    max_density = AUTO_TRUNCATE_MAX_DENSITY[dtype]
+    estep.max_density = max_density
+
+    wmat = np.zeros((m, 2))
+    t = y.copy()
+    objective = float("nan")
+    l_old = float("nan")
+    converged = False
+    it = 0
+    while it < max_iter:
+        checkpoint()  # a serial executor's cancellation check (no-op in pool processes)
+        # ---- E-step
+        est: _EStepOut | None = None
+        if truncate is not False and (w > 0 or truncate):
+            r = estep.radius(t, s2)
+            if truncate or estep._list_valid(t, r) or \
+                    estep.density(t, TRUNCATION_SKIN * r, sample) < max_density:
+                est = estep.truncated(t, s2, r)
+        if est is None:
+            est = estep.dense(t, s2)
+        lval = est.nll + 0.5 * lmbda * float(np.sum(wmat * (t - y)))  # G W = T - Y
+        if not math.isfinite(lval):
+            break
+        ntol = abs(lval - l_old) / abs(lval) if (math.isfinite(l_old) and lval != 0) else (
+            0.0 if lval == l_old else math.inf)
+        # ---- M-step
+        reg = lmbda * s2
+        if basis is not None:
+            w_new, disp = _mstep_low_rank(basis[0], basis[1], y, est, reg)
+            t_new = y + disp
+        else:
+            w_new = _mstep_dense(g, y, est, reg)
+            t_new = y + g @ w_new
+        np_sum = float(np.sum(est.p1))
+        s2_new = abs(float(np.dot(est.pt1, estep.xsq))
+                     + float(np.dot(est.p1, np.einsum("ij,ij->i", t_new, t_new)))
+                     - 2.0 * float(np.sum(est.px * t_new))) / (np_sum * 2.0) if np_sum > 0 \
+            else math.nan
+        if not (np.isfinite(w_new).all() and np.isfinite(t_new).all()
+                and math.isfinite(s2_new)):
+            break
+        wmat, t, objective, l_old = w_new, t_new, lval, lval
+        it += 1
+        hit_floor = s2_new <= floor
+        s2 = floor if hit_floor else s2_new
+        if callback is not None:
+            callback(it, s2 * xs * xs, lval)
+        if hit_floor or ntol <= tol:
+            converged = True
+            break
+
+    return _finish(x, y, wmat=wmat, g=g, s2=s2, w=w, beta=beta, xd=xd, xs=xs,
+                   yd=yd, ys=ys, iterations=it, converged=converged, objective=objective)
+
+
+def _finish(x: FloatArray, y: FloatArray, *, wmat: FloatArray,
+            g: FloatArray | None, s2: float, w: float, beta: float, xd: FloatArray, xs: float,
+            yd: FloatArray, ys: float, iterations: int, converged: bool,
+            objective: float) -> CPDResult:
+    transform = NonrigidTransform(control_points=y, coefficients=wmat, beta=beta,
+                                  model_shift=yd, model_scale=ys, subject_shift=xd,
+                                  subject_scale=xs)
+    # The exact kernel defines the result; with low_rank W lies in span(U) so this equals
+    # the internal centroids up to the dropped spectrum.
+    t = y + (g if g is not None else _gauss_kernel(y, y, beta)) @ wmat
+    corr, prob = _posterior_max(t, x, s2, w)
+    warped = t * xs + xd
+    warped.setflags(write=False)
+    corr.setflags(write=False)
+    prob.setflags(write=False)
+    return CPDResult(warped=warped, transform=transform, correspondence=corr,
+                     probability=prob, sigma2=float(s2 * xs * xs), iterations=iterations,
+                     converged=converged, objective=float(objective))
+

@@ -1,0 +1,73 @@
+"""CPD's options are validated once (CPDOptions.check): cpd_nonrigid, CPDOptions and the
+service's CPDParams (tests/service/test_cpd_params.py) refuse the same values with the same
+message."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+import pytest
+
+from registration import CPDOptions, cpd_nonrigid
+
+#: (option, bad value, the message's start); each value breaks exactly one rule.
+BAD_OPTIONS: list[tuple[str, Any, str]] = [
+    ("beta", 0.0, "beta must be > 0; got 0.0"),
+    ("beta", -2, "beta must be > 0; got -2"),
+    ("beta", float("inf"), "beta must be finite; got inf"),
+    ("beta", "2", "beta must be a real number; got '2'"),
+    ("lmbda", 0.0, "lmbda must be > 0; got 0.0"),
+    ("w", -0.1, "w must satisfy 0 <= w < 1; got -0.1"),
+    ("w", 1.0, "w must satisfy 0 <= w < 1; got 1.0"),
+    ("w", True, "w must be a real number; got True"),
+    ("max_iter", 0, "max_iter must be an integer >= 1; got 0"),
+    ("max_iter", 2.5, "max_iter must be an integer >= 1; got 2.5"),
+    ("tol", -1e-3, "tol must be >= 0; got -0.001"),
+    ("tol", float("nan"), "tol must be finite; got nan"),
+    ("dtype", "float16", "dtype must be 'float64' or 'float32'; got 'float16'"),
+]
+
+
+def _shape(k: int, seed: int) -> np.ndarray:
+    t = np.linspace(0, 2 * np.pi, k, endpoint=False)
+    r = 1 + 0.2 * np.cos(3 * t + seed)
+    return np.column_stack([np.cos(t) * r, 0.7 * np.sin(t) * r])
+
+
+@pytest.mark.parametrize(("name", "value", "message"), BAD_OPTIONS)
+def test_every_surface_refuses_a_bad_option_with_the_same_message(
+    name: str, value: Any, message: str
+) -> None:
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        CPDOptions(**{name: value})
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        CPDOptions.check(name, value)
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        cpd_nonrigid(_shape(10, 0), _shape(12, 1), **{name: value})
+
+
+def test_the_limits_of_every_range_are_allowed() -> None:
+    options = CPDOptions(beta=1e-9, lmbda=1e-9, w=0.0, max_iter=1, tol=0.0, dtype="float64")
+    assert asdict(options) == {"beta": 1e-9, "lmbda": 1e-9, "w": 0.0, "max_iter": 1,
+                               "tol": 0.0, "dtype": "float64"}
+    assert CPDOptions(w=0.999999).w == 0.999999
+    assert CPDOptions(max_iter=np.int64(3)).max_iter == 3
+
+
+def test_tol_zero_runs_exactly_max_iter_iterations_everywhere() -> None:
+    """Once refused by CPDOptions and the service although cpd_nonrigid documents it."""
+    options = CPDOptions(tol=0, max_iter=7)
+    res = cpd_nonrigid(_shape(30, 0), _shape(35, 1), **asdict(options))
+    assert res.iterations == 7 and not res.converged
+
+
+def test_every_option_has_a_rule_and_a_default_that_passes_it() -> None:
+    defaults = asdict(CPDOptions())
+    assert set(CPDOptions.RANGES) | {"dtype"} == set(defaults)
+    for name, value in defaults.items():
+        assert CPDOptions.check(name, value) == value
+    assert CPDOptions.RANGES["w"].rule("w") == "satisfy 0 <= w < 1"
+    assert CPDOptions.RANGES["max_iter"].rule("max_iter") == "be an integer >= 1"

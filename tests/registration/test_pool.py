@@ -1,0 +1,92 @@
+"""The library's process pool (LocalProcessExecutor) with each start method, and the stop
+half of the Executor protocol. The service's cancel tests (tests/service/test_cancel.py)
+run the same pool through a job."""
+
+from __future__ import annotations
+
+import multiprocessing
+import time
+
+import pytest
+
+from registration import Executor, LocalProcessExecutor, SerialExecutor, default_executor
+
+METHODS = [
+    m for m in ("fork", "forkserver", "spawn") if m in multiprocessing.get_all_start_methods()
+]
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+def _sleep(seconds: float) -> float:
+    time.sleep(seconds)
+    return seconds
+
+
+class Stop(BaseException):
+    pass
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_results_come_back_by_position_and_a_check_kills_the_tasks(method: str) -> None:
+    deadline = float("inf")
+
+    def check() -> None:
+        if time.monotonic() > deadline:
+            raise Stop
+
+    pool = LocalProcessExecutor(2, check=check, poll_seconds=0.05, start_method=method)
+    try:
+        assert dict(pool.map_unordered(_square, list(range(7)))) == {i: i * i for i in range(7)}
+        processes = pool.processes
+        assert len(processes) == 2
+        deadline = time.monotonic() + 0.3
+        with pytest.raises(Stop):
+            list(pool.map_unordered(_sleep, [30.0] * 4))
+        assert pool.processes == []
+        for process in processes:
+            process.join(5)
+            assert not process.is_alive()
+        deadline = float("inf")
+        assert dict(pool.map_unordered(_square, [3])) == {0: 9}  # new processes
+    finally:
+        pool.close()
+
+
+def test_a_forked_process_sees_the_end_of_its_pipe() -> None:
+    """A forked process holds copies of the pool's ends of the pipes created before it: it
+    closes them, so each process ends once the pool's end of its own pipe is closed."""
+    pool = LocalProcessExecutor(2, start_method="fork")
+    try:
+        dict(pool.map_unordered(_square, [1, 2]))
+        first = pool.processes[0]
+        pool._slots[0].connection.close()
+        first.join(10)
+        assert not first.is_alive() and first.exitcode == 0
+    finally:
+        pool.terminate()
+
+
+def test_terminate_and_close_are_the_protocol_for_every_executor() -> None:
+    executors: list[Executor] = [SerialExecutor(), LocalProcessExecutor(1), default_executor(1)]
+    for executor in executors:
+        assert dict(executor.map_unordered(_square, [2, 3])) == {0: 4, 1: 9}
+        executor.terminate()
+        assert dict(executor.map_unordered(_square, [4])) == {0: 16}
+        executor.close()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"max_workers": 0}, "max_workers must be an integer >= 1; got 0"),
+        ({"max_workers": 1.5}, "max_workers must be an integer >= 1; got 1.5"),
+        ({"poll_seconds": 0}, "poll_seconds must be > 0; got 0"),
+        ({"start_method": "thread"}, "start_method must be one of"),
+    ],
+)
+def test_bad_pool_options(kwargs: dict[str, object], message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        LocalProcessExecutor(**kwargs)  # type: ignore[arg-type]
