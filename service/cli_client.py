@@ -8,6 +8,9 @@
     regtree results 12 --out results/yong
     regtree results 12 --sort=-confidence --min-confidence 0.5
     regtree cancel 12
+    regtree results 12 --csv > yong.csv
+    regtree export 12 --out yong.zip
+    regtree similarity 12 --k 3
 
 They talk HTTP through :class:`service.client.RegtreeClient`: ``--url`` (default
 ``$REGTREE_URL``, else ``http://127.0.0.1:8000``), ``--api-key`` (default
@@ -20,7 +23,8 @@ ambiguous name); 3 the service could not be reached (the URL is named); 130 inte
 Ctrl-C (a job keeps running on the server unless ``--cancel-on-interrupt``). Expected errors
 are one ``regtree: error: ...`` line on stderr, never a traceback.
 
-This module imports only :mod:`argparse` at import time: ``regtree serve`` builds the same
+This module imports only :mod:`argparse` (and :mod:`service.contract.names`, the standard
+library's typing) at import time: ``regtree serve`` builds the same
 parser and must be able to limit BLAS threads before numpy is imported.
 """
 
@@ -38,10 +42,21 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from service.contract.names import (
+    DEFAULT_IMAGE_MODE,
+    DEFAULT_METHOD,
+    IMAGE_MODES,
+    METHODS,
+    POSES,
+    SUBJECT_SORTS,
+    is_attached,
+)
+from service.contract.names import subject_status as subject_status
+
 if TYPE_CHECKING:
     from service.client import Collection, JobStatus, RegtreeClient, RegtreeError, Shape
 
-COMMANDS = ("upload", "run", "watch", "results", "cancel")
+COMMANDS = ("upload", "run", "watch", "results", "cancel", "export", "similarity")
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -50,11 +65,6 @@ EXIT_CONNECTION = 3
 EXIT_INTERRUPTED = 130
 
 DEFAULT_URL = "http://127.0.0.1:8000"
-METHODS = ("dynamic_tree", "static_tree", "direct")
-IMAGE_MODES = ("contour", "edges", "skeleton")
-POSES = ("as_given", "upright", "rotation", "affine")
-#: Orders of a result's subjects: the service's ``sort`` (``service.client.SUBJECT_SORTS``).
-SUBJECT_SORTS = ("position", "confidence", "-confidence", "error", "-error")
 
 
 class CLIError(Exception):
@@ -154,7 +164,7 @@ def add_connection_options(parser: argparse.ArgumentParser, *, suppress: bool) -
     command name is not overwritten by the subparser's default.
     """
     group = parser.add_argument_group(
-        "service connection" + ("" if suppress else " (upload, run, watch, results, cancel)")
+        "service connection" + ("" if suppress else f" ({', '.join(COMMANDS)})")
     )
 
     def default(value: Any) -> Any:
@@ -212,8 +222,8 @@ def add_commands(sub: Any) -> None:
     upload.add_argument(
         "--mode",
         choices=IMAGE_MODES,
-        default="contour",
-        help="how images become points (default contour)",
+        default=DEFAULT_IMAGE_MODE,
+        help=f"how images become points (default {DEFAULT_IMAGE_MODE})",
     )
     upload.add_argument(
         "--target-points",
@@ -235,7 +245,7 @@ def add_commands(sub: Any) -> None:
     run.add_argument(
         "--model", required=True, metavar="SHAPE_NAME|ID", help="the model (root) shape"
     )
-    run.add_argument("--method", choices=METHODS, default="dynamic_tree")
+    run.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD)
     run.add_argument(
         "--similarity-threshold",
         type=_positive_float,
@@ -352,8 +362,40 @@ def add_commands(sub: Any) -> None:
         help="draw subjects with y growing upwards (default: downwards, as in images)",
     )
 
+    results.add_argument(
+        "--csv",
+        action="store_true",
+        help="print the subjects as CSV (one row per subject) instead of the tables",
+    )
+
     cancel = command("cancel", help="cancel a queued or running job")
     cancel.add_argument("job", metavar="JOB", type=_job_id)
+
+    export = command(
+        "export",
+        help="download a whole job as one ZIP (JSON, CSV, similarity, pictures)",
+        description="Write the job's ZIP: result.json (full), result.csv, similarity.json, "
+        "job.json, tree.svg, tree.png, summary.png and, with --subject-pictures, one overlay "
+        "per subject.",
+    )
+    export.add_argument("job", metavar="JOB", type=_job_id)
+    export.add_argument(
+        "--out", type=Path, metavar="FILE", help="where to write it (default job-JOB.zip)"
+    )
+    export.add_argument(
+        "--subject-pictures", action="store_true", help="also draw every subject's overlay"
+    )
+
+    similarity = command(
+        "similarity",
+        help="print each shape's nearest shapes by the similarity D the job computed",
+        description="For every shape of the job, the K shapes with the smallest D onto it "
+        "(eq. 9; the direction the tree uses, member onto subject).",
+    )
+    similarity.add_argument("job", metavar="JOB", type=_job_id)
+    similarity.add_argument(
+        "--k", type=_positive_int, default=3, metavar="K", help="nearest shapes (default 3)"
+    )
 
 
 def _watch_options(parser: argparse.ArgumentParser) -> None:
@@ -781,17 +823,8 @@ def select_subjects(subjects: Sequence[Mapping[str, Any]], which: str | int) -> 
     if which == "all":
         return list(subjects)
     if which == "attached":
-        return [s for s in subjects if s.get("attached", s.get("layer") is not None)]
+        return [s for s in subjects if is_attached(s)]
     return list(subjects[: int(which)])
-
-
-def subject_status(subject: Mapping[str, Any]) -> str:
-    """The subject's status: leaf (a low-confidence leaf), tree (a member) or unattached."""
-    if subject.get("leaf"):
-        return "leaf"
-    if subject.get("attached", subject.get("layer") is not None) and subject.get("layer"):
-        return "tree"
-    return "unattached"
 
 
 def _cell(text: str, width: int) -> str:
@@ -874,7 +907,7 @@ def summary_table(doc: Mapping[str, Any]) -> list[str]:
     counts: dict[int, int] = {}
     unattached = 0
     for s in subjects:
-        if s.get("attached", s.get("layer") is not None) and s.get("layer") is not None:
+        if is_attached(s) and s.get("layer") is not None:
             counts[int(s["layer"])] = counts.get(int(s["layer"]), 0) + 1
         else:
             unattached += 1
@@ -924,8 +957,12 @@ def cmd_results(args: argparse.Namespace, rt: RegtreeClient) -> int:
     job = rt.get_job(args.job)
     out: Path | None = args.out
     # every subject, for the summary, result.json and the tree; the full one to draw from
-    doc = rt.result_document(args.job, full=out is not None)
     query = _subject_query(args)
+    if args.csv:
+        sys.stdout.write(rt.result_csv(args.job, **query))
+        sys.stdout.flush()
+        return EXIT_OK
+    doc = rt.result_document(args.job, full=out is not None)
     # the subject lines (and pictures): chosen and ordered by the service
     listed = rt.result_document(args.job, **query)["subjects"] if query else doc["subjects"]
     if out is None:
@@ -975,6 +1012,7 @@ def _write_results(
         written.append(path)
 
     write(out / "result.json", json.dumps(doc, indent=1, ensure_ascii=False).encode("utf-8"))
+    write(out / "result.csv", rt.result_csv(args.job).encode("utf-8"))
     for name, draw in (
         ("tree.svg", lambda: render_tree(doc, fmt="svg")),
         ("tree.png", lambda: render_tree(doc, fmt="png")),
@@ -1032,10 +1070,36 @@ def _write_results(
     return EXIT_OK
 
 
+def cmd_export(args: argparse.Namespace, rt: RegtreeClient) -> int:
+    out: Path = args.out or Path(f"job-{args.job}.zip")
+    data = rt.export_zip(args.job, subject_pictures=args.subject_pictures)
+    try:
+        out.write_bytes(data)
+    except OSError as e:
+        raise CLIError(f"cannot write {out}: {e.strerror or e}", EXIT_FAILED) from e
+    _out(f"wrote {out} ({len(data)} bytes)")
+    return EXIT_OK
+
+
+def cmd_similarity(args: argparse.Namespace, rt: RegtreeClient) -> int:
+    sim = rt.similarity(args.job, k=args.k, matrix=False)
+    names = dict(zip(sim.shape_ids, sim.names, strict=True))
+    n = len(sim.shape_ids)
+    _out(f"job {args.job}: D computed for {sim.computed_pairs} of {n * (n - 1)} ordered pairs")
+    width = min(32, max([4, *(len(name) for name in sim.names)]))
+    _out(f"{'shape':>8}  {_cell('name', width)}  nearest (D onto it)")
+    for sid in sim.shape_ids:
+        near = ", ".join(f"{names.get(o, o)} {d:.4g}" for o, d in sim.nearest.get(sid, []))
+        _out(f"{sid:>8}  {_cell(names[sid], width)}  {near or '-'}")
+    return EXIT_OK
+
+
 HANDLERS: dict[str, Callable[[argparse.Namespace, RegtreeClient], int]] = {
     "upload": cmd_upload,
     "run": cmd_run,
     "watch": cmd_watch,
     "results": cmd_results,
     "cancel": cmd_cancel,
+    "export": cmd_export,
+    "similarity": cmd_similarity,
 }

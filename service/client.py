@@ -37,11 +37,24 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal
+from typing import Any
 
 import httpx
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from service.contract.names import (
+    DEFAULT_IMAGE_MODE,
+    DEFAULT_METHOD,
+    SUBJECT_SORTS,
+    TERMINAL_STATUSES,
+    ImageMode,
+    Method,
+    PoseName,
+    SubjectSort,
+    SubjectStatus,
+)
+from service.contract.result import ResultDocument, SimilarityDocument, SubjectDetail
 
 __all__ = [
     "POINT_SUFFIXES",
@@ -59,6 +72,7 @@ __all__ = [
     "RegtreeTimeout",
     "ServerError",
     "Shape",
+    "Similarity",
     "Subject",
     "SubjectSort",
     "Unauthorized",
@@ -66,13 +80,8 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
-ImageMode = Literal["contour", "edges", "skeleton"]
-Method = Literal["dynamic_tree", "static_tree", "direct"]
 #: How the affine pre-alignment may pose a shape: see :meth:`RegtreeClient.start_job`.
-Pose = Literal["as_given", "upright", "rotation", "affine"]
-#: Orders of a result's subjects (``sort`` of :meth:`RegtreeClient.result`).
-SubjectSort = Literal["position", "confidence", "-confidence", "error", "-error"]
-SUBJECT_SORTS: tuple[str, ...] = ("position", "confidence", "-confidence", "error", "-error")
+Pose = PoseName
 
 #: Point files, and images, that :meth:`RegtreeClient.upload_folder` sends (by suffix).
 POINT_SUFFIXES: dict[str, str] = {
@@ -88,7 +97,7 @@ UPLOAD_SUFFIXES: dict[str, str] = {
     ".jpeg": "image/jpeg",
 }
 
-TERMINAL = frozenset({"succeeded", "failed", "cancelled"})
+TERMINAL = TERMINAL_STATUSES
 _RETRY_STATUSES = frozenset({502, 503, 504})
 
 
@@ -243,10 +252,13 @@ def _dt(value: Any) -> datetime | None:
     return datetime.fromisoformat(str(value))
 
 
-def _array(value: Any, *, dtype: Any = np.float64) -> NDArray[Any] | None:
+def _array(
+    value: Any, *, dtype: Any = np.float64, shape: tuple[int, ...] | None = None
+) -> NDArray[Any] | None:
     if value is None:
         return None
-    return np.asarray(value, dtype=dtype)
+    array = np.asarray(value, dtype=dtype)
+    return array if shape is None else array.reshape(shape)
 
 
 @dataclass(frozen=True)
@@ -391,6 +403,8 @@ class Subject:
     reason: str
     confidence: float | None = None
     leaf: bool = False
+    #: "tree" (a member), "leaf" (a low-confidence leaf) or "unattached".
+    status: SubjectStatus = "unattached"
     quality: dict[str, Any] | None = field(default=None, repr=False, compare=False)
     warped: FloatArray | None = field(default=None, repr=False, compare=False)
     correspondence: NDArray[np.intp] | None = field(default=None, repr=False, compare=False)
@@ -401,36 +415,38 @@ class Subject:
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> Subject:
-        direct = d.get("direct")
-        correspondence = _array(d.get("correspondence"), dtype=np.intp)
-        warped = _array(d.get("warped"))
+        """A subject from the server's JSON, read through :class:`SubjectDetail`."""
+        return cls.from_model(SubjectDetail.model_validate(dict(d)), d)
+
+    @classmethod
+    def from_model(cls, m: SubjectDetail, raw: Mapping[str, Any]) -> Subject:
+        """A subject from its validated model; ``raw`` is the JSON it was read from."""
+        direct = raw.get("direct")
         return cls(
-            shape_id=int(d["shape_id"]),
-            name=str(d.get("name", d["shape_id"])),
-            attached=bool(d.get("attached", d.get("layer") is not None)),
-            layer=None if d.get("layer") is None else int(d["layer"]),
-            parent_shape_id=(
-                None if d.get("parent_shape_id") is None else int(d["parent_shape_id"])
-            ),
-            path_shape_ids=[int(i) for i in d.get("path_shape_ids") or []],
-            similarity=d.get("similarity"),
-            error=d.get("error"),
-            direct_error=d.get("direct_error"),
-            reason=str(d.get("reason") or ""),
-            confidence=(
-                float(d["confidence"])
-                if isinstance(d.get("confidence"), int | float)
-                and not isinstance(d.get("confidence"), bool)
+            shape_id=m.shape_id,
+            name=m.name or str(m.shape_id),
+            attached=m.attached,
+            layer=m.layer,
+            parent_shape_id=m.parent_shape_id,
+            path_shape_ids=[int(i) for i in m.path_shape_ids if i is not None],
+            similarity=m.similarity,
+            error=m.error,
+            direct_error=m.direct_error,
+            reason=m.reason,
+            confidence=m.confidence,
+            leaf=m.leaf,
+            status=m.status,
+            quality=None if m.quality is None else m.quality.model_dump(exclude_unset=True),
+            warped=_array(m.warped, shape=(-1, 2)),
+            correspondence=_array(m.correspondence, dtype=np.intp),
+            probability=_array(m.probability),
+            transform=raw.get("transform"),
+            direct=(
+                cls.from_model(m.direct, direct)
+                if m.direct is not None and isinstance(direct, Mapping)
                 else None
             ),
-            leaf=bool(d.get("leaf", False)),
-            quality=dict(d["quality"]) if isinstance(d.get("quality"), Mapping) else None,
-            warped=None if warped is None else warped.reshape(-1, 2),
-            correspondence=correspondence,
-            probability=_array(d.get("probability")),
-            transform=d.get("transform"),
-            direct=cls.from_json(direct) if isinstance(direct, Mapping) else None,
-            raw=dict(d),
+            raw=dict(raw),
         )
 
 
@@ -448,6 +464,8 @@ class JobResult:
     summary: dict[str, Any]
     thresholds: dict[str, Any]
     document: dict[str, Any] = field(repr=False, compare=False)
+    #: The document as validated by the contract's model (typed summary, subjects...).
+    model: ResultDocument | None = field(default=None, repr=False, compare=False)
 
     @property
     def attached(self) -> list[Subject]:
@@ -470,14 +488,58 @@ class JobResult:
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> JobResult:
+        """A result from the server's JSON, read through :class:`ResultDocument`."""
+        m = ResultDocument.model_validate(dict(d))
+        raw_subjects = [s for s in d.get("subjects") or [] if isinstance(s, Mapping)]
         return cls(
-            job_id=int(d["job_id"]),
-            method=str(d.get("method", "")),
-            root_shape_id=int(d["root_shape_id"]),
-            subjects=[Subject.from_json(s) for s in d.get("subjects") or []],
+            job_id=m.job_id,
+            method=m.method,
+            root_shape_id=m.root_shape_id,
+            subjects=[
+                Subject.from_model(s, raw) for s, raw in zip(m.subjects, raw_subjects, strict=True)
+            ],
             summary=dict(d.get("summary") or {}),
-            thresholds=dict(d.get("thresholds") or {}),
+            thresholds=dict(m.thresholds),
             document=dict(d),
+            model=m,
+        )
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """The similarity D a job computed (``GET /v1/jobs/{id}/similarity``).
+
+    ``D[i, j]`` is D (eq. 9) from shape ``shape_ids[i]`` onto ``shape_ids[j]`` (the direction
+    the tree uses, member onto subject), NaN where the job did not compute it (or when read
+    with ``matrix=False``); ``nearest[shape_id]`` lists ``(other_shape_id, D)`` with the
+    smallest D onto that shape first.
+    """
+
+    job_id: int
+    shape_ids: list[int]
+    names: list[str]
+    D: FloatArray = field(repr=False, compare=False)
+    nearest: dict[int, list[tuple[int, float]]] = field(repr=False, compare=False)
+    computed_pairs: int = 0
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Similarity:
+        m = SimilarityDocument.model_validate(dict(d))
+        n = len(m.shape_ids)
+        D = np.full((n, n), np.nan)
+        if m.D is not None:
+            D = np.array(
+                [[np.nan if v is None else v for v in row] for row in m.D], dtype=np.float64
+            ).reshape(n, n)
+        return cls(
+            job_id=m.job_id,
+            shape_ids=list(m.shape_ids),
+            names=list(m.names),
+            D=D,
+            nearest={s.shape_id: [(x.shape_id, x.D) for x in s.nearest] for s in m.nearest},
+            computed_pairs=m.computed_pairs,
+            raw=dict(d),
         )
 
 
@@ -731,7 +793,7 @@ class RegtreeClient:
         collection_id: int,
         files: Sequence[str | Path],
         *,
-        mode: ImageMode = "contour",
+        mode: ImageMode = DEFAULT_IMAGE_MODE,
         target_points: int | None = None,
         batch_size: int = 100,
         max_batch_bytes: int = 16 * 1024 * 1024,
@@ -806,7 +868,7 @@ class RegtreeClient:
         folder: str | Path,
         *,
         pattern: str = "*",
-        mode: ImageMode = "contour",
+        mode: ImageMode = DEFAULT_IMAGE_MODE,
         target_points: int | None = None,
         batch_size: int = 100,
         recursive: bool = False,
@@ -856,7 +918,7 @@ class RegtreeClient:
         collection_id: int,
         model_shape_id: int,
         *,
-        method: Method = "dynamic_tree",
+        method: Method = DEFAULT_METHOD,
         similarity_threshold: float | None = None,
         error_threshold: float | None = None,
         compare_direct: bool = True,
@@ -1031,3 +1093,53 @@ class RegtreeClient:
             json={"points": _points_list(points)},
         )
         return np.asarray(response.json()["points"], dtype=np.float64).reshape(-1, 2)
+
+    def inverse_transform(self, job_id: int, shape_id: int, points: ArrayLike) -> FloatArray:
+        """Map (n, 2) points from a subject's coordinates back onto the model's: the inverse
+        of :meth:`apply_transform` (solved numerically by the server; a point without a
+        preimage, e.g. far outside the shape, comes back as NaN)."""
+        response = self._request(
+            "POST",
+            f"/v1/jobs/{job_id}/result/subjects/{shape_id}/inverse-transform",
+            retry=True,
+            json={"points": _points_list(points)},
+        )
+        return np.array(
+            [[np.nan, np.nan] if p is None else p for p in response.json()["points"]],
+            dtype=np.float64,
+        ).reshape(-1, 2)
+
+    def similarity(self, job_id: int, *, k: int = 5, matrix: bool = True) -> Similarity:
+        """The similarity D the job computed and each shape's ``k`` nearest shapes.
+
+        Raises :class:`Conflict` for a result stored before the similarity was kept."""
+        params = {"k": str(int(k)), "matrix": "true" if matrix else "false"}
+        return Similarity.from_json(self._get(f"/v1/jobs/{job_id}/similarity", params=params))
+
+    def result_csv(
+        self,
+        job_id: int,
+        *,
+        min_confidence: float | None = None,
+        sort: SubjectSort | None = None,
+        leaf: bool | None = None,
+    ) -> str:
+        """The per-subject results as CSV text (one row per subject; the options are
+        :meth:`result`'s)."""
+        params = _result_params(False, min_confidence, sort, leaf)
+        return self._request(
+            "GET", f"/v1/jobs/{job_id}/result.csv", retry=True, params=params
+        ).text
+
+    def export_zip(
+        self, job_id: int, path: str | Path | None = None, *, subject_pictures: bool = False
+    ) -> bytes:
+        """The whole job as one ZIP (result JSON and CSV, similarity, pictures; with
+        ``subject_pictures`` every subject's overlay too); written to ``path`` if given."""
+        params = {"subject_pictures": "true"} if subject_pictures else None
+        data = self._request(
+            "GET", f"/v1/jobs/{job_id}/export.zip", retry=True, params=params
+        ).content
+        if path is not None:
+            Path(path).write_bytes(data)
+        return data
