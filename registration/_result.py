@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._points import Normalization
+from ._repr import collection_html, collection_repr, subject_html, subject_repr
 from ._transform import ChainTransform
 
 FloatArray = NDArray[np.float64]
@@ -111,6 +112,12 @@ class SubjectResult:
         """In the tree: a member, a low-confidence leaf, or the root itself (layer 1)."""
         return self.layer is not None
 
+    def __repr__(self) -> str:
+        return subject_repr(self)
+
+    def _repr_html_(self) -> str:
+        return subject_html(self)
+
     def to_dict(self, *, include_points: bool = True) -> dict[str, Any]:
         d: dict[str, Any] = {
             "index": self.index,
@@ -193,6 +200,12 @@ class CollectionResult:
     direct: list[SubjectResult] | None = None
     similarity_pairs: int = 0
     similarity: FloatArray | None = field(default=None, repr=False)
+
+    def __repr__(self) -> str:
+        return collection_repr(self)
+
+    def _repr_html_(self) -> str:
+        return collection_html(self)
 
     def root_subject(self) -> SubjectResult:
         """The model itself as a subject: layer 1, error 0, the identity transform."""

@@ -95,6 +95,11 @@ class ChainTransform:
     steps: tuple[PointTransform, ...]
     path: tuple[int, ...]
 
+    def __repr__(self) -> str:
+        from ._repr import chain_repr
+
+        return chain_repr(self)
+
     def apply_normalised(self, points: ArrayLike) -> FloatArray:
         """Apply the steps to points already in normalised coordinates."""
         p = np.asarray(points, dtype=np.float64)
