@@ -182,9 +182,17 @@ def _executor(settings: Settings, control: JobControl) -> Any:
     return InterruptibleProcessExecutor(control.check, max_workers=settings.executor_processes)
 
 
+#: The key under which :func:`run_registration` hands the similarity D (an ndarray, not
+#: JSON) to :func:`run_claimed`, which stores it apart from the document.
+SIMILARITY_KEY = "_similarity"
+
+
 def run_registration(*args: Any, **kwargs: Any) -> dict[str, Any]:
-    """:func:`run_library`'s result as its JSON-ready document (``to_dict()``)."""
-    doc: dict[str, Any] = run_library(*args, **kwargs).to_dict()
+    """:func:`run_library`'s result as its document (``to_dict()``), with the similarity D
+    under :data:`SIMILARITY_KEY`."""
+    result = run_library(*args, **kwargs)
+    doc: dict[str, Any] = result.to_dict()
+    doc[SIMILARITY_KEY] = result.similarity
     return doc
 
 
@@ -275,7 +283,7 @@ def run_claimed(
         try:
             control.check()
             executor = _executor(settings, control)
-            result = run_library(
+            doc = run_registration(
                 method,
                 shapes,
                 names,
@@ -286,16 +294,15 @@ def run_claimed(
             )
             completed = True
             control.check()
-            document, subjects = to_api_document(
-                claim.job_id, json_safe(result.to_dict()), shape_ids
-            )
+            similarity = doc.pop(SIMILARITY_KEY, None)
+            document, subjects = to_api_document(claim.job_id, json_safe(doc), shape_ids)
             outcome = queue.complete(
                 db,
                 claim,
                 document,
                 subjects,
                 progress=control.latest,
-                similarity=similarity_npy(result.similarity, len(shape_ids)),
+                similarity=similarity_npy(similarity, len(shape_ids)),
             )
         except JobInterrupted as interruption:
             outcome = _interrupted(db, claim, interruption)

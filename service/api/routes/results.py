@@ -264,6 +264,20 @@ def get_subject(job_id: DbInt, shape_id: DbInt, db: DbDep) -> dict[str, Any]:
         return subject_document(session, job_id, shape_id)
 
 
+def _mapped(
+    db: DbDep, job_id: int, shape_id: int, body: TransformRequest, limit: int, *, inverse: bool
+) -> np.ndarray:
+    """``body.points`` mapped by the subject's transform (or its inverse: NaN rows where no
+    preimage was found)."""
+    chain = _transform_of(db, job_id, shape_id, len(body.points), limit)
+    points = np.asarray(body.points, dtype=float)
+    try:
+        mapped: np.ndarray = chain.apply_inverse(points) if inverse else chain.apply(points)
+    except ValueError as e:
+        raise ProblemError(422, str(e), type_=ProblemType.VALIDATION_ERROR) from e
+    return mapped
+
+
 def _transform_of(db: DbDep, job_id: int, shape_id: int, n_points: int, limit: int) -> Any:
     if n_points > limit:
         raise ProblemError(
@@ -299,11 +313,7 @@ def _transform_of(db: DbDep, job_id: int, shape_id: int, n_points: int, limit: i
 def transform_points(
     job_id: DbInt, shape_id: DbInt, body: TransformRequest, db: DbDep, settings: SettingsDep
 ) -> TransformOut:
-    chain = _transform_of(db, job_id, shape_id, len(body.points), settings.max_points_per_shape)
-    try:
-        mapped = chain.apply(np.asarray(body.points, dtype=float))
-    except ValueError as e:
-        raise ProblemError(422, str(e), type_=ProblemType.VALIDATION_ERROR) from e
+    mapped = _mapped(db, job_id, shape_id, body, settings.max_points_per_shape, inverse=False)
     if not np.isfinite(mapped).all():
         raise ProblemError(422, "the mapped points are not finite", type_=ProblemType.TRANSFORM)
     return TransformOut(
@@ -327,11 +337,7 @@ def transform_points(
 def inverse_transform_points(
     job_id: DbInt, shape_id: DbInt, body: TransformRequest, db: DbDep, settings: SettingsDep
 ) -> InverseTransformOut:
-    chain = _transform_of(db, job_id, shape_id, len(body.points), settings.max_points_per_shape)
-    try:
-        mapped = chain.apply_inverse(np.asarray(body.points, dtype=float))
-    except ValueError as e:
-        raise ProblemError(422, str(e), type_=ProblemType.VALIDATION_ERROR) from e
+    mapped = _mapped(db, job_id, shape_id, body, settings.max_points_per_shape, inverse=True)
     ok = np.isfinite(mapped).all(axis=1)
     return InverseTransformOut(
         job_id=job_id,
