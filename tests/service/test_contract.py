@@ -165,3 +165,19 @@ def test_app_js_reads_the_servers_attached_and_status() -> None:
     text = (Path(REPO) / "service" / "static" / "app.js").read_text()
     assert "const isAttached = (s) => s.attached === true;" in text
     assert "s.layer !== null" not in text
+
+
+def test_client_and_cli_are_split_by_section_under_600_lines() -> None:
+    import service.cli_client
+    import service.client
+
+    for package in (service.client, service.cli_client):
+        folder = Path(package.__file__).parent
+        for path in folder.glob("*.py"):
+            assert len(path.read_text().splitlines()) <= 600, path
+    # the public import paths hold
+    from service.cli_client import COMMANDS, main  # noqa: F401
+    from service.client import JobResult, RegtreeClient, Similarity, find_shape_files  # noqa: F401
+
+    assert RegtreeClient.__doc__ and "base_url" in RegtreeClient.__doc__
+    assert {"export", "similarity"} <= set(COMMANDS)
