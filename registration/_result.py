@@ -8,6 +8,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ._points import Normalization
+from ._repr import collection_html, collection_repr, subject_html, subject_repr
 from ._transform import ChainTransform
 
 FloatArray = NDArray[np.float64]
@@ -107,7 +109,14 @@ class SubjectResult:
 
     @property
     def attached(self) -> bool:
-        return self.parent is not None
+        """In the tree: a member, a low-confidence leaf, or the root itself (layer 1)."""
+        return self.layer is not None
+
+    def __repr__(self) -> str:
+        return subject_repr(self)
+
+    def _repr_html_(self) -> str:
+        return subject_html(self)
 
     def to_dict(self, *, include_points: bool = True) -> dict[str, Any]:
         d: dict[str, Any] = {
@@ -175,6 +184,11 @@ class CollectionResult:
         Direct CPD from the root on the same subjects, when requested for comparison.
     similarity_pairs : int
         ICP runs done for the similarity.
+    similarity : ndarray, shape (n, n), or None
+        The similarity D (eq. 9) the run computed: ``similarity[i, j]`` is D from shape
+        ``i`` (moved by the affine map) onto shape ``j``, on normalised shapes, the direction
+        the tree uses (member -> subject); NaN for pairs it did not need; 0 on the diagonal.
+        Not in :meth:`to_dict` (it is n x n).
     """
 
     method: str
@@ -185,15 +199,42 @@ class CollectionResult:
     options: dict[str, Any]
     direct: list[SubjectResult] | None = None
     similarity_pairs: int = 0
+    similarity: FloatArray | None = field(default=None, repr=False)
+
+    def __repr__(self) -> str:
+        return collection_repr(self)
+
+    def _repr_html_(self) -> str:
+        return collection_html(self)
+
+    def root_subject(self) -> SubjectResult:
+        """The model itself as a subject: layer 1, error 0, the identity transform."""
+        norms = [s.transform.source for s in self.subjects if s.transform is not None]
+        norm = norms[0] if norms else Normalization(center=(0.0, 0.0), scale=1.0)
+        return SubjectResult(
+            index=self.root,
+            name=self.names[self.root] if 0 <= self.root < len(self.names) else str(self.root),
+            layer=1,
+            path=[self.root],
+            error=0.0,
+            transform=ChainTransform.identity(norm, self.root),
+            reason="the model (the root of the tree)",
+            confidence=1.0,
+        )
 
     def subject(self, index: int) -> SubjectResult:
+        """The result for the shape at ``index`` of the input; the root's is
+        :meth:`root_subject` (identity transform)."""
         for s in self.subjects:
             if s.index == index:
                 return s
+        if index == self.root:
+            return self.root_subject()
         raise KeyError(f"no subject with index {index}")
 
     def transform_for(self, index: int) -> ChainTransform:
-        """The root-to-subject transform; ValueError if the subject is unattached."""
+        """The root-to-subject transform (the identity for the root); ValueError if the
+        subject is unattached."""
         s = self.subject(index)
         if s.transform is None:
             raise ValueError(f"subject {index} ({s.name}) is not attached: {s.reason}")

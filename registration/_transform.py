@@ -35,15 +35,26 @@ class AffineTransform:
         return p @ self.A.T + self.t
 
     def to_dict(self) -> dict[str, Any]:
-        return {"type": "affine", "A": self.A.tolist(), "t": self.t.tolist()}
+        return {
+            "type": "affine",
+            "kind": "affine",
+            "version": 1,
+            "A": self.A.tolist(),
+            "t": self.t.tolist(),
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AffineTransform:
         return cls(A=np.asarray(d["A"], dtype=np.float64), t=np.asarray(d["t"], dtype=np.float64))
 
 
+#: A step's ``kind`` (what wrote it) -> its ``type`` (what it is): every serialised step
+#: carries ``type``, ``kind`` and ``version``.
+STEP_TYPES = {"affine": "affine", "cpd_nonrigid": "nonrigid"}
+
+
 def _step_from_dict(d: dict[str, Any]) -> PointTransform:
-    kind = d.get("type")
+    kind = d.get("type") or STEP_TYPES.get(str(d.get("kind")))
     if kind == "affine":
         return AffineTransform.from_dict(d)
     if kind == "nonrigid":
@@ -55,7 +66,7 @@ def _step_from_dict(d: dict[str, Any]) -> PointTransform:
 
 def _step_to_dict(step: PointTransform) -> dict[str, Any]:
     d = dict(step.to_dict())
-    d.setdefault("type", "nonrigid")
+    d.setdefault("type", STEP_TYPES.get(str(d.get("kind")), "nonrigid"))
     return d
 
 
@@ -84,6 +95,11 @@ class ChainTransform:
     steps: tuple[PointTransform, ...]
     path: tuple[int, ...]
 
+    def __repr__(self) -> str:
+        from ._repr import chain_repr
+
+        return chain_repr(self)
+
     def apply_normalised(self, points: ArrayLike) -> FloatArray:
         """Apply the steps to points already in normalised coordinates."""
         p = np.asarray(points, dtype=np.float64)
@@ -99,6 +115,36 @@ class ChainTransform:
         if not np.isfinite(p).all():
             raise ValueError("points must be finite")
         return self.target.invert(self.apply_normalised(self.source.apply(p)))
+
+    def apply_inverse(self, points: ArrayLike, *, tol: float = 1e-6) -> FloatArray:
+        """Map points from the subject's user coordinates back onto the root model's.
+
+        Each step is inverted numerically (:func:`registration._inverse.invert_points`:
+        Newton iterations; an affine step exactly). A point whose preimage was not found to
+        ``tol`` times the subject's size (forward-mapping the answer must land that close to
+        the point; typically it lands within 1e-12) is NaN: e.g. far outside the region the
+        warp was fitted on, or where it folds.
+        """
+        from ._inverse import invert_points
+
+        p = np.asarray(points, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 2:
+            raise ValueError(f"points must have shape (n, 2); got {p.shape}")
+        if not np.isfinite(p).all():
+            raise ValueError("points must be finite")
+        z = self.target.apply(p)
+        for step in reversed(self.steps):
+            z, _ = invert_points(step, z)
+        out = self.source.invert(z)
+        with np.errstate(invalid="ignore", over="ignore"):
+            miss = np.linalg.norm(self.apply(out) - p, axis=1)
+        out[~(miss <= tol * self.target.scale)] = np.nan
+        return out
+
+    @classmethod
+    def identity(cls, normalization: Normalization, node: int) -> ChainTransform:
+        """The root model's own transform: no steps, from and to its normalisation."""
+        return cls(source=normalization, target=normalization, steps=(), path=(node,))
 
     def extended(
         self, steps: tuple[PointTransform, ...], target: Normalization, node: int

@@ -1,7 +1,7 @@
 """The ``regtree`` command line.
 
 Server side: serve, worker, migrate, demo. Client side (over HTTP, see
-:mod:`service.cli_client`): upload, run, watch, results, cancel.
+:mod:`service.cli_client`): upload, run, watch, results, cancel, export, similarity.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import sys
 from collections.abc import Sequence
 
 from service import cli_client
+from service.contract.names import DEFAULT_METHOD, METHODS
 
 
 def _single_threaded_blas() -> None:
@@ -55,9 +56,7 @@ def _parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="register the bundled demo collection end to end")
     demo.add_argument("--workers", type=int, default=1)
-    demo.add_argument(
-        "--method", default="dynamic_tree", choices=["dynamic_tree", "static_tree", "direct"]
-    )
+    demo.add_argument("--method", default=DEFAULT_METHOD, choices=METHODS)
 
     cli_client.add_commands(sub)
     return parser

@@ -18,8 +18,9 @@ from service.api.middleware import (
     RequestLogMiddleware,
 )
 from service.api.problems import Problem, ProblemError, install_problem_handlers
-from service.api.routes import collections, jobs, pages, pictures, shapes
+from service.api.routes import collections, exports, jobs, pages, pictures, results, shapes
 from service.api.routes.docs import install_docs
+from service.contract.names import ProblemType
 from service.core.config import Settings, get_settings
 from service.core.limits import limits_description, resolve_limits
 from service.db import Database
@@ -87,6 +88,8 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
     v1.include_router(collections.router)
     v1.include_router(shapes.router)
     v1.include_router(jobs.router)
+    v1.include_router(results.router)
+    v1.include_router(exports.router)
     v1.include_router(pictures.router)
     app.include_router(v1)
     app.include_router(pages.router)  # the results page at /ui
@@ -98,7 +101,7 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
             with database.read() as session:
                 session.execute(text("SELECT 1"))
         except Exception as e:
-            raise ProblemError(503, "database unavailable", type_="/problems/unavailable") from e
+            raise ProblemError(503, "database unavailable", type_=ProblemType.UNAVAILABLE) from e
         return {"status": "ok"}
 
     def openapi() -> dict[str, Any]:

@@ -129,6 +129,7 @@ def made_from_image(source_format: str) -> bool:
 
 
 def points_to_npy(points: np.ndarray) -> bytes:
+    """``.npy`` bytes of a float64 array (points, or any other array)."""
     buffer = io.BytesIO()
     np.save(buffer, np.ascontiguousarray(points, dtype=np.float64), allow_pickle=False)
     return buffer.getvalue()
@@ -184,6 +185,19 @@ class Result(Base):
     )
     document: Mapped[dict[str, Any]] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    #: The similarity D the job computed, (n, n) float64 ``.npy`` bytes in the order of the
+    #: job's ``shape_ids`` (NaN: not computed); None for results from before it was kept.
+    #: Deferred: read only by ``GET /v1/jobs/{id}/similarity`` and the export.
+    similarity_npy: Mapped[bytes | None] = mapped_column(
+        LargeBinary, nullable=True, deferred=True
+    )
+
+    @property
+    def similarity(self) -> np.ndarray | None:
+        if self.similarity_npy is None:
+            return None
+        array = np.load(io.BytesIO(self.similarity_npy), allow_pickle=False)
+        return np.asarray(array, dtype=np.float64)
 
 
 class ResultSubject(Base):

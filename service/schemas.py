@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from datetime import datetime
-from typing import Annotated, Any, Generic, Literal, TypeVar
+from typing import Annotated, Any, Generic, TypeVar
 
 from annotated_types import Interval
 from pydantic import (
@@ -16,6 +16,9 @@ from pydantic import (
     model_validator,
 )
 
+from service.contract.names import DEFAULT_METHOD, JobStatusName, Method, PoseName
+from service.contract.names import ImageMode as ImageMode  # re-exported for routes/shapes.py
+from service.contract.result import ResultDocument
 from service.core.limits import bounds, example
 
 T = TypeVar("T")
@@ -36,12 +39,7 @@ INT64_MAX = 2**63 - 1
 #: with 422 like any other invalid parameter, and the schema says so.
 DbInt = Annotated[int, Interval(ge=-(2**63), le=INT64_MAX)]
 
-Method = Literal["dynamic_tree", "static_tree", "direct"]
-JobStatusName = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-ImageMode = Literal["contour", "edges", "skeleton"]
-#: The pose modes of the affine pre-alignment: ``registration._pose.POSE_MODES`` (a test
-#: checks that they agree; the library is not imported here, so the API starts fast).
-PoseName = Literal["as_given", "upright", "rotation", "affine"]
+# The vocabulary (methods, image modes, poses, statuses) is service.contract.names's.
 
 POSE_DESCRIPTION = (
     "Which poses the affine pre-alignment (before the non-rigid registration) may give a "
@@ -276,7 +274,7 @@ class JobCreate(BaseModel):
 
     collection_id: DbInt
     model_shape_id: DbInt = Field(description="The model shape; it must be in the collection.")
-    method: Method = "dynamic_tree"
+    method: Method = DEFAULT_METHOD
     similarity_threshold: float | None = Field(
         default=None, description="Largest similarity distance D for a tree edge; null = auto."
     )
@@ -391,27 +389,8 @@ class JobOut(BaseModel):
 # --- results ---------------------------------------------------------------------------------
 
 
-class ResultOut(BaseModel):
-    """A job's result: the tree and, per subject, its place, similarity and error.
-
-    Subjects name shapes by ``shape_id``; ``parent_shape_id`` and ``path_shape_ids`` give the
-    tree. Each subject has ``confidence`` (0 to 1, the estimated probability that its
-    correspondences are right; null when unattached), ``leaf`` (true for a low-confidence
-    leaf: given its best registration after the tree stopped growing, never a parent; its
-    ``reason`` says why) and ``quality`` (the checks of its last registration). Heavy arrays
-    (warped points, correspondences, transforms) are left out unless ``?full=true``;
-    ``/result/subjects/{shape_id}`` always has them. ``summary`` counts over all subjects
-    (``subjects``, ``attached`` with leaves, ``leaves``, ``unattached``), whatever
-    ``min_confidence`` and ``leaf`` list.
-    """
-
-    model_config = ConfigDict(extra="allow")
-
-    job_id: int
-    method: str
-    root_shape_id: int
-    subjects: list[dict[str, Any]]
-    summary: dict[str, Any] = Field(default_factory=dict)
+#: The result document: defined once, in service.contract.result.
+ResultOut = ResultDocument
 
 
 class TransformRequest(BaseModel):
@@ -438,3 +417,13 @@ class TransformOut(BaseModel):
     job_id: int
     shape_id: int
     points: list[Point] = Field(description="The points mapped onto the subject's coordinates.")
+
+
+class InverseTransformOut(BaseModel):
+    job_id: int
+    shape_id: int
+    points: list[Point | None] = Field(
+        description="The points mapped back onto the model's coordinates; null where no "
+        "preimage was found (see converged)."
+    )
+    converged: list[bool] = Field(description="Per point: whether its preimage was found.")

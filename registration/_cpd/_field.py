@@ -117,6 +117,11 @@ class NonrigidTransform:
 
     __call__ = apply
 
+    def __repr__(self) -> str:  # short: the arrays are not printed
+        from .._repr import nonrigid_repr
+
+        return nonrigid_repr(self)
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable representation (nested lists of floats).
 

@@ -102,6 +102,11 @@ class CPDResult:
     converged: bool
     objective: float = float("nan")
 
+    def __repr__(self) -> str:  # short: the arrays are not printed
+        from .._repr import cpd_repr
+
+        return cpd_repr(self)
+
 
 # ----------------------------------------------------------------------------------------
 # normalisation

@@ -225,6 +225,7 @@ def build_dynamic_tree(
         options=_options_dict(cpd, prealign, max_candidates, spec),
         direct=direct,
         similarity_pairs=sim.computed,
+        similarity=sim.D,
     )
 
 
@@ -327,6 +328,7 @@ def build_static_tree(
         options=_options_dict(cpd, prealign, 1, spec),
         direct=direct,
         similarity_pairs=sim.computed,
+        similarity=sim.D,
     )
 
 
@@ -423,4 +425,5 @@ def register_direct(
         options=_options_dict(cpd, prealign, 1, spec),
         direct=None,
         similarity_pairs=sim.computed,
+        similarity=sim.D,
     )

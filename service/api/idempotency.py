@@ -24,6 +24,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from service.api.problems import ProblemError
+from service.contract.names import ProblemType
 from service.db import is_postgresql
 from service.models import IdempotencyKey
 
@@ -69,7 +70,7 @@ def lookup(
         raise ProblemError(
             422,
             "Idempotency-Key was already used with a different request body",
-            type_="/problems/idempotency-key-reused",
+            type_=ProblemType.IDEMPOTENCY_KEY_REUSED,
         )
     return entry
 

@@ -15,6 +15,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.api.problems import BodyTooLarge, problem_response
 from service.api.routes.docs import DOCS_PATHS
 from service.api.routes.pages import PAGE_PATHS
+from service.contract.names import ProblemType
 
 logger = logging.getLogger("regtree.access")
 
@@ -121,7 +122,7 @@ class ApiKeyMiddleware:
                 401,
                 "missing or wrong API key: send it as `X-API-Key: <key>` or "
                 "`Authorization: Bearer <key>`",
-                type_="/problems/unauthorized",
+                type_=ProblemType.UNAUTHORIZED,
                 headers={"WWW-Authenticate": 'Bearer realm="regtree"'},
             )
             await response(scope, receive, send)
@@ -157,7 +158,7 @@ class BodyLimitMiddleware:
                     413,
                     f"request body of {declared} bytes is larger than the limit of "
                     f"{self.limit} bytes",
-                    type_="/problems/body-too-large",
+                    type_=ProblemType.BODY_TOO_LARGE,
                     headers={"Connection": "close"},
                 )
                 await response(scope, receive, send)

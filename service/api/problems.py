@@ -18,6 +18,8 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.contract.names import ProblemType
+
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 
 logger = logging.getLogger("regtree.api")
@@ -117,7 +119,7 @@ async def _problem_error_handler(request: Request, exc: Exception) -> JSONRespon
 async def _http_exception_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     detail = exc.detail if isinstance(exc.detail, str) else None
-    type_ = "/problems/body-too-large" if exc.status_code == 413 else "about:blank"
+    type_ = ProblemType.BODY_TOO_LARGE if exc.status_code == 413 else "about:blank"
     if exc.status_code == 404 and detail == "Not Found":
         detail = f"no route for {request.method} {request.url.path}"
     if exc.status_code == 405:
@@ -151,7 +153,7 @@ async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
         request,
         422,
         detail,
-        type_="/problems/validation-error",
+        type_=ProblemType.VALIDATION_ERROR,
         title="Request validation failed",
         extra={"errors": errors},
     )
@@ -164,7 +166,7 @@ async def _unexpected_handler(request: Request, exc: Exception) -> JSONResponse:
         extra={"method": request.method, "path": request.url.path},
     )
     return problem_response(
-        request, 500, "internal error; the server log has the details", type_="/problems/internal"
+        request, 500, "internal error; the server log has the details", type_=ProblemType.INTERNAL
     )
 
 
@@ -188,4 +190,4 @@ def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
 
 
 def not_found(what: str, ident: object) -> ProblemError:
-    return ProblemError(404, f"{what} {ident} not found", type_="/problems/not-found")
+    return ProblemError(404, f"{what} {ident} not found", type_=ProblemType.NOT_FOUND)

@@ -14,7 +14,6 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal, get_args
 
 import numpy as np
 from sqlalchemy import func, select
@@ -22,11 +21,9 @@ from sqlalchemy.orm import Session, defer
 
 from service.api import idempotency
 from service.api.routes.collections import get_collection_or_404
+from service.contract.names import OnConflict
 from service.db import Database
 from service.models import TERMINAL_STATUSES, Job, Shape, points_to_npy
-
-OnConflict = Literal["refuse", "replace", "keep"]
-ON_CONFLICT_POLICIES: tuple[str, ...] = get_args(OnConflict)
 
 
 @dataclass

@@ -207,8 +207,11 @@ def complete(
     subjects: list[dict[str, Any]],
     *,
     progress: tuple[str, int, int] | None = None,
+    similarity: bytes | None = None,
 ) -> str:
     """Store the result and mark the job succeeded, atomically.
+
+    ``similarity``: the job's similarity D as ``.npy`` bytes (:attr:`Result.similarity_npy`).
 
     Returns ``"succeeded"``, ``"cancelled"`` or ``"lost"`` (the lease was lost: nothing written).
 
@@ -250,7 +253,7 @@ def complete(
         )
         if not held:
             return "lost"
-        session.add(Result(job_id=claim.job_id, document=document))
+        session.add(Result(job_id=claim.job_id, document=document, similarity_npy=similarity))
         for subject in subjects:
             session.add(
                 ResultSubject(

@@ -28,17 +28,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from sqlalchemy import select
 
+from service.contract.names import METHOD_FUNCTIONS, METHODS
 from service.core.config import Settings
 from service.db import Database
 from service.jobs import queue
+from service.jobs.document import json_safe, similarity_npy, to_api_document
 from service.models import Job, Shape
 
 if TYPE_CHECKING:
-    from registration import Executor
+    from registration import CollectionResult, Executor
 
 logger = logging.getLogger("regtree.runner")
-
-HEAVY_SUBJECT_KEYS = ("warped", "correspondence", "probability", "transform", "direct")
 
 
 class JobInterrupted(BaseException):
@@ -187,86 +187,21 @@ def _executor(settings: Settings, control: JobControl) -> Executor:
     )
 
 
-def _index_to_id(value: Any, shape_ids: list[int]) -> int | None:
-    if value is None or isinstance(value, bool):
-        return None
-    try:
-        index = int(value)
-    except (TypeError, ValueError):
-        return None
-    return shape_ids[index] if 0 <= index < len(shape_ids) else None
+#: The key under which :func:`run_registration` hands the similarity D (an ndarray, not
+#: JSON) to :func:`run_claimed`, which stores it apart from the document.
+SIMILARITY_KEY = "_similarity"
 
 
-def _with_shape_ids(raw: dict[str, Any], shape_ids: list[int], fallback: int) -> dict[str, Any]:
-    subject = dict(raw)
-    position = int(subject.get("index", fallback))
-    subject["position"] = position
-    subject["shape_id"] = shape_ids[position]
-    subject["parent_shape_id"] = _index_to_id(subject.get("parent"), shape_ids)
-    path = subject.get("path")
-    if isinstance(path, list):
-        subject["path_shape_ids"] = [_index_to_id(p, shape_ids) for p in path]
-    attempts = subject.get("attempts")
-    if isinstance(attempts, list):
-        subject["attempts"] = [
-            {**a, "member_shape_id": _index_to_id(a.get("member"), shape_ids)}
-            if isinstance(a, dict)
-            else a
-            for a in attempts
-        ]
-    return subject
+def run_registration(*args: Any, **kwargs: Any) -> dict[str, Any]:
+    """:func:`run_library`'s result as its document (``to_dict()``), with the similarity D
+    under :data:`SIMILARITY_KEY`."""
+    result = run_library(*args, **kwargs)
+    doc: dict[str, Any] = result.to_dict()
+    doc[SIMILARITY_KEY] = result.similarity
+    return doc
 
 
-def to_api_document(
-    job_id: int, doc: dict[str, Any], shape_ids: list[int]
-) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """Map the library's positions onto shape ids.
-
-    Returns the result document (subjects without heavy arrays) and the full subjects.
-    Every subject keeps the library's keys (``index`` and ``parent`` are positions in the
-    job's input) and gains ``shape_id``, ``position``, ``parent_shape_id`` and
-    ``path_shape_ids``; with ``compare_direct``, the direct registration of a subject is
-    under ``direct`` (full) and ``direct_error`` (light).
-    """
-    direct: dict[int, dict[str, Any]] = {}
-    for k, raw in enumerate(doc.get("direct") or []):
-        if isinstance(raw, dict):
-            entry = _with_shape_ids(raw, shape_ids, k)
-            direct[entry["shape_id"]] = entry
-    subjects: list[dict[str, Any]] = []
-    for k, raw in enumerate(doc.get("subjects", [])):
-        subject = _with_shape_ids(raw, shape_ids, k)
-        if subject["shape_id"] in direct:
-            subject["direct"] = direct[subject["shape_id"]]
-            subject["direct_error"] = direct[subject["shape_id"]].get("error")
-        subjects.append(subject)
-    light = [{k: v for k, v in s.items() if k not in HEAVY_SUBJECT_KEYS} for s in subjects]
-    document = {k: v for k, v in doc.items() if k not in ("subjects", "direct")}
-    document.update(
-        job_id=job_id,
-        root_shape_id=_index_to_id(doc.get("root"), shape_ids),
-        shape_ids=list(shape_ids),
-        subjects=light,
-    )
-    return document, subjects
-
-
-def _json_safe(value: Any) -> Any:
-    """Replace non-finite floats (not valid JSON) with None, recursively."""
-    if isinstance(value, float):
-        return value if np.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _json_safe(value.tolist())
-    if isinstance(value, np.generic):
-        return _json_safe(value.item())
-    return value
-
-
-def run_registration(
+def run_library(
     job_method: str,
     shapes: list[np.ndarray],
     names: list[str],
@@ -275,16 +210,14 @@ def run_registration(
     *,
     executor: Any,
     progress: Any,
-) -> dict[str, Any]:
-    """Call the library for one job and return its JSON-ready result document."""
+) -> CollectionResult:
+    """Call the library for one job and return its result."""
     import registration
 
-    functions = {
-        "dynamic_tree": registration.build_dynamic_tree,
-        "static_tree": registration.build_static_tree,
-        "direct": registration.register_direct,
-    }
-    result = functions[job_method](
+    if job_method not in METHOD_FUNCTIONS:
+        raise ValueError(f"unknown method {job_method!r}; expected one of {', '.join(METHODS)}")
+    build = getattr(registration, METHOD_FUNCTIONS[job_method])
+    result = build(
         shapes,
         root=root,
         similarity_threshold=params.get("similarity_threshold"),
@@ -299,8 +232,8 @@ def run_registration(
         pose=params.get("pose"),
         max_rotation=params.get("max_rotation"),
     )
-    doc: dict[str, Any] = result.to_dict()
-    return doc
+    collection_result: CollectionResult = result
+    return collection_result
 
 
 _POSITION = re.compile(r"\bshapes\[(\d+)\]")
@@ -377,8 +310,16 @@ def run_claimed(
             )
             completed = True
             control.check()
-            document, subjects = to_api_document(claim.job_id, _json_safe(doc), shape_ids)
-            outcome = queue.complete(db, claim, document, subjects, progress=control.latest)
+            similarity = doc.pop(SIMILARITY_KEY, None)
+            document, subjects = to_api_document(claim.job_id, json_safe(doc), shape_ids)
+            outcome = queue.complete(
+                db,
+                claim,
+                document,
+                subjects,
+                progress=control.latest,
+                similarity=similarity_npy(similarity, len(shape_ids)),
+            )
         except JobInterrupted as interruption:
             outcome = _interrupted(db, claim, interruption)
         except Exception as exc:

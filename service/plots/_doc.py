@@ -7,6 +7,10 @@ from typing import Any
 
 import numpy as np
 
+from registration import error_statistics
+from service.contract.names import is_attached as is_attached
+from service.contract.result import Summary
+
 Doc = Mapping[str, Any]
 
 
@@ -15,11 +19,6 @@ def subjects(doc: Doc) -> list[Mapping[str, Any]]:
     if not isinstance(items, Sequence):
         raise ValueError("the result document has no 'subjects' list")
     return [s for s in items if isinstance(s, Mapping)]
-
-
-def is_attached(subject: Mapping[str, Any]) -> bool:
-    """In the tree, with a parent and a registration: low-confidence leaves are too."""
-    return bool(subject.get("attached", subject.get("layer") is not None))
 
 
 def is_leaf(subject: Mapping[str, Any]) -> bool:
@@ -70,13 +69,6 @@ def find_subject(doc: Doc, shape_id: int) -> Mapping[str, Any]:
     raise KeyError(f"shape {shape_id} is not a subject of this result")
 
 
-def _stats(values: list[float]) -> dict[str, Any]:
-    if not values:
-        return {"count": 0, "mean": None, "p95": None}
-    arr = np.asarray(values, dtype=np.float64)
-    return {"count": len(values), "mean": float(arr.mean()), "p95": float(np.percentile(arr, 95))}
-
-
 def layer_statistics(doc: Doc) -> tuple[dict[int, dict[str, Any]], dict[int, dict[str, Any]]]:
     """Per tree layer: e statistics of the tree, and of direct CPD on the same subjects.
 
@@ -84,15 +76,14 @@ def layer_statistics(doc: Doc) -> tuple[dict[int, dict[str, Any]], dict[int, dic
     from the subjects (``error``, ``direct_error`` or ``direct.error``). The direct dict is
     empty when the job did not compare with direct CPD.
     """
-    summary = doc.get("summary") or {}
-    per_layer = summary.get("per_layer")
-    direct_summary = summary.get("direct") or {}
-    direct_layer = direct_summary.get("per_layer")
-    if isinstance(per_layer, Mapping):
-        tree = {int(k): dict(v) for k, v in per_layer.items()}
+    raw = doc.get("summary")
+    summary = Summary.model_validate(raw if isinstance(raw, Mapping) else {})
+    if "per_layer" in summary.model_fields_set:
+        tree = {int(k): v.model_dump() for k, v in summary.per_layer.items()}
+        direct_summary = summary.direct
         direct = (
-            {int(k): dict(v) for k, v in direct_layer.items()}
-            if isinstance(direct_layer, Mapping)
+            {int(k): v.model_dump() for k, v in direct_summary.per_layer.items()}
+            if direct_summary is not None and "per_layer" in direct_summary.model_fields_set
             else {}
         )
         return tree, direct
@@ -113,6 +104,8 @@ def layer_statistics(doc: Doc) -> tuple[dict[int, dict[str, Any]], dict[int, dic
         if d is not None:
             any_direct = True
             direct_values[layer].append(float(d))
-    tree = {k: _stats(v) for k, v in sorted(tree_values.items())}
-    direct = {k: _stats(v) for k, v in sorted(direct_values.items())} if any_direct else {}
+    tree = {k: error_statistics(v) for k, v in sorted(tree_values.items())}
+    direct = (
+        {k: error_statistics(v) for k, v in sorted(direct_values.items())} if any_direct else {}
+    )
     return tree, direct

@@ -900,12 +900,13 @@
   }
 
   // --- unattached shapes, as buttons under the tree --------------------------------------------
-  // a low-confidence leaf is attached (it has a parent and a registration) but is no tree member
-  const isAttached = (s) => s.attached !== false && s.layer !== null && s.layer !== undefined;
+  // a low-confidence leaf is attached (it has a parent and a registration) but is no tree member;
+  // the server states `attached` for every subject (service.contract.names.is_attached)
+  const isAttached = (s) => s.attached === true;
   const isLeaf = (s) => s.leaf === true;
   const hasNumber = (v) => typeof v === "number" && Number.isFinite(v);
   const STATUS = { tree: "tree member", leaf: "low-confidence leaf", unattached: "unattached" };
-  const statusOf = (s) => (isLeaf(s) ? "leaf" : isAttached(s) ? "tree" : "unattached");
+  const statusOf = (s) => s.status; // the server states it: tree, leaf or unattached
   const statusBadgeOf = (s) => {
     const status = statusOf(s);
     return el("span", { class: `badge ${status}`, "data-status": status, text: STATUS[status] });

@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 import pytest
 
-from service.api.routes.jobs import SUBJECT_SORTS, select_subjects
+from service.api.routes.results import SUBJECT_SORTS, select_subjects
 from service.client import SUBJECT_SORTS as CLIENT_SORTS
 from service.client import RegtreeClient, ValidationError
 from service.plots import render_subject, render_tree

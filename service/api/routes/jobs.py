@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Annotated, Any, Literal, get_args
+from typing import Annotated, Any
 
-import numpy as np
 from fastapi import APIRouter, Query, Request, Response, status
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
@@ -13,13 +11,12 @@ from sqlalchemy.orm import Session
 from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
 from service.api.problems import ProblemError, not_found, problem_responses
+from service.contract.names import ProblemType
 from service.jobs import queue
 from service.models import (
     Collection,
     Job,
     JobStatus,
-    Result,
-    ResultSubject,
     Shape,
     made_from_image,
 )
@@ -29,9 +26,6 @@ from service.schemas import (
     JobOut,
     JobStatusName,
     Page,
-    ResultOut,
-    TransformOut,
-    TransformRequest,
 )
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
@@ -97,7 +91,7 @@ def resolve_pose(body: JobCreate, source_formats: list[str]) -> dict[str, Any]:
     return {**spec.to_dict(), "pose_source": source}
 
 
-def _unprocessable(detail: str, type_: str = "/problems/invalid-job") -> ProblemError:
+def _unprocessable(detail: str, type_: str = ProblemType.INVALID_JOB) -> ProblemError:
     return ProblemError(422, detail, type_=type_)
 
 
@@ -236,195 +230,7 @@ def cancel_job(job_id: DbInt, db: DbDep) -> JobOut:
         job = _get_job(session, job_id, for_update=True)
         if not queue.request_cancel(session, job):
             raise ProblemError(
-                409, f"job {job_id} already {job.status}", type_="/problems/job-finished"
+                409, f"job {job_id} already {job.status}", type_=ProblemType.JOB_FINISHED
             )
         session.flush()
         return job_out(job)
-
-
-def _succeeded_job(session: Session, job_id: int) -> Job:
-    job = _get_job(session, job_id)
-    if job.status != JobStatus.succeeded.value:
-        detail = f"job {job_id} is {job.status}; a result exists once it has succeeded"
-        if job.error:
-            detail += f" (error: {job.error[:500]})"
-        raise ProblemError(409, detail, type_="/problems/result-not-ready")
-    return job
-
-
-#: ``sort`` of ``GET /v1/jobs/{id}/result``: a key, descending with a leading "-".
-SubjectSort = Literal["position", "confidence", "-confidence", "error", "-error"]
-SUBJECT_SORTS: tuple[str, ...] = get_args(SubjectSort)
-
-
-def _number(value: Any) -> float | None:
-    """A subject's number for sorting and filtering: None unless a finite int or float."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    return float(value) if np.isfinite(value) else None
-
-
-def select_subjects(
-    subjects: Sequence[Mapping[str, Any]],
-    *,
-    sort: str = "position",
-    min_confidence: float | None = None,
-    leaf: bool | None = None,
-) -> list[Mapping[str, Any]]:
-    """The subjects a result request asks for, in the order it asks for.
-
-    ``min_confidence`` keeps subjects whose ``confidence`` is at least that (a subject
-    without one, e.g. unattached, is left out); ``leaf`` keeps only low-confidence leaves
-    (True) or only the others (False). ``sort`` orders by ``position`` (the job's input
-    order, as stored), or by ``confidence`` / ``error``, ascending, or descending with a
-    leading "-"; subjects without that value come last either way, and ties keep their
-    position order.
-    """
-    if sort not in SUBJECT_SORTS:
-        raise ValueError(f"sort must be one of {', '.join(SUBJECT_SORTS)}; got {sort!r}")
-    chosen = [s for s in subjects if isinstance(s, Mapping)]
-    if leaf is not None:
-        chosen = [s for s in chosen if bool(s.get("leaf", False)) is leaf]
-    if min_confidence is not None:
-        chosen = [
-            s
-            for s in chosen
-            if (c := _number(s.get("confidence"))) is not None and c >= min_confidence
-        ]
-    if sort == "position":
-        return chosen
-    key = sort.removeprefix("-")
-    sign = -1.0 if sort.startswith("-") else 1.0
-
-    def order(item: tuple[int, Mapping[str, Any]]) -> tuple[int, float, int]:
-        k, s = item
-        value = _number(s.get(key))
-        return (1, 0.0, k) if value is None else (0, sign * value, k)
-
-    return [s for _, s in sorted(enumerate(chosen), key=order)]
-
-
-RESULT_DESCRIPTION = (
-    "The tree and, per subject, its place (layer, parent, path), similarity D, error e, "
-    "confidence (the estimated probability, 0 to 1, that its correspondences are right; null "
-    "for an unattached subject), whether it is a low-confidence leaf (a subject the tree "
-    "could not accept, given its best registration once the tree stopped growing; never a "
-    "parent; its reason says why), and quality (the checks of its last registration). "
-    "The summary counts subjects, attached ones (leaves included), leaves and unattached "
-    "ones over the whole result, whatever the subjects are filtered by. "
-    "min_confidence, leaf and sort choose and order the subjects listed."
-)
-
-
-@router.get(
-    "/{job_id}/result",
-    response_model=ResultOut,
-    responses=problem_responses(404, 409, 422),
-    summary="Read a job's result",
-    description=RESULT_DESCRIPTION,
-)
-def get_result(
-    job_id: DbInt,
-    db: DbDep,
-    full: Annotated[
-        bool, Query(description="Include warped points, correspondences and transforms.")
-    ] = False,
-    min_confidence: Annotated[
-        float | None,
-        Query(
-            ge=0,
-            le=1,
-            description="List only subjects whose confidence is at least this (0 to 1). "
-            "Subjects without a confidence (unattached ones) are left out when it is given.",
-        ),
-    ] = None,
-    leaf: Annotated[
-        bool | None,
-        Query(
-            description="true: list only low-confidence leaves; false: only the other "
-            "subjects (tree members and unattached ones). Not given: all."
-        ),
-    ] = None,
-    sort: Annotated[
-        SubjectSort,
-        Query(
-            description="Order of the subjects: position (the default: the order of the "
-            "job's shapes), confidence or error ascending, -confidence or -error descending. "
-            "Subjects without that value (unattached ones) come last either way; ties keep "
-            "the position order."
-        ),
-    ] = "position",
-) -> dict[str, Any]:
-    with db.read() as session:
-        _succeeded_job(session, job_id)
-        result = session.get(Result, job_id)
-        if result is None:
-            raise ProblemError(409, f"job {job_id} has no stored result")
-        document = dict(result.document)
-        if full:
-            rows = session.scalars(
-                select(ResultSubject)
-                .where(ResultSubject.job_id == job_id)
-                .order_by(ResultSubject.position)
-            ).all()
-            document["subjects"] = [r.document for r in rows]
-    document["subjects"] = select_subjects(
-        document.get("subjects") or [], sort=sort, min_confidence=min_confidence, leaf=leaf
-    )
-    return document
-
-
-def _subject(session: Session, job_id: int, shape_id: int) -> ResultSubject:
-    _succeeded_job(session, job_id)
-    row = session.get(ResultSubject, (job_id, shape_id))
-    if row is None:
-        raise not_found(f"subject {shape_id} in the result of job", job_id)
-    return row
-
-
-@router.get(
-    "/{job_id}/result/subjects/{shape_id}",
-    responses=problem_responses(404, 409),
-    summary="Read one subject of a result: tree place, transform, correspondences, error",
-)
-def get_subject(job_id: DbInt, shape_id: DbInt, db: DbDep) -> dict[str, Any]:
-    with db.read() as session:
-        document: dict[str, Any] = _subject(session, job_id, shape_id).document
-        return document
-
-
-@router.post(
-    "/{job_id}/result/subjects/{shape_id}/transform",
-    response_model=TransformOut,
-    responses=problem_responses(404, 409, 422),
-    summary="Map points from the model onto a subject with the stored transform",
-)
-def transform_points(
-    job_id: DbInt, shape_id: DbInt, body: TransformRequest, db: DbDep, settings: SettingsDep
-) -> TransformOut:
-    if len(body.points) > settings.max_points_per_shape:
-        raise ProblemError(
-            422,
-            f"{len(body.points)} points; at most {settings.max_points_per_shape} are allowed",
-            type_="/problems/validation-error",
-        )
-    with db.read() as session:
-        document = _subject(session, job_id, shape_id).document
-    transform = document.get("transform")
-    if not transform:
-        raise ProblemError(
-            409,
-            f"shape {shape_id} has no transform in this result (it was not attached)",
-            type_="/problems/no-transform",
-        )
-    from registration import ChainTransform
-
-    try:
-        mapped = ChainTransform.from_dict(transform).apply(np.asarray(body.points, dtype=float))
-    except ValueError as e:
-        raise ProblemError(422, str(e), type_="/problems/validation-error") from e
-    if not np.isfinite(mapped).all():
-        raise ProblemError(422, "the mapped points are not finite", type_="/problems/transform")
-    return TransformOut(
-        job_id=job_id, shape_id=shape_id, points=[tuple(p) for p in mapped.tolist()]
-    )

@@ -14,6 +14,7 @@ from fastapi import APIRouter
 from fastapi.responses import RedirectResponse, Response
 
 from service.api.problems import ProblemError
+from service.contract.names import ProblemType
 
 router = APIRouter(include_in_schema=False)
 
@@ -62,5 +63,5 @@ def page() -> Response:
 @router.get("/ui/{name}")
 def asset(name: str) -> Response:
     if name not in ASSETS:
-        raise ProblemError(404, f"no page file {name}", type_="/problems/not-found")
+        raise ProblemError(404, f"no page file {name}", type_=ProblemType.NOT_FOUND)
     return Response(_read(name), media_type=ASSETS[name], headers=_HEADERS)

@@ -22,7 +22,8 @@ from sqlalchemy.orm import Session
 from service import __version__
 from service.api.deps import DbDep
 from service.api.problems import ProblemError, problem_responses
-from service.api.routes.jobs import _subject, _succeeded_job
+from service.api.routes.results import _subject, _succeeded_job
+from service.contract.names import ProblemType
 from service.models import Job, Result, Shape, made_from_image
 from service.plots import Rendered, render_subject, render_summary, render_tree
 from service.schemas import DbInt
@@ -195,7 +196,7 @@ def subject_overlay_png(
                 410,
                 f"shape {shape_id} was deleted after job {job_id} ran; its points are needed "
                 "to draw the overlay",
-                type_="/problems/shape-deleted",
+                type_=ProblemType.SHAPE_DELETED,
             )
         if y_down is None:
             y_down = made_from_image(shape.source_format)

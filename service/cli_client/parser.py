@@ -1,0 +1,371 @@
+"""The client commands' arguments (argparse only: ``regtree serve`` builds the same
+parser before numpy is imported)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from service.contract.names import (
+    DEFAULT_IMAGE_MODE,
+    DEFAULT_METHOD,
+    DEFAULT_ON_CONFLICT,
+    IMAGE_MODES,
+    METHODS,
+    ON_CONFLICT_POLICIES,
+    POSES,
+    SUBJECT_SORTS,
+)
+
+if TYPE_CHECKING:
+    pass
+
+from service.cli_client._common import COMMANDS, DEFAULT_URL
+
+# --- argument parsing (argparse only) ----------------------------------------------------
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def _job_id(text: str) -> int:
+    try:
+        value = int(text.strip().removeprefix("#"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a job id is a number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"a job id is a positive number, got {text!r}")
+    return value
+
+
+def _confidence(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}") from None
+    if not 0.0 <= value <= 1.0:  # NaN too
+        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}")
+    return value
+
+
+def _subject_sort(text: str) -> str:
+    if text not in SUBJECT_SORTS:
+        raise argparse.ArgumentTypeError(
+            f"expected one of {', '.join(SUBJECT_SORTS)}, got {text!r}"
+        )
+    return text
+
+
+def join_option_values(argv: Sequence[str]) -> list[str]:
+    """``--sort -confidence`` as ``--sort=-confidence``: argparse takes a value starting
+    with "-" for an option of its own, so a descending order is joined to its option."""
+    out: list[str] = []
+    args = list(argv)
+    k = 0
+    while k < len(args):
+        if args[k] == "--sort" and k + 1 < len(args) and args[k + 1] in SUBJECT_SORTS:
+            out.append(f"--sort={args[k + 1]}")
+            k += 2
+            continue
+        out.append(args[k])
+        k += 1
+    return out
+
+
+def _subjects_choice(text: str) -> str | int:
+    if text in ("all", "attached"):
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected all, attached or a number of subjects, got {text!r}"
+        ) from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"the number of subjects must be >= 0, got {text!r}")
+    return value
+
+
+def add_connection_options(parser: argparse.ArgumentParser, *, suppress: bool) -> None:
+    """``--url``, ``--api-key``, ``--timeout``.
+
+    On the top-level parser (``suppress=False``) they get their defaults; on each client
+    command (``suppress=True``) they default to "not given" so that a value given before the
+    command name is not overwritten by the subparser's default.
+    """
+    group = parser.add_argument_group(
+        "service connection" + ("" if suppress else f" ({', '.join(COMMANDS)})")
+    )
+
+    def default(value: Any) -> Any:
+        return argparse.SUPPRESS if suppress else value
+
+    group.add_argument(
+        "--url",
+        default=default(None),
+        help=f"the service's base URL (default $REGTREE_URL, else {DEFAULT_URL})",
+    )
+    group.add_argument(
+        "--api-key",
+        default=default(None),
+        help="sent as X-API-Key (default $REGTREE_API_KEY)",
+    )
+    group.add_argument(
+        "--timeout",
+        type=_positive_float,
+        default=default(60.0),
+        metavar="SECONDS",
+        help="seconds per HTTP request (default 60; raise it for big upload batches)",
+    )
+
+
+def add_commands(sub: Any) -> None:
+    """Register the client commands on ``regtree``'s subparsers action."""
+
+    def command(name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        parser: argparse.ArgumentParser = sub.add_parser(name, **kwargs)
+        add_connection_options(parser, suppress=True)
+        return parser
+
+    upload = command(
+        "upload",
+        help="upload a folder of shapes (point files, images) to a collection",
+        description="Upload every point file (.txt .csv .json .npy) and image (.png .jpg "
+        ".jpeg) in DIR whose name matches --pattern, sorted by name, in batches. The shape "
+        "name is the file name without its extension.",
+    )
+    upload.add_argument("folder", metavar="DIR", type=Path)
+    upload.add_argument(
+        "--collection",
+        required=True,
+        metavar="NAME",
+        help="the collection's name (or id); it must exist unless --create",
+    )
+    upload.add_argument(
+        "--create",
+        action="store_true",
+        help="create the collection (refused if one with this name exists)",
+    )
+    upload.add_argument("--description", default="", help="with --create: its description")
+    upload.add_argument("--pattern", default="*", metavar="GLOB", help="file names (default *)")
+    upload.add_argument("--recursive", action="store_true", help="also look in subfolders")
+    upload.add_argument(
+        "--mode",
+        choices=IMAGE_MODES,
+        default=DEFAULT_IMAGE_MODE,
+        help=f"how images become points (default {DEFAULT_IMAGE_MODE})",
+    )
+    upload.add_argument(
+        "--target-points",
+        type=_positive_int,
+        metavar="N",
+        help="at most N points per image (default: the service's)",
+    )
+    upload.add_argument(
+        "--on-conflict",
+        choices=ON_CONFLICT_POLICIES,
+        default=DEFAULT_ON_CONFLICT,
+        help="when the collection already holds a shape of a file's name: refuse (default: "
+        "nothing of that batch is stored, so a folder uploaded twice is not doubled), replace "
+        "it, or keep both",
+    )
+    upload.add_argument(
+        "--batch-size", type=_positive_int, default=100, metavar="N", help="files per request"
+    )
+
+    run = command(
+        "run",
+        help="start a registration job",
+        description="Queue a job registering the model shape onto every shape of the "
+        "collection, and print its id (with --wait, follow it like `regtree watch`).",
+    )
+    run.add_argument("--collection", required=True, metavar="NAME|ID")
+    run.add_argument(
+        "--model", required=True, metavar="SHAPE_NAME|ID", help="the model (root) shape"
+    )
+    run.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD)
+    run.add_argument(
+        "--similarity-threshold",
+        type=_positive_float,
+        metavar="X",
+        help="largest similarity distance D for a tree edge (default: automatic)",
+    )
+    run.add_argument(
+        "--error-threshold",
+        type=_positive_float,
+        metavar="X",
+        help="largest registration error e to accept (default: automatic)",
+    )
+    run.add_argument(
+        "--pose",
+        choices=POSES,
+        help="which poses the affine pre-alignment may give a shape: as_given = only the "
+        "shapes as uploaded; upright = rotations within +-DEG (--max-rotation, 30 by "
+        "default) of them, no mirror images (glyph scans, aligned outlines); rotation = any "
+        "rotation, no mirror images; affine = any affine map, mirror images included. "
+        "Default: the service's, upright if every shape of the collection was uploaded as an "
+        "image, else rotation",
+    )
+    run.add_argument(
+        "--max-rotation",
+        type=float,
+        metavar="DEG",
+        help="with --pose upright (or alone, which means upright): consider only rotations "
+        "within +-DEG degrees of the uploaded shapes (default 30)",
+    )
+    run.add_argument(
+        "--no-compare-direct",
+        dest="compare_direct",
+        action="store_false",
+        help="do not also register every subject directly from the model",
+    )
+    run.add_argument("--wait", action="store_true", help="follow the job until it ends")
+    run.add_argument("-q", "--quiet", action="store_true", help="print only the job id")
+    _watch_options(run)
+
+    watch = command(
+        "watch",
+        help="follow a job's progress until it ends",
+        description="Show the job's stage and done/total until it ends (a live bar on a "
+        "terminal, one line per change otherwise). Exit 0 if it succeeded, 1 if it failed or "
+        "was cancelled, 130 on Ctrl-C (the job keeps running unless --cancel-on-interrupt).",
+    )
+    watch.add_argument("job", metavar="JOB", type=_job_id)
+    _watch_options(watch)
+
+    results = command(
+        "results",
+        help="print a job's result; download it and draw its pictures",
+        description="Print the summary table and one line per subject (layer, parent, e, "
+        "direct e, confidence, status: tree, leaf for a low-confidence leaf, or unattached). "
+        "With --out, also write OUT/result.json (the full result document), tree.svg, "
+        "tree.png, summary.png and subjects/<name>.png (the model warped onto each subject, "
+        "beside direct CPD's). --sort, --min-confidence, --only-leaves and --no-leaves choose "
+        "and order the subject lines and the subject pictures (the service does it); "
+        "result.json, the tree and the summary always cover every subject.",
+    )
+    results.add_argument("job", metavar="JOB", type=_job_id)
+    results.add_argument(
+        "--out", type=Path, metavar="DIR", help="write the result and its pictures here"
+    )
+    results.add_argument(
+        "--subjects",
+        type=_subjects_choice,
+        default="all",
+        metavar="all|attached|N",
+        help="which subject pictures to draw: all (default), attached ones, or the first N "
+        "of the subject lines (0: none)",
+    )
+    results.add_argument(
+        "--sort",
+        type=_subject_sort,
+        default=None,
+        metavar="KEY",
+        help="order of the subjects: position (default, the job's shape order), confidence, "
+        "error, or descending with a leading - (-confidence, -error); subjects without the "
+        "value come last",
+    )
+    results.add_argument(
+        "--min-confidence",
+        type=_confidence,
+        default=None,
+        metavar="X",
+        help="only subjects whose confidence is at least X (0 to 1); leaves out unattached ones",
+    )
+    leaves = results.add_mutually_exclusive_group()
+    leaves.add_argument(
+        "--only-leaves",
+        dest="leaf",
+        action="store_const",
+        const=True,
+        default=None,
+        help="only the low-confidence leaves",
+    )
+    leaves.add_argument(
+        "--no-leaves",
+        dest="leaf",
+        action="store_const",
+        const=False,
+        help="leave out the low-confidence leaves",
+    )
+    results.add_argument(
+        "--format",
+        choices=("png", "svg"),
+        default="png",
+        help="format of the subject pictures (default png)",
+    )
+    results.add_argument(
+        "--y-up",
+        action="store_true",
+        help="draw subjects with y growing upwards (default: downwards, as in images)",
+    )
+
+    results.add_argument(
+        "--csv",
+        action="store_true",
+        help="print the subjects as CSV (one row per subject) instead of the tables",
+    )
+
+    cancel = command("cancel", help="cancel a queued or running job")
+    cancel.add_argument("job", metavar="JOB", type=_job_id)
+
+    export = command(
+        "export",
+        help="download a whole job as one ZIP (JSON, CSV, similarity, pictures)",
+        description="Write the job's ZIP: result.json (full), result.csv, similarity.json, "
+        "job.json, tree.svg, tree.png, summary.png and, with --subject-pictures, one overlay "
+        "per subject.",
+    )
+    export.add_argument("job", metavar="JOB", type=_job_id)
+    export.add_argument(
+        "--out", type=Path, metavar="FILE", help="where to write it (default job-JOB.zip)"
+    )
+    export.add_argument(
+        "--subject-pictures", action="store_true", help="also draw every subject's overlay"
+    )
+
+    similarity = command(
+        "similarity",
+        help="print each shape's nearest shapes by the similarity D the job computed",
+        description="For every shape of the job, the K shapes with the smallest D onto it "
+        "(eq. 9; the direction the tree uses, member onto subject).",
+    )
+    similarity.add_argument("job", metavar="JOB", type=_job_id)
+    similarity.add_argument(
+        "--k", type=_positive_int, default=3, metavar="K", help="nearest shapes (default 3)"
+    )
+
+
+def _watch_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--poll",
+        type=_positive_float,
+        default=0.5,
+        metavar="SECONDS",
+        help="seconds between status requests (default 0.5)",
+    )
+    parser.add_argument(
+        "--cancel-on-interrupt",
+        action="store_true",
+        help="on Ctrl-C, cancel the job instead of leaving it running",
+    )
