@@ -16,7 +16,13 @@ from pydantic import (
     model_validator,
 )
 
-from service.contract.names import DEFAULT_METHOD, JobStatusName, Method, PoseName
+from service.contract.names import (
+    DEFAULT_COMPARE_DIRECT,
+    DEFAULT_METHOD,
+    JobStatusName,
+    Method,
+    PoseName,
+)
 from service.contract.names import ImageMode as ImageMode  # re-exported for routes/shapes.py
 from service.contract.result import ResultDocument
 from service.core.limits import bounds, example
@@ -282,7 +288,9 @@ class JobCreate(BaseModel):
         default=None, description="Largest registration error e to accept; null = automatic."
     )
     compare_direct: bool = Field(
-        default=False, description="Also register every subject directly from the model."
+        default=DEFAULT_COMPARE_DIRECT,
+        description="Also register every subject directly from the model (plain comparison; "
+        "doubles the registrations).",
     )
     pose: PoseName | None = Field(default=None, description=POSE_DESCRIPTION)
     max_rotation: float | None = Field(

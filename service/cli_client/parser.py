@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from service.contract.names import (
+    DEFAULT_COMPARE_DIRECT,
     DEFAULT_IMAGE_MODE,
     DEFAULT_METHOD,
     DEFAULT_ON_CONFLICT,
@@ -234,10 +235,11 @@ def add_commands(sub: Any) -> None:
         "within +-DEG degrees of the uploaded shapes (default 30)",
     )
     run.add_argument(
-        "--no-compare-direct",
-        dest="compare_direct",
-        action="store_false",
-        help="do not also register every subject directly from the model",
+        "--compare-direct",
+        action=argparse.BooleanOptionalAction,
+        default=DEFAULT_COMPARE_DIRECT,
+        help="also register every subject directly from the model, for comparison (doubles "
+        "the registrations; default: off, as on every surface)",
     )
     run.add_argument("--wait", action="store_true", help="follow the job until it ends")
     run.add_argument("-q", "--quiet", action="store_true", help="print only the job id")

@@ -16,6 +16,7 @@ from service.client.errors import JobFailed, RegtreeTimeout
 from service.client.files import _points_list
 from service.client.models import FloatArray, JobResult, JobStatus, Similarity, Subject
 from service.contract.names import (
+    DEFAULT_COMPARE_DIRECT,
     DEFAULT_METHOD,
     Method,
     PoseName,
@@ -37,7 +38,7 @@ class JobsAndResults(HttpClient):
         method: Method = DEFAULT_METHOD,
         similarity_threshold: float | None = None,
         error_threshold: float | None = None,
-        compare_direct: bool = True,
+        compare_direct: bool = DEFAULT_COMPARE_DIRECT,
         cpd: Mapping[str, Any] | None = None,
         pose: Pose | None = None,
         max_rotation: float | None = None,

@@ -12,6 +12,7 @@ from enum import StrEnum
 from typing import Any, Literal, get_args
 
 __all__ = [
+    "DEFAULT_COMPARE_DIRECT",
     "DEFAULT_IMAGE_MODE",
     "DEFAULT_METHOD",
     "DEFAULT_ON_CONFLICT",
@@ -40,6 +41,10 @@ __all__ = [
 Method = Literal["dynamic_tree", "static_tree", "direct"]
 METHODS: tuple[str, ...] = get_args(Method)
 DEFAULT_METHOD: Method = "dynamic_tree"
+#: Whether a job also registers every subject directly from the model, for comparison: off
+#: on every surface (library, HTTP, client, CLI), since it doubles the registrations and the
+#: tree's own result does not need it.
+DEFAULT_COMPARE_DIRECT = False
 #: The library function (``registration.<name>``) that runs each method.
 METHOD_FUNCTIONS: dict[str, str] = {
     "dynamic_tree": "build_dynamic_tree",

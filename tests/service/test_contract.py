@@ -181,3 +181,23 @@ def test_client_and_cli_are_split_by_section_under_600_lines() -> None:
 
     assert RegtreeClient.__doc__ and "base_url" in RegtreeClient.__doc__
     assert {"export", "similarity"} <= set(COMMANDS)
+
+
+def test_compare_direct_has_one_default_on_every_surface() -> None:
+    # the library, the job schema, the client and the CLI all default to no comparison
+    import inspect
+
+    from registration import build_dynamic_tree, build_static_tree
+    from service.cli import _parser
+    from service.client import RegtreeClient
+    from service.contract.names import DEFAULT_COMPARE_DIRECT
+    from service.schemas import JobCreate
+
+    assert DEFAULT_COMPARE_DIRECT is False
+    for fn in (build_dynamic_tree, build_static_tree, RegtreeClient.start_job):
+        assert inspect.signature(fn).parameters["compare_direct"].default is False, fn
+    assert JobCreate.model_fields["compare_direct"].default is False
+    parser = _parser()
+    assert parser.parse_args(["run", "--collection", "c", "--model", "m"]).compare_direct is False
+    args = parser.parse_args(["run", "--collection", "c", "--model", "m", "--compare-direct"])
+    assert args.compare_direct is True
