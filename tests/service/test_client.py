@@ -105,7 +105,8 @@ def test_folder_upload_job_progress_result_and_transform(rt: RegtreeClient, tmp_
             assert after.done >= before.done
     assert final.done == final.total > 0 and seen[0].done < final.done
     # resubmitting with the same key gives the same job back
-    assert rt.start_job(coll.id, shapes[0].id, compare_direct=True, idempotency_key="family-1").id == job.id
+    again = rt.start_job(coll.id, shapes[0].id, compare_direct=True, idempotency_key="family-1")
+    assert again.id == job.id
 
     result = rt.result(job.id)
     assert result.job_id == job.id and result.root_shape_id == shapes[0].id

@@ -99,9 +99,12 @@ def test_result_and_subjects_of_a_finished_job(finished: Finished) -> None:
     subject = client.get(f"/v1/jobs/{finished.job_id}/result/subjects/{sid}")
     assert subject.status_code == 200
     assert subject.json()["shape_id"] == sid
-    # the model is not a subject; an unknown shape neither
-    for missing in (finished.shape_ids[0], 99_999):
-        assert_problem(client.get(f"/v1/jobs/{finished.job_id}/result/subjects/{missing}"), 404)
+    # the model answers as the root of the tree, with the identity transform
+    root = client.get(f"/v1/jobs/{finished.job_id}/result/subjects/{finished.shape_ids[0]}")
+    assert root.status_code == 200, root.text
+    assert root.json()["root"] is True and root.json()["transform"]["steps"] == []
+    # an unknown shape is not found
+    assert_problem(client.get(f"/v1/jobs/{finished.job_id}/result/subjects/99999"), 404)
     assert_problem(client.get(f"/v1/jobs/{finished.job_id}/result", params={"sort": "x"}), 422)
 
 
