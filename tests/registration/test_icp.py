@@ -120,7 +120,7 @@ def test_max_rotation_is_validated():
 def test_dense_full_distance_matches_kd_trees(n, m, monkeypatch):
     """The similarity's D on the full sets (blocked float32 products) is eq. 9 computed
     with KD-trees, to float32 rounding."""
-    import registration._icp as icp
+    import registration._icp._pairwise as icp
 
     rng = np.random.default_rng(n + m)
     t = np.linspace(0, 2 * np.pi, max(n, m), endpoint=False)
