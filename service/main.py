@@ -18,7 +18,7 @@ from service.api.middleware import (
     RequestLogMiddleware,
 )
 from service.api.problems import Problem, ProblemError, install_problem_handlers
-from service.api.routes import collections, jobs, pages, pictures, shapes
+from service.api.routes import collections, deliveries, jobs, pages, pictures, shapes
 from service.core.config import Settings, get_settings
 from service.core.limits import limits_description, resolve_limits
 from service.db import Database
@@ -84,6 +84,7 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
     v1.include_router(collections.router)
     v1.include_router(shapes.router)
     v1.include_router(jobs.router)
+    v1.include_router(deliveries.router)
     v1.include_router(pictures.router)
     app.include_router(v1)
     app.include_router(pages.router)  # the results page at /ui

@@ -14,7 +14,16 @@ from sqlalchemy import create_engine, inspect
 from service.models import Base
 from tests.service.conftest import REPO
 
-TABLES = {"collections", "shapes", "jobs", "results", "result_subjects", "idempotency_keys"}
+TABLES = {
+    "collections",
+    "shapes",
+    "jobs",
+    "results",
+    "result_subjects",
+    "idempotency_keys",
+    "callback_deliveries",
+    "callback_attempts",
+}
 
 
 def _cli(tmp_path: Path, url: str, *args: str) -> str:
@@ -33,7 +42,7 @@ def _cli(tmp_path: Path, url: str, *args: str) -> str:
 
 def assert_migration_roundtrip(tmp_path: Path, url: str) -> None:
     """Upgrade from empty, schema == models, downgrade to base, upgrade again (any database)."""
-    assert _cli(tmp_path, url, "upgrade") == "0002"
+    assert _cli(tmp_path, url, "upgrade") == "0003"
     engine = create_engine(url)
     try:
         assert TABLES <= set(inspect(engine).get_table_names())
@@ -41,8 +50,8 @@ def assert_migration_roundtrip(tmp_path: Path, url: str) -> None:
             assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
         assert _cli(tmp_path, url, "downgrade", "base") == "base"
         assert set(inspect(engine).get_table_names()) <= {"alembic_version"}
-        assert _cli(tmp_path, url, "upgrade", "head") == "0002"
-        assert _cli(tmp_path, url, "current") == "0002"
+        assert _cli(tmp_path, url, "upgrade", "head") == "0003"
+        assert _cli(tmp_path, url, "current") == "0003"
     finally:
         engine.dispose()
 

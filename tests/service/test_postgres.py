@@ -201,13 +201,16 @@ def test_concurrent_workers_claim_each_job_once(pg_url: str) -> None:
     from service import migrate
     from service.core.config import Settings
     from service.db import Database
-    from service.jobs import queue
+    from service.jobs.policy import Backoff
+    from service.jobs.queue import JobQueue, Outcome
     from service.models import Collection
     from tests.service.test_queue import direct_job
 
     settings = Settings(database_url=pg_url)
     migrate.upgrade(settings)
     db = Database(pg_url)
+    queue = JobQueue(db, lease_seconds=60, backoff=Backoff(0.0, 0.0))
+    short = JobQueue(db, lease_seconds=0.05, backoff=Backoff(0.0, 0.0))
     try:
         n_jobs, n_workers = 40, 8
         with db.write() as session:
@@ -221,10 +224,10 @@ def test_concurrent_workers_claim_each_job_once(pg_url: str) -> None:
 
         def work(i: int) -> None:
             barrier.wait()
-            while (claim := queue.claim(db, f"w{i}", lease_seconds=60)) is not None:
+            while (claim := queue.claim(f"w{i}")) is not None:
                 claimed[i].append(claim.job_id)
-                assert queue.heartbeat(db, claim, lease_seconds=60, progress=("x", 1, 1)).held
-                assert queue.complete(db, claim, {"ok": True}, []) == "succeeded"
+                assert queue.heartbeat(claim, progress=("x", 1, 1)) is Outcome.held
+                assert queue.complete(claim, {"ok": True}, []) is Outcome.succeeded
 
         threads = [threading.Thread(target=work, args=(i,)) for i in range(n_workers)]
         for thread in threads:
@@ -238,14 +241,14 @@ def test_concurrent_workers_claim_each_job_once(pg_url: str) -> None:
         # An expired lease fences its old holder on PostgreSQL too.
         with db.write() as session:
             session.add(direct_job(collection.id))
-        old = queue.claim(db, "old", lease_seconds=0.05)
+        old = short.claim("old")
         assert old is not None
         time.sleep(0.1)
-        new = queue.claim(db, "new", lease_seconds=60)
+        new = queue.claim("new")
         assert new is not None and new.job_id == old.job_id and new.attempt == 2
-        assert not queue.heartbeat(db, old, lease_seconds=60).held
-        assert queue.complete(db, old, {}, []) == "lost"
-        assert queue.complete(db, new, {"ok": True}, []) == "succeeded"
+        assert queue.heartbeat(old) is Outcome.lost
+        assert queue.complete(old, {}, []) is Outcome.lost
+        assert queue.complete(new, {"ok": True}, []) is Outcome.succeeded
     finally:
         db.dispose()
 
