@@ -271,6 +271,12 @@ def add_commands(sub: Any) -> None:
         action="store_false",
         help="do not also register every subject directly from the model",
     )
+    run.add_argument(
+        "--callback-url",
+        metavar="URL",
+        help="POST a signed JSON notice (job id, state, result URL) to URL when the job ends; "
+        "the server must allow its host (setting callback_allowed_hosts)",
+    )
     run.add_argument("--wait", action="store_true", help="follow the job until it ends")
     run.add_argument("-q", "--quiet", action="store_true", help="print only the job id")
     _watch_options(run)
@@ -596,6 +602,7 @@ def cmd_run(args: argparse.Namespace, rt: RegtreeClient) -> int:
         pose=args.pose,
         max_rotation=args.max_rotation,
         compare_direct=args.compare_direct,
+        callback_url=args.callback_url,
     )
     if args.quiet:
         _out(str(job.id))
