@@ -44,7 +44,7 @@ from sqlalchemy import and_, or_, select, update
 from sqlalchemy.orm import Session
 
 from service.core.config import Settings
-from service.db import Database
+from service.db import Database, lock_first
 from service.jobs.policy import CALLBACK_BACKOFF, Backoff
 from service.models import (
     CallbackAttempt,
@@ -254,13 +254,8 @@ class Deliverer:
                 CallbackDelivery.next_attempt_at <= now,
                 free,
             )
-            row = session.scalars(
-                select(CallbackDelivery)
-                .where(due)
-                .order_by(CallbackDelivery.next_attempt_at, CallbackDelivery.job_id)
-                .limit(1)
-                .with_for_update(skip_locked=True)
-            ).first()
+            order = (CallbackDelivery.next_attempt_at, CallbackDelivery.job_id)
+            row = lock_first(session, select(CallbackDelivery).where(due).order_by(*order))
             if row is None:
                 return None
             if row.attempts >= row.max_attempts:  # its last try was cut short (a crash)

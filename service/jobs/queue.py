@@ -54,7 +54,7 @@ from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.orm import Session
 
 from service.core.config import Settings
-from service.db import Database
+from service.db import Database, lock_first
 from service.jobs import callbacks
 from service.jobs.policy import JOB_BACKOFF, Backoff
 from service.models import (
@@ -242,13 +242,7 @@ class JobQueue:
                 Job.status == JobStatus.queued.value,
                 or_(Job.next_attempt_at.is_(None), Job.next_attempt_at <= now),
             )
-            job = session.scalars(
-                select(Job)
-                .where(due)
-                .order_by(Job.created_at, Job.id)
-                .limit(1)
-                .with_for_update(skip_locked=True)
-            ).first()
+            job = lock_first(session, select(Job).where(due).order_by(Job.created_at, Job.id))
             if job is None:
                 return None
             attempt = job.attempts + 1

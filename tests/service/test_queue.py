@@ -46,6 +46,26 @@ def queue(db: Database, lease: float = 10.0, backoff: float = 0.0) -> JobQueue:
     return JobQueue(db, lease_seconds=lease, backoff=Backoff(backoff, 3600.0))
 
 
+def _expire(db: Database) -> None:
+    """The running job's lease ran out (its worker stopped heartbeating)."""
+    with db.write() as session:
+        session.execute(
+            text("UPDATE jobs SET lease_expires_at = :t WHERE status = 'running'"),
+            {"t": (utcnow() - timedelta(seconds=1)).replace(tzinfo=None)},
+        )
+
+
+def _due(db: Database) -> None:
+    """The backoff of a job queued for a retry is over."""
+    with db.write() as session:
+        session.execute(text("UPDATE jobs SET next_attempt_at = NULL"))
+
+
+def _backoff(job: Job) -> float:
+    assert job.next_attempt_at is not None
+    return (job.next_attempt_at - job.updated_at).total_seconds()
+
+
 def _job(db: Database) -> Job:
     with db.read() as session:
         job = session.get(Job, 1)
@@ -54,11 +74,11 @@ def _job(db: Database) -> Job:
 
 
 def test_expired_lease_fences_the_old_worker(db: Database) -> None:
-    short, long = queue(db, lease=0.05), queue(db)
-    a = short.claim("worker-a")
+    long = queue(db)
+    a = long.claim("worker-a")
     assert a is not None and a.attempt == 1
     assert long.claim("worker-b") is None  # lease still held
-    time.sleep(0.1)
+    _expire(db)
     b = long.claim("worker-b")
     assert b is not None and b.attempt == 2
 
@@ -108,38 +128,34 @@ def test_cancel_while_queued_is_cancelled_not_aborted(db: Database) -> None:
 
 
 def test_a_stalled_job_is_retried_after_a_backoff_up_to_max_attempts(db: Database) -> None:
-    q = queue(db, lease=0.01, backoff=0.2)
+    q = queue(db, backoff=30.0)
     first = q.claim("w1")
     assert first is not None
-    time.sleep(0.03)
+    _expire(db)
     assert q.settle_stalled() == {1: Outcome.retrying}
     job = _job(db)
     assert job.status == JobStatus.queued and job.attempts == 1 and job.lease_owner is None
-    assert job.next_attempt_at is not None and "stopped responding" in (job.error or "")
-    wait = (job.next_attempt_at - utcnow()).total_seconds()
-    assert 0.1 < wait <= 0.2
-    assert q.claim("w2") is None  # not due yet
-    time.sleep(wait + 0.02)
+    assert _backoff(job) == 30.0 and "stopped responding" in (job.error or "")
+    assert q.claim("w2") is None  # not due for 30 s
+    _due(db)
     second = q.claim("w2")
     assert second is not None and second.attempt == 2
     job = _job(db)
     assert job.next_attempt_at is None and job.error is None
     assert q.heartbeat(first) is Outcome.lost  # the lost worker is fenced out
 
-    # The backoff doubles: 0.4 s after the second attempt was lost.
-    time.sleep(0.03)
+    # The backoff doubles: 60 s after the second attempt was lost.
+    _expire(db)
     assert q.settle_stalled() == {1: Outcome.retrying}
-    job = _job(db)
-    assert job.next_attempt_at is not None
-    assert 0.3 < (job.next_attempt_at - utcnow()).total_seconds() <= 0.4
+    assert _backoff(_job(db)) == 60.0
 
 
 def test_attempts_are_capped(db: Database) -> None:
-    q = queue(db, lease=0.01)
+    q = queue(db)
     for attempt in (1, 2, 3):
         claim = q.claim(f"w{attempt}")
         assert claim is not None and claim.attempt == attempt
-        time.sleep(0.03)
+        _expire(db)
     assert q.claim("w4") is None
     job = _job(db)
     assert job.status == JobStatus.failed and job.attempts == 3 and job.outcome == "failed"
@@ -147,10 +163,10 @@ def test_attempts_are_capped(db: Database) -> None:
 
 
 def test_a_stalled_job_with_a_cancel_request_ends_aborted(db: Database) -> None:
-    q = queue(db, lease=0.01)
+    q = queue(db)
     assert q.claim("w") is not None
     assert q.cancel(1) is Outcome.cancel_requested
-    time.sleep(0.03)
+    _expire(db)
     assert q.settle_stalled() == {1: Outcome.aborted}
     assert _job(db).outcome == "aborted"
 
@@ -165,9 +181,8 @@ def test_transient_failure_retries_and_bad_input_does_not(db: Database) -> None:
     job = _job(db)
     assert job.status == JobStatus.queued and job.attempts == 1
     assert job.next_attempt_at is not None and "database is locked" in (job.error or "")
-    assert q.claim("w") is None  # a minute of backoff
-    with db.write() as session:
-        session.execute(text("UPDATE jobs SET next_attempt_at = NULL"))
+    assert q.claim("w") is None and abs(_backoff(_job(db)) - 60.0) < 1  # a minute of backoff
+    _due(db)
     claim = q.claim("w")
     assert claim is not None and claim.attempt == 2
     assert q.fail(claim, "ValueError: shapes[3] has zero size") is Outcome.failed
@@ -208,11 +223,11 @@ def test_release_requeues_without_counting(db: Database) -> None:
 
 
 def test_peek_reads_the_cancel_request_and_the_lease(db: Database) -> None:
-    short, long = queue(db, lease=0.05), queue(db)
-    a = short.claim("worker-a")
+    long = queue(db)
+    a = long.claim("worker-a")
     assert a is not None
     assert long.peek(a) is Outcome.held
-    time.sleep(0.1)
+    _expire(db)
     b = long.claim("worker-b")
     assert b is not None
     assert long.peek(a) is Outcome.lost  # settled and reclaimed: a lost it
@@ -416,7 +431,6 @@ def test_runner_retries_when_the_database_is_locked(
     job = _job(db)
     assert job.status == JobStatus.queued and job.attempts == 1 and job.outcome is None
     assert "database is locked" in (job.error or "")
-    assert job.next_attempt_at is not None
-    assert 25 < (job.next_attempt_at - utcnow()).total_seconds() <= 30
+    assert abs(_backoff(job) - 30.0) < 1
     with db.read() as session:
         assert session.get(Result, 1) is None
