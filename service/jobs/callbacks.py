@@ -126,7 +126,7 @@ def _host_allowed(host: str, port: int, patterns: list[str]) -> bool:
 
 def check_url(url: str, settings: Settings) -> str:
     """The callback URL if this server may call it; a ``ValueError`` saying why not."""
-    if settings.callback_secret is None:
+    if settings.callback_secret is None or not settings.callback_secret.get_secret_value():
         raise ValueError(
             "callbacks are not enabled on this server: it has no callback_secret (setting "
             "REGTREE_CALLBACK_SECRET) to sign them with"
