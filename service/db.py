@@ -22,10 +22,12 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
-from sqlalchemy import Engine, create_engine, event, make_url
+from sqlalchemy import Engine, Select, create_engine, event, make_url
 from sqlalchemy.orm import Session, sessionmaker
+
+T = TypeVar("T")
 
 _WRITE_OPTION = "regtree_write"
 
@@ -37,6 +39,13 @@ def _is_sqlite(url: str) -> bool:
 def is_postgresql(session: Session) -> bool:
     """Whether a session talks to PostgreSQL."""
     return bool(session.get_bind().dialect.name == "postgresql")
+
+
+def lock_first(session: Session, statement: Select[T]) -> T | None:
+    """The first row ``statement`` selects that no other transaction holds, locked until
+    this one ends: ``FOR UPDATE SKIP LOCKED`` on PostgreSQL (concurrent claimers each get
+    another row); on SQLite ``BEGIN IMMEDIATE`` already serialises the writers."""
+    return session.scalars(statement.limit(1).with_for_update(skip_locked=True)).first()
 
 
 def ensure_sqlite_dir(url: str) -> None:

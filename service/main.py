@@ -18,7 +18,16 @@ from service.api.middleware import (
     RequestLogMiddleware,
 )
 from service.api.problems import Problem, ProblemError, install_problem_handlers
-from service.api.routes import collections, exports, jobs, pages, pictures, results, shapes
+from service.api.routes import (
+    collections,
+    deliveries,
+    exports,
+    jobs,
+    pages,
+    pictures,
+    results,
+    shapes,
+)
 from service.api.routes.docs import install_docs
 from service.contract.names import ProblemType
 from service.core.config import Settings, get_settings
@@ -90,6 +99,7 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
     v1.include_router(jobs.router)
     v1.include_router(results.router)
     v1.include_router(exports.router)
+    v1.include_router(deliveries.router)
     v1.include_router(pictures.router)
     app.include_router(v1)
     app.include_router(pages.router)  # the results page at /ui

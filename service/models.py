@@ -74,6 +74,20 @@ class JobStatus(enum.StrEnum):
 TERMINAL_STATUSES = (JobStatus.succeeded, JobStatus.failed, JobStatus.cancelled)
 
 
+class JobOutcome(enum.StrEnum):
+    """How a job ended (``Job.outcome``; None until it ends).
+
+    ``status`` keeps the five states every client knows; the outcome tells the two ways of
+    ending ``cancelled`` apart: ``cancelled`` (while queued: it never ran, or waited for a
+    retry) and ``aborted`` (while running: its worker stopped the registrations in progress).
+    """
+
+    succeeded = "succeeded"
+    failed = "failed"
+    cancelled = "cancelled"
+    aborted = "aborted"
+
+
 class Collection(Base):
     __tablename__ = "collections"
     __table_args__ = ({"sqlite_autoincrement": True},)
@@ -173,6 +187,58 @@ class Job(Base):
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    # How it ended (JobOutcome); when a queued retry may be claimed (None: at once).
+    outcome: Mapped[str | None] = mapped_column(String(20), nullable=True)
+    next_attempt_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    callback_url: Mapped[str | None] = mapped_column(Text, nullable=True)
+
+
+class DeliveryState(enum.StrEnum):
+    pending = "pending"
+    delivered = "delivered"
+    failed = "failed"
+
+
+class CallbackDelivery(Base):
+    """The callback of a job that ended: one row per job, written in the transaction that
+    ended it, so a pending delivery survives a restart (:mod:`service.jobs.callbacks`)."""
+
+    __tablename__ = "callback_deliveries"
+    __table_args__ = (Index("ix_callback_deliveries_state_next", "state", "next_attempt_at"),)
+
+    job_id: Mapped[int] = mapped_column(
+        Id, ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True
+    )
+    url: Mapped[str] = mapped_column(Text)
+    body: Mapped[str] = mapped_column(Text)  # the exact JSON sent (and signed) each time
+    state: Mapped[str] = mapped_column(String(20), default=DeliveryState.pending.value)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    max_attempts: Mapped[int] = mapped_column(Integer)
+    next_attempt_at: Mapped[datetime] = mapped_column(UTCDateTime)
+    lease_owner: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    lease_expires_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+
+
+class CallbackAttempt(Base):
+    """One try at delivering a job's callback: when, and what the receiver answered."""
+
+    __tablename__ = "callback_attempts"
+    __table_args__ = (
+        Index("ix_callback_attempts_job_id", "job_id", "attempt"),
+        {"sqlite_autoincrement": True},
+    )
+
+    id: Mapped[int] = mapped_column(Id, primary_key=True)
+    job_id: Mapped[int] = mapped_column(
+        Id, ForeignKey("callback_deliveries.job_id", ondelete="CASCADE")
+    )
+    attempt: Mapped[int] = mapped_column(Integer)
+    started_at: Mapped[datetime] = mapped_column(UTCDateTime)
+    duration_ms: Mapped[int] = mapped_column(Integer)
+    status_code: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
 
 
 class Result(Base):

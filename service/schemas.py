@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from datetime import datetime
-from typing import Annotated, Any, Generic, TypeVar
+from typing import Annotated, Any, Generic, Literal, TypeVar
 
 from annotated_types import Interval
 from pydantic import (
@@ -19,6 +19,7 @@ from pydantic import (
 from service.contract.names import (
     DEFAULT_COMPARE_DIRECT,
     DEFAULT_METHOD,
+    JobOutcomeName,
     JobStatusName,
     Method,
     PoseName,
@@ -304,6 +305,13 @@ class JobCreate(BaseModel):
         "bench/RESULTS.md.",
     )
     cpd: CPDParams = Field(default_factory=CPDParams)
+    callback_url: str | None = Field(
+        default=None,
+        max_length=2000,
+        description="Called (POST, signed JSON: job_id, state, result_url) when the job ends; "
+        "see GET /v1/jobs/{job_id}/deliveries. Must be http(s) on a host of the setting "
+        "callback_allowed_hosts (else 422).",
+    )
 
     _check_similarity = field_validator("similarity_threshold")(_finite_positive)
     _check_error = field_validator("error_threshold")(_finite_positive)
@@ -329,6 +337,7 @@ class JobLinks(BaseModel):
     self: str
     result: str
     cancel: str
+    deliveries: str | None = None
 
 
 class JobOut(BaseModel):
@@ -386,12 +395,52 @@ class JobOut(BaseModel):
     attempts: int
     max_attempts: int
     cancel_requested: bool
-    error: str | None
+    error: str | None = Field(
+        description="Why it failed; while queued for a retry, why the last attempt did not end."
+    )
+    outcome: JobOutcomeName | None = Field(
+        default=None,
+        description="How it ended (null until then): succeeded, failed, cancelled (while "
+        "queued: it never ran, or was waiting for a retry) or aborted (while running: its "
+        "worker stopped the registrations in progress). Both of the last have status "
+        "cancelled.",
+    )
+    next_attempt_at: datetime | None = Field(
+        default=None,
+        description="While queued for a retry (after a transient failure: database busy, a "
+        "lost worker), when it may be claimed again; attempts counts those used, up to "
+        "max_attempts.",
+    )
+    callback_url: str | None = None
     created_at: datetime
     updated_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
     links: JobLinks
+
+
+class DeliveryAttemptOut(BaseModel):
+    attempt: int
+    started_at: datetime
+    duration_ms: int
+    status_code: int | None = Field(description="The receiver's HTTP status; null: no answer.")
+    error: str | None = Field(description="null for a 2xx answer, else what went wrong.")
+
+
+class DeliveriesOut(BaseModel):
+    """A job's callback: its state and every try at delivering it."""
+
+    job_id: int
+    callback_url: str | None
+    state: Literal["none", "waiting", "pending", "delivered", "failed"] = Field(
+        description="none: the job has no callback_url; waiting: the job has not ended; "
+        "pending: to be tried (again) at next_attempt_at; delivered: a 2xx answer; failed: "
+        "every try failed."
+    )
+    attempts: int
+    max_attempts: int | None
+    next_attempt_at: datetime | None
+    items: list[DeliveryAttemptOut]
 
 
 # --- results ---------------------------------------------------------------------------------

@@ -4,7 +4,11 @@ Run it with ``regtree worker`` (any number, on any machine that reaches the data
 ``regtree serve`` start embedded ones. SIGTERM or SIGINT stops the loop; a job in progress is
 given back to the queue at its next progress report (its attempt is not counted). A worker
 killed outright (SIGKILL, power loss) stops heartbeating; once its lease expires another
-worker claims the job again, up to ``max_attempts`` times.
+worker claims the job again after a backoff, up to ``max_attempts`` times.
+
+Each worker process also delivers job callbacks, in a thread of its own
+(:class:`service.jobs.callbacks.Deliverer`), so that a slow receiver never keeps the loop
+from claiming the next job.
 """
 
 from __future__ import annotations
@@ -21,7 +25,8 @@ from types import FrameType
 from service.core.config import Settings
 from service.core.logging import configure_logging
 from service.db import Database
-from service.jobs import queue
+from service.jobs.callbacks import Deliverer
+from service.jobs.queue import JobQueue, Outcome
 from service.jobs.runner import run_claimed
 
 logger = logging.getLogger("regtree.worker")
@@ -47,6 +52,7 @@ class Worker:
             settings.database_url, busy_timeout_ms=settings.sqlite_busy_timeout_ms
         )
         self.worker_id = worker_id or make_worker_id()
+        self.queue = JobQueue.from_settings(self.db, settings)
         self.parent_pid = parent_pid
         self.shutdown = threading.Event()
 
@@ -60,20 +66,36 @@ class Worker:
                 logger.warning("parent process gone; stopping", extra={"worker": self.worker_id})
                 self.shutdown.set()
 
-    def run_once(self) -> str | None:
-        """Claim and run one job; its outcome, or None if the queue was empty."""
-        claim = queue.claim(
-            self.db, self.worker_id, lease_seconds=self.settings.worker_lease_seconds
-        )
+    def run_once(self) -> Outcome | None:
+        """Claim and run one job; its outcome, or None if no job was due."""
+        claim = self.queue.claim(self.worker_id)
         if claim is None:
             return None
-        return run_claimed(self.db, self.settings, claim, self.shutdown)
+        return run_claimed(self.queue, self.settings, claim, self.shutdown)
+
+    def _start_deliveries(self) -> threading.Thread:
+        deliverer = Deliverer(self.db, self.settings, self.worker_id)
+        thread = threading.Thread(
+            target=deliverer.run, args=(self.shutdown,), name="callbacks", daemon=True
+        )
+        thread.start()
+        return thread
+
+    def _deliver_due(self) -> None:
+        deliverer = Deliverer(self.db, self.settings, self.worker_id)
+        try:
+            while deliverer.deliver_once() is not None:
+                pass
+        finally:
+            deliverer.close()
 
     def run(self, *, burst: bool = False) -> None:
-        """Loop until shut down; with ``burst``, stop as soon as the queue is empty."""
+        """Loop until shut down; with ``burst``, stop as soon as no job is due (after
+        trying the callbacks that are due then, once)."""
         logger.info("worker started", extra={"worker": self.worker_id})
         if self.parent_pid is not None:
             threading.Thread(target=self._watch_parent, daemon=True).start()
+        deliveries = None if burst else self._start_deliveries()
         poll = self.settings.worker_poll_seconds
         while not self.shutdown.is_set():
             try:
@@ -83,9 +105,13 @@ class Worker:
                 outcome = None
             if outcome is None:
                 if burst:
+                    self._deliver_due()
                     break
                 # Jitter so that many idle workers do not poll in lock-step.
                 self.shutdown.wait(poll * random.uniform(0.5, 1.0))
+        if deliveries is not None:
+            self.shutdown.set()
+            deliveries.join(timeout=self.settings.callback_timeout_seconds + 5)
         logger.info("worker stopped", extra={"worker": self.worker_id})
 
     def install_signal_handlers(self) -> None:

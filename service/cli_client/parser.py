@@ -241,6 +241,12 @@ def add_commands(sub: Any) -> None:
         help="also register every subject directly from the model, for comparison (doubles "
         "the registrations; default: off, as on every surface)",
     )
+    run.add_argument(
+        "--callback-url",
+        metavar="URL",
+        help="POST a signed JSON notice (job id, state, result URL) to URL when the job ends; "
+        "the server must allow its host (setting callback_allowed_hosts)",
+    )
     run.add_argument("--wait", action="store_true", help="follow the job until it ends")
     run.add_argument("-q", "--quiet", action="store_true", help="print only the job id")
     _watch_options(run)

@@ -134,6 +134,7 @@ def cmd_run(args: argparse.Namespace, rt: RegtreeClient) -> int:
         pose=args.pose,
         max_rotation=args.max_rotation,
         compare_direct=args.compare_direct,
+        callback_url=args.callback_url,
     )
     if args.quiet:
         _out(str(job.id))

@@ -43,6 +43,7 @@ class JobsAndResults(HttpClient):
         pose: Pose | None = None,
         max_rotation: float | None = None,
         idempotency_key: str | None = None,
+        callback_url: str | None = None,
     ) -> JobStatus:
         """Queue a job registering ``model_shape_id`` onto every shape of the collection.
 
@@ -65,6 +66,9 @@ class JobsAndResults(HttpClient):
 
         Give ``idempotency_key`` to make a resubmission (e.g. after a crash of your script)
         return the same job.
+
+        ``callback_url`` is POSTed a signed JSON body when the job ends (see
+        :meth:`deliveries`); the server must allow its host (else :class:`ValidationError`).
         """
         body: dict[str, Any] = {
             "collection_id": collection_id,
@@ -80,6 +84,8 @@ class JobsAndResults(HttpClient):
             body["max_rotation"] = max_rotation
         if cpd is not None:
             body["cpd"] = dict(cpd)
+        if callback_url is not None:
+            body["callback_url"] = callback_url
         response = self._request(
             "POST",
             "/v1/jobs",
@@ -91,6 +97,11 @@ class JobsAndResults(HttpClient):
 
     def get_job(self, job_id: int) -> JobStatus:
         return JobStatus.from_json(self._get(f"/v1/jobs/{job_id}"))
+
+    def deliveries(self, job_id: int) -> dict[str, Any]:
+        """The job's callback: ``state`` (none, waiting, pending, delivered, failed) and
+        ``items``, every try (``status_code``, ``error``)."""
+        return self._get(f"/v1/jobs/{job_id}/deliveries")
 
     def list_jobs(
         self, *, collection_id: int | None = None, status: str | None = None

@@ -26,6 +26,7 @@ __all__ = [
     "SUBJECT_STATUSES",
     "TERMINAL_STATUSES",
     "ImageMode",
+    "JobOutcomeName",
     "JobStatusName",
     "Method",
     "OnConflict",
@@ -70,6 +71,9 @@ PoseName = Literal["as_given", "upright", "rotation", "affine"]
 POSES: tuple[str, ...] = get_args(PoseName)
 
 JobStatusName = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+#: How a job ended (``service.models.JobOutcome``): ``cancelled`` while queued, ``aborted``
+#: while running (both have status ``cancelled``).
+JobOutcomeName = Literal["succeeded", "failed", "cancelled", "aborted"]
 JOB_STATUSES: tuple[str, ...] = get_args(JobStatusName)
 TERMINAL_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 

@@ -74,8 +74,47 @@ class Settings(BaseSettings):
         description="How often a worker running a job looks for a cancel request (a read) "
         "between heartbeats; a cancelled job stops within about this long.",
     )
-    max_attempts: int = Field(default=3, ge=1)
+    max_attempts: int = Field(
+        default=3,
+        ge=1,
+        description="Attempts a job gets: a transient failure (database busy or locked, a "
+        "worker that stopped responding) is retried until this many were used.",
+    )
+    retry_backoff_seconds: float = Field(
+        default=5.0,
+        ge=0,
+        description="Wait before the first retry of a job after a transient failure; it "
+        "doubles with each further attempt, up to retry_backoff_max_seconds.",
+    )
+    retry_backoff_max_seconds: float = Field(default=300.0, ge=0)
     progress_min_interval_seconds: float = Field(default=0.5, ge=0)
+
+    # --- callbacks (a job's callback_url, called when it ends) -----------------------------
+    callback_secret: SecretStr | None = Field(
+        default=None,
+        description="Shared secret signing callbacks (X-Regtree-Signature: sha256=HMAC of "
+        "'<X-Regtree-Timestamp>.<body>'). A job with callback_url is refused (422) without it.",
+    )
+    callback_allowed_hosts: str = Field(
+        default="",
+        description="Comma-separated hosts a callback_url may name: 'host', 'host:port' or "
+        "'*.domain' (its subdomains). Empty: callbacks are refused (422).",
+    )
+    callback_max_attempts: int = Field(default=5, ge=1)
+    callback_backoff_seconds: float = Field(
+        default=10.0,
+        ge=0,
+        description="Wait before the second delivery attempt of a callback; it doubles with "
+        "each further attempt, up to callback_backoff_max_seconds.",
+    )
+    callback_backoff_max_seconds: float = Field(default=600.0, ge=0)
+    callback_timeout_seconds: float = Field(default=10.0, gt=0)
+    callback_poll_seconds: float = Field(default=1.0, gt=0)
+    public_url: str | None = Field(
+        default=None,
+        description="The URL clients reach the API at (e.g. https://regtree.example.org): "
+        "callback bodies give absolute job and result URLs with it, paths without.",
+    )
 
     # --- workers ---------------------------------------------------------------------------
     embedded_workers: int = Field(default=1, ge=0)

@@ -12,8 +12,12 @@ stops the job within about ``cancel_poll_seconds``, registrations in progress in
 frees the worker for its next job.
 
 A cancel accepted while the job runs always ends it ``cancelled``: whatever the run raises
-once a cancel was seen is taken as the cancel, and :func:`queue.complete` turns a late
-success into ``cancelled`` too.
+once a cancel was seen is taken as the cancel, and :meth:`JobQueue.complete` turns a late
+success into ``cancelled`` too (outcome ``aborted``).
+
+A failure is transient (:func:`service.jobs.queue.is_transient`: the database was busy or
+locked) or not: a transient one gives the job back for another attempt after a backoff, any
+other (a ``ValueError`` from the library: bad input) fails it at once with its message.
 """
 
 from __future__ import annotations
@@ -30,9 +34,8 @@ from sqlalchemy import select
 
 from service.contract.names import METHOD_FUNCTIONS, METHODS
 from service.core.config import Settings
-from service.db import Database
-from service.jobs import queue
 from service.jobs.document import json_safe, similarity_npy, to_api_document
+from service.jobs.queue import Claim, JobQueue, Outcome, is_transient
 from service.models import Job, Shape
 
 if TYPE_CHECKING:
@@ -65,12 +68,12 @@ class JobControl:
 
     def __init__(
         self,
-        db: Database,
-        claim: queue.Claim,
+        queue: JobQueue,
+        claim: Claim,
         settings: Settings,
         shutdown: threading.Event | None = None,
     ) -> None:
-        self.db = db
+        self.queue = queue
         self.claim = claim
         self.settings = settings
         self.shutdown = shutdown or threading.Event()
@@ -94,10 +97,10 @@ class JobControl:
         self._stop.set()
         self._thread.join(timeout=self.settings.worker_heartbeat_seconds + 5)
 
-    def _apply(self, state: queue.LeaseState) -> None:
-        if not state.held:
+    def _apply(self, state: Outcome) -> None:
+        if state is Outcome.lost:
             self.lost.set()
-        elif state.cancel_requested:
+        elif state is Outcome.cancel_requested:
             self.cancel.set()
 
     def _heartbeat_loop(self) -> None:
@@ -112,16 +115,11 @@ class JobControl:
                     next_beat = time.monotonic() + beat
                     with self._lock:
                         latest = self._latest
-                    state = queue.heartbeat(
-                        self.db,
-                        self.claim,
-                        lease_seconds=self.settings.worker_lease_seconds,
-                        progress=latest,
-                    )
+                    state = self.queue.heartbeat(self.claim, progress=latest)
                 elif self.cancel.is_set():
                     continue  # already seen: the run is stopping
                 else:
-                    state = queue.peek(self.db, self.claim)
+                    state = self.queue.peek(self.claim)
             except Exception:
                 logger.exception("heartbeat failed", extra={"job_id": self.claim.job_id})
                 continue
@@ -163,12 +161,7 @@ class JobControl:
             if due:
                 self._last_write = now
         if due:
-            state = queue.heartbeat(
-                self.db,
-                self.claim,
-                lease_seconds=self.settings.worker_lease_seconds,
-                progress=(str(stage), int(done), int(total)),
-            )
+            state = self.queue.heartbeat(self.claim, progress=(str(stage), int(done), int(total)))
             self._apply(state)
             self.check()
 
@@ -260,42 +253,66 @@ def _stop(executor: Executor | None) -> None:
         logger.exception("could not stop the executor")
 
 
-def _interrupted(db: Database, claim: queue.Claim, interruption: JobInterrupted) -> str:
-    """Settle a job whose run was interrupted; the outcome for logs."""
+def _interrupted(queue: JobQueue, claim: Claim, interruption: JobInterrupted) -> Outcome:
+    """Settle a job whose run was interrupted."""
     if isinstance(interruption, Cancelled):
-        return "cancelled" if queue.finish_cancelled(db, claim) else "lost"
+        return queue.abort(claim)
     if isinstance(interruption, WorkerShutdown):
-        return "released" if queue.release(db, claim) else "lost"
-    return "lost"
+        return queue.release(claim)
+    return Outcome.lost
+
+
+def _failed(
+    queue: JobQueue,
+    claim: Claim,
+    exc: Exception,
+    log: dict[str, Any],
+    shape_ids: list[int] | None = None,
+    names: list[str] | None = None,
+) -> Outcome:
+    """Settle a job whose run raised: another attempt if transient, else failed at once.
+    With the job's ``shape_ids`` and ``names``, the message names a shape by id and name
+    where the library gave its position."""
+    transient = is_transient(exc)
+    logger.error("job failed", exc_info=exc, extra={**log, "transient": transient})
+    message = f"{type(exc).__name__}: {exc}"
+    if shape_ids is not None and names is not None:
+        message = name_shapes(message, shape_ids, names)
+    if not str(exc):
+        message += "\n" + "".join(traceback.format_exception(exc)[-3:])
+    return queue.fail(claim, message, transient=transient)
 
 
 def run_claimed(
-    db: Database, settings: Settings, claim: queue.Claim, shutdown: threading.Event | None = None
-) -> str:
-    """Run a claimed job to its end; returns the outcome for logs."""
+    queue: JobQueue, settings: Settings, claim: Claim, shutdown: threading.Event | None = None
+) -> Outcome:
+    """Run a claimed job to its end; returns its outcome."""
     log = {"job_id": claim.job_id, "attempt": claim.attempt, "owner": claim.owner}
-    with db.read() as session:
-        job = session.get(Job, claim.job_id)
-        if job is None:
-            return "lost"
-        method, params, model_id = job.method, dict(job.params), job.model_shape_id
-        wanted = list(job.shape_ids)
-        rows = {s.id: s for s in session.scalars(select(Shape).where(Shape.id.in_(wanted))).all()}
-        shape_ids = [sid for sid in wanted if sid in rows]
-        shapes = [rows[sid].points for sid in shape_ids]
-        names = [rows[sid].name for sid in shape_ids]
+    try:
+        with queue.db.read() as session:
+            job = session.get(Job, claim.job_id)
+            if job is None:
+                return Outcome.lost
+            method, params, model_id = job.method, dict(job.params), job.model_shape_id
+            wanted = list(job.shape_ids)
+            rows = {
+                s.id: s for s in session.scalars(select(Shape).where(Shape.id.in_(wanted))).all()
+            }
+            shape_ids = [sid for sid in wanted if sid in rows]
+            shapes = [rows[sid].points for sid in shape_ids]
+            names = [rows[sid].name for sid in shape_ids]
+    except Exception as exc:
+        return _failed(queue, claim, exc, log)
 
     if model_id not in shape_ids:
-        queue.fail(db, claim, f"model shape {model_id} was deleted before the job ran")
-        return "failed"
+        return queue.fail(claim, f"model shape {model_id} was deleted before the job ran")
     if len(shape_ids) < 2:
-        queue.fail(db, claim, "fewer than 2 shapes are left in the collection")
-        return "failed"
+        return queue.fail(claim, "fewer than 2 shapes are left in the collection")
 
     started = time.monotonic()
     executor: Executor | None = None
     completed = False
-    with JobControl(db, claim, settings, shutdown) as control:
+    with JobControl(queue, claim, settings, shutdown) as control:
         try:
             control.check()
             executor = _executor(settings, control)
@@ -313,7 +330,6 @@ def run_claimed(
             similarity = doc.pop(SIMILARITY_KEY, None)
             document, subjects = to_api_document(claim.job_id, json_safe(doc), shape_ids)
             outcome = queue.complete(
-                db,
                 claim,
                 document,
                 subjects,
@@ -321,19 +337,15 @@ def run_claimed(
                 similarity=similarity_npy(similarity, len(shape_ids)),
             )
         except JobInterrupted as interruption:
-            outcome = _interrupted(db, claim, interruption)
+            outcome = _interrupted(queue, claim, interruption)
         except Exception as exc:
             reason = control.reason()
+            # Stopping may surface as any error (a task whose process was killed, say): the
+            # reason is the interruption, never a failure of the job.
             if reason is not None:
-                # Stopping may surface as any error (a task whose process was killed, say):
-                # the reason is the interruption, never a failure of the job.
-                outcome = _interrupted(db, claim, reason)
+                outcome = _interrupted(queue, claim, reason)
             else:
-                logger.error("job failed", exc_info=exc, extra=log)
-                message = name_shapes(f"{type(exc).__name__}: {exc}", shape_ids, names)
-                if not str(exc):
-                    message += "\n" + "".join(traceback.format_exception(exc)[-3:])
-                outcome = "failed" if queue.fail(db, claim, message) else "lost"
+                outcome = _failed(queue, claim, exc, log, shape_ids, names)
         finally:
             if completed and executor is not None:  # the pool is idle: close it the ordinary way
                 executor.close()

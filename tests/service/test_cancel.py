@@ -207,7 +207,7 @@ def test_cancel_of_a_running_job_is_prompt(
               f"{cancel_seconds:.2f} s, next job claimed after {free_seconds:.2f} s "
               f"(progress at cancel {running['progress']})")
 
-        assert done["status"] == "cancelled", done
+        assert done["status"] == "cancelled" and done["outcome"] == "aborted", done
         assert done["finished_at"] is not None and done["error"] is None
         assert cancel_seconds < CANCELLED_WITHIN, cancel_seconds
         assert claimed["status"] in ("running", "succeeded"), claimed

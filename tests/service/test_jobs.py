@@ -248,6 +248,7 @@ def test_result_before_success_is_409(make_service: Callable[..., Service]) -> N
         # Cancel of a queued job is immediate.
         cancelled = client.post(f"/v1/jobs/{job['id']}/cancel")
         assert cancelled.status_code == 202 and cancelled.json()["status"] == "cancelled"
+        assert cancelled.json()["outcome"] == "cancelled"  # while queued: not "aborted"
         # A worker started afterwards does not run it.
         svc.start_worker()
         other = submit_job(client, cid, ids[0], method="direct")
@@ -269,8 +270,9 @@ def test_cancel_running_job(client: httpx.Client) -> None:
     response = client.post(f"/v1/jobs/{job['id']}/cancel")
     assert response.status_code == 202
     assert response.json()["cancel_requested"] is True
+    assert response.json()["outcome"] is None  # not ended until its worker stops
     done = wait_job(client, job["id"], timeout=10)
-    assert done["status"] == "cancelled", done
+    assert done["status"] == "cancelled" and done["outcome"] == "aborted", done
     assert_problem(client.get(f"/v1/jobs/{job['id']}/result"), 409)
 
 

@@ -14,7 +14,16 @@ from sqlalchemy import create_engine, inspect
 from service.models import Base
 from tests.service.conftest import REPO
 
-TABLES = {"collections", "shapes", "jobs", "results", "result_subjects", "idempotency_keys"}
+TABLES = {
+    "collections",
+    "shapes",
+    "jobs",
+    "results",
+    "result_subjects",
+    "idempotency_keys",
+    "callback_deliveries",
+    "callback_attempts",
+}
 
 
 def _cli(tmp_path: Path, url: str, *args: str) -> str:
@@ -33,7 +42,7 @@ def _cli(tmp_path: Path, url: str, *args: str) -> str:
 
 def assert_migration_roundtrip(tmp_path: Path, url: str) -> None:
     """Upgrade from empty, schema == models, downgrade to base, upgrade again (any database)."""
-    assert _cli(tmp_path, url, "upgrade") == "0003"
+    assert _cli(tmp_path, url, "upgrade") == "0004"
     engine = create_engine(url)
     try:
         assert TABLES <= set(inspect(engine).get_table_names())
@@ -41,8 +50,8 @@ def assert_migration_roundtrip(tmp_path: Path, url: str) -> None:
             assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
         assert _cli(tmp_path, url, "downgrade", "base") == "base"
         assert set(inspect(engine).get_table_names()) <= {"alembic_version"}
-        assert _cli(tmp_path, url, "upgrade", "head") == "0003"
-        assert _cli(tmp_path, url, "current") == "0003"
+        assert _cli(tmp_path, url, "upgrade", "head") == "0004"
+        assert _cli(tmp_path, url, "current") == "0004"
     finally:
         engine.dispose()
 
@@ -64,3 +73,69 @@ def test_default_database_lands_under_var(tmp_path: Path) -> None:
     )
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "var" / "regtree.sqlite").is_file()
+
+
+def test_0003_upgrades_a_database_with_jobs(tmp_path: Path) -> None:
+    """Jobs stored at 0002 get their outcome; a running one whose worker is gone is settled
+    by the queue after the upgrade (retried), and the queue runs on the upgraded schema."""
+    from datetime import datetime, timedelta
+
+    from sqlalchemy import text
+
+    from service import migrate
+    from service.core.config import Settings
+    from service.db import Database
+    from service.jobs.policy import Backoff
+    from service.jobs.queue import JobQueue, Outcome
+
+    settings = Settings(database_url=f"sqlite:///{tmp_path / 'old.sqlite'}")
+    migrate.upgrade(settings, "0002")
+    old = datetime(2026, 1, 1)
+    rows = [  # (status, started_at, lease_expires_at)
+        ("succeeded", old, None),
+        ("failed", old, None),
+        ("cancelled", None, None),  # cancelled while queued
+        ("cancelled", old, None),  # cancelled while running
+        ("running", old, old + timedelta(minutes=1)),  # its worker died long ago
+        ("queued", None, None),
+    ]
+    engine = create_engine(settings.database_url)
+    with engine.begin() as connection:
+        connection.execute(
+            text("INSERT INTO collections (name, description, created_at, updated_at) "
+                 "VALUES ('c', '', :t, :t)"),
+            {"t": old},
+        )
+        for status, started, lease in rows:
+            connection.execute(
+                text(
+                    "INSERT INTO jobs (collection_id, model_shape_id, shape_ids, method, params,"
+                    " status, progress_done, progress_total, attempts, max_attempts, lease_owner,"
+                    " lease_expires_at, cancel_requested, created_at, updated_at, started_at)"
+                    " VALUES (1, 1, '[1, 2]', 'direct', '{}', :status, 0, 0, :attempts, 3,"
+                    " :owner, :lease, :cancel, :t, :t, :started)"
+                ),
+                {
+                    "status": status,
+                    "attempts": 0 if started is None else 1,
+                    "owner": "gone" if lease else None,
+                    "lease": lease,
+                    "cancel": status == "cancelled",
+                    "t": old,
+                    "started": started,
+                },
+            )
+    engine.dispose()
+
+    migrate.upgrade(settings)
+    db = Database(settings.database_url)
+    try:
+        with db.read() as session:
+            outcomes = [r[0] for r in session.execute(text("SELECT outcome FROM jobs ORDER BY id"))]
+        assert outcomes == ["succeeded", "failed", "cancelled", "aborted", None, None]
+        queue = JobQueue(db, backoff=Backoff(0.0, 0.0))
+        assert queue.settle_stalled() == {5: Outcome.retrying}
+        claimed = [queue.claim("w"), queue.claim("w")]
+        assert [(c.job_id, c.attempt) for c in claimed if c] == [(5, 2), (6, 1)]
+    finally:
+        db.dispose()

@@ -201,13 +201,16 @@ def test_concurrent_workers_claim_each_job_once(pg_url: str) -> None:
     from service import migrate
     from service.core.config import Settings
     from service.db import Database
-    from service.jobs import queue
+    from service.jobs.policy import Backoff
+    from service.jobs.queue import JobQueue, Outcome
     from service.models import Collection
     from tests.service.test_queue import direct_job
 
     settings = Settings(database_url=pg_url)
     migrate.upgrade(settings)
     db = Database(pg_url)
+    queue = JobQueue(db, lease_seconds=60, backoff=Backoff(0.0, 0.0))
+    short = JobQueue(db, lease_seconds=0.05, backoff=Backoff(0.0, 0.0))
     try:
         n_jobs, n_workers = 40, 8
         with db.write() as session:
@@ -221,10 +224,10 @@ def test_concurrent_workers_claim_each_job_once(pg_url: str) -> None:
 
         def work(i: int) -> None:
             barrier.wait()
-            while (claim := queue.claim(db, f"w{i}", lease_seconds=60)) is not None:
+            while (claim := queue.claim(f"w{i}")) is not None:
                 claimed[i].append(claim.job_id)
-                assert queue.heartbeat(db, claim, lease_seconds=60, progress=("x", 1, 1)).held
-                assert queue.complete(db, claim, {"ok": True}, []) == "succeeded"
+                assert queue.heartbeat(claim, progress=("x", 1, 1)) is Outcome.held
+                assert queue.complete(claim, {"ok": True}, []) is Outcome.succeeded
 
         threads = [threading.Thread(target=work, args=(i,)) for i in range(n_workers)]
         for thread in threads:
@@ -238,14 +241,14 @@ def test_concurrent_workers_claim_each_job_once(pg_url: str) -> None:
         # An expired lease fences its old holder on PostgreSQL too.
         with db.write() as session:
             session.add(direct_job(collection.id))
-        old = queue.claim(db, "old", lease_seconds=0.05)
+        old = short.claim("old")
         assert old is not None
         time.sleep(0.1)
-        new = queue.claim(db, "new", lease_seconds=60)
+        new = queue.claim("new")
         assert new is not None and new.job_id == old.job_id and new.attempt == 2
-        assert not queue.heartbeat(db, old, lease_seconds=60).held
-        assert queue.complete(db, old, {}, []) == "lost"
-        assert queue.complete(db, new, {"ok": True}, []) == "succeeded"
+        assert queue.heartbeat(old) is Outcome.lost
+        assert queue.complete(old, {}, []) is Outcome.lost
+        assert queue.complete(new, {"ok": True}, []) is Outcome.succeeded
     finally:
         db.dispose()
 
@@ -273,3 +276,75 @@ def test_sigkilled_worker_job_is_reclaimed_once(pg_service: Callable[..., Servic
         assert done["attempts"] == 2
         result = client.get(f"/v1/jobs/{job['id']}/result").json()
         assert sorted(s["shape_id"] for s in result["subjects"]) == sorted(ids[1:])
+
+
+def test_queue_outcomes_retries_and_callbacks(pg_url: str) -> None:
+    """The lifecycle on PostgreSQL: cancel while queued / while running, a transient retry,
+    and callbacks stored with the job's end and delivered (500, then 200) by two racing
+    deliverers, each try once."""
+    from service import migrate
+    from service.core.config import Settings
+    from service.db import Database
+    from service.jobs.callbacks import Deliverer
+    from service.jobs.policy import Backoff
+    from service.jobs.queue import JobQueue, Outcome
+    from service.models import CallbackAttempt, Collection, Job
+    from tests.service.test_queue import direct_job
+
+    settings = Settings(
+        database_url=pg_url, callback_secret="s", callback_backoff_seconds=0  # type: ignore[arg-type]
+    )
+    migrate.upgrade(settings)
+    db = Database(pg_url)
+    try:
+        with db.write() as session:
+            collection = Collection(name="c", description="")
+            session.add(collection)
+            session.flush()
+            for _ in range(3):
+                job = direct_job(collection.id)
+                job.callback_url = "http://hooks.test/x"
+                session.add(job)
+        queue = JobQueue(db, backoff=Backoff(0.0, 0.0))
+        assert queue.cancel(1) is Outcome.cancelled
+        running = queue.claim("w")
+        assert running is not None and running.job_id == 2
+        assert queue.cancel(2) is Outcome.cancel_requested
+        assert queue.abort(running) is Outcome.aborted
+        third = queue.claim("w")
+        assert third is not None
+        assert queue.fail(third, "database is locked", transient=True) is Outcome.retrying
+        third = queue.claim("w")
+        assert third is not None and third.attempt == 2
+        assert queue.complete(third, {"ok": True}, []) is Outcome.succeeded
+        with db.read() as session:
+            outcomes = [session.get(Job, i).outcome for i in (1, 2, 3)]  # type: ignore[union-attr]
+        assert outcomes == ["cancelled", "aborted", "succeeded"]
+
+        answers: dict[str, list[int]] = {}
+
+        def handler(request: httpx.Request) -> httpx.Response:
+            job_id = request.headers["x-regtree-delivery"]
+            answers.setdefault(job_id, []).append(1)
+            return httpx.Response(500 if len(answers[job_id]) == 1 else 200)
+
+        deliverers = [
+            Deliverer(db, settings, f"d{i}", transport=httpx.MockTransport(handler))
+            for i in range(2)
+        ]
+
+        def drain(deliverer: Deliverer) -> None:
+            while deliverer.deliver_once() is not None:
+                pass
+
+        threads = [threading.Thread(target=drain, args=(d,)) for d in deliverers]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(60)
+        assert {k: len(v) for k, v in answers.items()} == {"1": 2, "2": 2, "3": 2}
+        with db.read() as session:
+            attempts = session.query(CallbackAttempt).count()
+        assert attempts == 6
+    finally:
+        db.dispose()

@@ -1,19 +1,25 @@
-"""The queue's fencing, in process: a worker that lost its lease cannot write; and the runner
-sees a cancel between heartbeats, and a cancel always wins."""
+"""The job queue's lifecycle and fencing, in process: a worker that lost its lease cannot
+write; a transient failure is retried after a backoff, bad input is not; a cancel while
+queued and one while running end differently; the runner sees a cancel between heartbeats,
+and a cancel always wins."""
 
 from __future__ import annotations
 
 import time
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
 import pytest
+from sqlalchemy import text
+from sqlalchemy.exc import OperationalError
 
 from service import migrate
 from service.core.config import Settings
 from service.db import Database
-from service.jobs import queue
-from service.models import Collection, Job, JobStatus, Result
+from service.jobs.policy import Backoff
+from service.jobs.queue import JobQueue, Outcome, is_transient
+from service.models import Collection, Job, JobStatus, Result, utcnow
 
 
 @pytest.fixture
@@ -36,6 +42,30 @@ def direct_job(collection_id: int) -> Job:
                method="direct", params={}, max_attempts=3)
 
 
+def queue(db: Database, lease: float = 10.0, backoff: float = 0.0) -> JobQueue:
+    return JobQueue(db, lease_seconds=lease, backoff=Backoff(backoff, 3600.0))
+
+
+def _expire(db: Database) -> None:
+    """The running job's lease ran out (its worker stopped heartbeating)."""
+    with db.write() as session:
+        session.execute(
+            text("UPDATE jobs SET lease_expires_at = :t WHERE status = 'running'"),
+            {"t": (utcnow() - timedelta(seconds=1)).replace(tzinfo=None)},
+        )
+
+
+def _due(db: Database) -> None:
+    """The backoff of a job queued for a retry is over."""
+    with db.write() as session:
+        session.execute(text("UPDATE jobs SET next_attempt_at = NULL"))
+
+
+def _backoff(job: Job) -> float:
+    assert job.next_attempt_at is not None
+    return (job.next_attempt_at - job.updated_at).total_seconds()
+
+
 def _job(db: Database) -> Job:
     with db.read() as session:
         job = session.get(Job, 1)
@@ -44,76 +74,183 @@ def _job(db: Database) -> Job:
 
 
 def test_expired_lease_fences_the_old_worker(db: Database) -> None:
-    a = queue.claim(db, "worker-a", lease_seconds=0.05)
+    long = queue(db)
+    a = long.claim("worker-a")
     assert a is not None and a.attempt == 1
-    assert queue.claim(db, "worker-b", lease_seconds=10) is None  # lease still held
-    time.sleep(0.1)
-    b = queue.claim(db, "worker-b", lease_seconds=10)
+    assert long.claim("worker-b") is None  # lease still held
+    _expire(db)
+    b = long.claim("worker-b")
     assert b is not None and b.attempt == 2
 
     # Everything the old holder tries is refused and changes nothing.
-    assert not queue.heartbeat(db, a, lease_seconds=10, progress=("x", 1, 2)).held
-    assert queue.complete(db, a, {"stale": True}, []) == "lost"
-    assert not queue.fail(db, a, "stale")
-    assert not queue.finish_cancelled(db, a)
-    assert not queue.release(db, a)
+    assert long.heartbeat(a, progress=("x", 1, 2)) is Outcome.lost
+    assert long.complete(a, {"stale": True}, []) is Outcome.lost
+    assert long.fail(a, "stale") is Outcome.lost
+    assert long.fail(a, "stale", transient=True) is Outcome.lost
+    assert long.abort(a) is Outcome.lost
+    assert long.release(a) is Outcome.lost
     job = _job(db)
     assert job.status == JobStatus.running and job.lease_owner == "worker-b"
-    assert job.progress_stage is None and job.error is None
+    assert job.progress_stage is None and job.error is None and job.outcome is None
 
-    assert queue.heartbeat(db, b, lease_seconds=10, progress=("stage", 3, 4)).held
-    assert queue.complete(db, b, {"ok": True}, [{"shape_id": 2, "position": 1}]) == "succeeded"
+    assert long.heartbeat(b, progress=("stage", 3, 4)) is Outcome.held
+    done = long.complete(b, {"ok": True}, [{"shape_id": 2, "position": 1}])
+    assert done is Outcome.succeeded
     with db.read() as session:
         result = session.get(Result, 1)
         assert result is not None and result.document == {"ok": True}
-    assert _job(db).status == JobStatus.succeeded
+    job = _job(db)
+    assert job.status == JobStatus.succeeded and job.outcome == "succeeded"
 
 
-def test_cancel_request_reaches_the_worker_and_wins_over_completion(db: Database) -> None:
-    claim = queue.claim(db, "w", lease_seconds=10)
+def test_cancel_while_running_aborts_and_wins_over_completion(db: Database) -> None:
+    q = queue(db)
+    claim = q.claim("w")
     assert claim is not None
-    with db.write() as session:
-        job = session.get(Job, 1)
-        assert job is not None and queue.request_cancel(session, job)
-    assert queue.heartbeat(db, claim, lease_seconds=10).cancel_requested
-    assert queue.complete(db, claim, {}, []) == "cancelled"
-    assert _job(db).status == JobStatus.cancelled
+    assert q.cancel(1) is Outcome.cancel_requested
+    assert _job(db).status == JobStatus.running  # the worker has not confirmed yet
+    assert q.heartbeat(claim) is Outcome.cancel_requested
+    assert q.peek(claim) is Outcome.cancel_requested
+    assert q.complete(claim, {}, []) is Outcome.aborted
+    job = _job(db)
+    assert job.status == JobStatus.cancelled and job.outcome == "aborted"
+    assert q.cancel(1) is Outcome.finished
+    assert q.cancel(99) is Outcome.not_found
+
+
+def test_cancel_while_queued_is_cancelled_not_aborted(db: Database) -> None:
+    q = queue(db)
+    assert q.cancel(1) is Outcome.cancelled
+    job = _job(db)
+    assert job.status == JobStatus.cancelled and job.outcome == "cancelled"
+    assert job.finished_at is not None and job.started_at is None
+    assert q.claim("w") is None
+
+
+def test_a_stalled_job_is_retried_after_a_backoff_up_to_max_attempts(db: Database) -> None:
+    q = queue(db, backoff=30.0)
+    first = q.claim("w1")
+    assert first is not None
+    _expire(db)
+    assert q.settle_stalled() == {1: Outcome.retrying}
+    job = _job(db)
+    assert job.status == JobStatus.queued and job.attempts == 1 and job.lease_owner is None
+    assert _backoff(job) == 30.0 and "stopped responding" in (job.error or "")
+    assert q.claim("w2") is None  # not due for 30 s
+    _due(db)
+    second = q.claim("w2")
+    assert second is not None and second.attempt == 2
+    job = _job(db)
+    assert job.next_attempt_at is None and job.error is None
+    assert q.heartbeat(first) is Outcome.lost  # the lost worker is fenced out
+
+    # The backoff doubles: 60 s after the second attempt was lost.
+    _expire(db)
+    assert q.settle_stalled() == {1: Outcome.retrying}
+    assert _backoff(_job(db)) == 60.0
 
 
 def test_attempts_are_capped(db: Database) -> None:
+    q = queue(db)
     for attempt in (1, 2, 3):
-        claim = queue.claim(db, f"w{attempt}", lease_seconds=0.01)
+        claim = q.claim(f"w{attempt}")
         assert claim is not None and claim.attempt == attempt
-        time.sleep(0.03)
-    assert queue.claim(db, "w4", lease_seconds=10) is None
+        _expire(db)
+    assert q.claim("w4") is None
     job = _job(db)
-    assert job.status == JobStatus.failed and job.attempts == 3
+    assert job.status == JobStatus.failed and job.attempts == 3 and job.outcome == "failed"
     assert "max_attempts" in (job.error or "")
 
 
+def test_a_stalled_job_with_a_cancel_request_ends_aborted(db: Database) -> None:
+    q = queue(db)
+    assert q.claim("w") is not None
+    assert q.cancel(1) is Outcome.cancel_requested
+    _expire(db)
+    assert q.settle_stalled() == {1: Outcome.aborted}
+    assert _job(db).outcome == "aborted"
+
+
+def test_transient_failure_retries_and_bad_input_does_not(db: Database) -> None:
+    q = queue(db, backoff=60.0)
+    claim = q.claim("w")
+    assert claim is not None
+    assert q.fail(claim, "OperationalError: database is locked", transient=True) is (
+        Outcome.retrying
+    )
+    job = _job(db)
+    assert job.status == JobStatus.queued and job.attempts == 1
+    assert job.next_attempt_at is not None and "database is locked" in (job.error or "")
+    assert q.claim("w") is None and abs(_backoff(_job(db)) - 60.0) < 1  # a minute of backoff
+    _due(db)
+    claim = q.claim("w")
+    assert claim is not None and claim.attempt == 2
+    assert q.fail(claim, "ValueError: shapes[3] has zero size") is Outcome.failed
+    job = _job(db)
+    assert job.status == JobStatus.failed and job.outcome == "failed"
+    assert job.error == "ValueError: shapes[3] has zero size" and job.attempts == 2
+
+
+def test_a_transient_failure_on_the_last_attempt_fails(db: Database) -> None:
+    q = queue(db)
+    for attempt in (1, 2):
+        claim = q.claim("w")
+        assert claim is not None and claim.attempt == attempt
+        assert q.fail(claim, "database is locked", transient=True) is Outcome.retrying
+    claim = q.claim("w")
+    assert claim is not None and claim.attempt == 3
+    assert q.fail(claim, "database is locked", transient=True) is Outcome.failed
+    job = _job(db)
+    assert job.status == JobStatus.failed and "3 attempt(s)" in (job.error or "")
+
+
+def test_transient_errors_are_recognised() -> None:
+    import sqlite3
+
+    locked = OperationalError("UPDATE jobs", {}, sqlite3.OperationalError("database is locked"))
+    assert is_transient(locked)
+    missing = OperationalError("SELECT", {}, sqlite3.OperationalError("no such table: jobs"))
+    assert not is_transient(missing)
+    assert not is_transient(ValueError("shapes[3] has zero size"))
+
+
 def test_release_requeues_without_counting(db: Database) -> None:
-    claim = queue.claim(db, "w", lease_seconds=10)
-    assert claim is not None and queue.release(db, claim)
+    q = queue(db)
+    claim = q.claim("w")
+    assert claim is not None and q.release(claim) is Outcome.released
     job = _job(db)
     assert job.status == JobStatus.queued and job.attempts == 0 and job.lease_owner is None
 
 
 def test_peek_reads_the_cancel_request_and_the_lease(db: Database) -> None:
-    a = queue.claim(db, "worker-a", lease_seconds=0.05)
+    long = queue(db)
+    a = long.claim("worker-a")
     assert a is not None
-    assert queue.peek(db, a) == queue.LeaseState(held=True, cancel_requested=False)
-    time.sleep(0.1)
-    b = queue.claim(db, "worker-b", lease_seconds=10)
+    assert long.peek(a) is Outcome.held
+    _expire(db)
+    b = long.claim("worker-b")
     assert b is not None
-    assert not queue.peek(db, a).held  # reclaimed: a lost it
-    with db.write() as session:
-        job = session.get(Job, 1)
-        assert job is not None and queue.request_cancel(session, job)
-    assert queue.peek(db, b) == queue.LeaseState(held=True, cancel_requested=True)
-    assert queue.peek(db, a) == queue.LeaseState(held=False)
+    assert long.peek(a) is Outcome.lost  # settled and reclaimed: a lost it
+    assert long.cancel(1) is Outcome.cancel_requested
+    assert long.peek(b) is Outcome.cancel_requested
+    assert long.peek(a) is Outcome.lost
     updated = _job(db).updated_at
-    queue.peek(db, b)
+    long.peek(b)
     assert _job(db).updated_at == updated  # a read: nothing written
+
+
+def test_next_attempt_at_orders_nothing_else(db: Database) -> None:
+    """A job waiting for its retry does not hold up a younger job that is due."""
+    q = queue(db, backoff=60.0)
+    with db.write() as session:
+        session.add(direct_job(1))
+    claim = q.claim("w")
+    assert claim is not None and claim.job_id == 1
+    assert q.fail(claim, "database is busy", transient=True) is Outcome.retrying
+    other = q.claim("w")
+    assert other is not None and other.job_id == 2
+    assert _job(db).next_attempt_at is not None
+    assert (_job(db).next_attempt_at or utcnow()) - utcnow() > timedelta(seconds=50)
 
 
 # --- the runner: a cancel is seen between heartbeats and always wins -------------------------
@@ -159,9 +296,7 @@ def _runner_settings(db: Database) -> Settings:
 
 
 def _request_cancel(db: Database) -> None:
-    with db.write() as session:
-        job = session.get(Job, 1)
-        assert job is not None and queue.request_cancel(session, job)
+    assert queue(db).cancel(1) is Outcome.cancel_requested
 
 
 def test_runner_sees_a_cancel_between_heartbeats(
@@ -185,9 +320,10 @@ def test_runner_sees_a_cancel_between_heartbeats(
         return {}
 
     monkeypatch.setattr(runner, "run_registration", run)
-    claim = queue.claim(db, "w", lease_seconds=60)
+    q = queue(db, lease=60)
+    claim = q.claim("w")
     assert claim is not None
-    assert runner.run_claimed(db, _runner_settings(db), claim) == "cancelled"
+    assert runner.run_claimed(q, _runner_settings(db), claim) is Outcome.aborted
     assert seen and seen[0] < 2.0, seen
     job = _job(db)
     assert job.status == JobStatus.cancelled and job.finished_at is not None
@@ -210,9 +346,10 @@ def test_an_error_after_a_cancel_ends_cancelled_not_failed(
         raise BrokenProcessPool("a process of the pool was terminated abruptly")
 
     monkeypatch.setattr(runner, "run_registration", run)
-    claim = queue.claim(db, "w", lease_seconds=60)
+    q = queue(db, lease=60)
+    claim = q.claim("w")
     assert claim is not None
-    assert runner.run_claimed(db, _runner_settings(db), claim) == "cancelled"
+    assert runner.run_claimed(q, _runner_settings(db), claim) is Outcome.aborted
     job = _job(db)
     assert job.status == JobStatus.cancelled and job.error is None
 
@@ -229,9 +366,71 @@ def test_a_success_after_a_cancel_ends_cancelled(
         return {"subjects": [], "root": 0}
 
     monkeypatch.setattr(runner, "run_registration", run)
-    claim = queue.claim(db, "w", lease_seconds=60)
+    q = queue(db, lease=60)
+    claim = q.claim("w")
     assert claim is not None
-    assert runner.run_claimed(db, _runner_settings(db), claim) == "cancelled"
+    assert runner.run_claimed(q, _runner_settings(db), claim) is Outcome.aborted
     assert _job(db).status == JobStatus.cancelled
+    with db.read() as session:
+        assert session.get(Result, 1) is None
+
+
+def test_runner_fails_bad_input_at_once_with_the_message(
+    job_with_shapes: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from service.jobs import runner
+
+    def run(*args: object, **kwargs: object) -> dict[str, Any]:
+        raise ValueError("shapes[1] has zero size")
+
+    monkeypatch.setattr(runner, "run_registration", run)
+    q = queue(job_with_shapes, lease=60)
+    claim = q.claim("w")
+    assert claim is not None
+    assert runner.run_claimed(q, _runner_settings(job_with_shapes), claim) is Outcome.failed
+    job = _job(job_with_shapes)
+    assert job.status == JobStatus.failed and job.attempts == 1
+    assert job.error == "ValueError: shapes[1] has zero size"
+
+
+def test_runner_retries_when_the_database_is_locked(
+    job_with_shapes: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A real lock: another connection holds SQLite's write lock while the runner stores the
+    result, past a short busy timeout; the job goes back to the queue with a backoff."""
+    import sqlite3
+
+    from service.jobs import runner
+
+    db = job_with_shapes
+    impatient = Database(db.url, busy_timeout_ms=50)
+    blocker = sqlite3.connect(db.url.removeprefix("sqlite:///"), isolation_level=None)
+
+    def run(*args: object, **kwargs: object) -> dict[str, Any]:
+        blocker.execute("BEGIN IMMEDIATE")  # held while the runner stores the result
+        return {"subjects": [], "root": 0}
+
+    q = JobQueue(impatient, lease_seconds=60, backoff=Backoff(30.0, 60.0))
+    store = q.complete
+
+    def complete(*args: Any, **kwargs: Any) -> Outcome:
+        try:
+            return store(*args, **kwargs)
+        finally:
+            blocker.execute("ROLLBACK")  # the lock goes once storing gave up
+
+    monkeypatch.setattr(runner, "run_registration", run)
+    monkeypatch.setattr(q, "complete", complete)
+    claim = q.claim("w")
+    assert claim is not None
+    try:
+        assert runner.run_claimed(q, _runner_settings(db), claim) is Outcome.retrying
+    finally:
+        blocker.close()
+        impatient.dispose()
+    job = _job(db)
+    assert job.status == JobStatus.queued and job.attempts == 1 and job.outcome is None
+    assert "database is locked" in (job.error or "")
+    assert abs(_backoff(job) - 30.0) < 1
     with db.read() as session:
         assert session.get(Result, 1) is None

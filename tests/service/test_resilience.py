@@ -16,7 +16,8 @@ from tests.service.conftest import (
 
 
 def test_worker_killed_mid_job_is_recovered_once(make_service: Callable[..., Service]) -> None:
-    svc = make_service(workers=0).start()
+    """The lost worker's job waits out a backoff (2 s here), then runs again."""
+    svc = make_service(workers=0, env={"REGTREE_RETRY_BACKOFF_SECONDS": "2"}).start()
     with svc.client() as client:
         cid = create_collection(client)
         ids = upload_family(client, cid, family(n_chains=4, chain_length=5, n_points=100))
@@ -33,9 +34,14 @@ def test_worker_killed_mid_job_is_recovered_once(make_service: Callable[..., Ser
         doomed.wait(10)
 
         svc.start_worker()
+        waiting = wait_job(
+            client, job["id"], until=lambda j: j["status"] != "running", timeout=60
+        )
+        assert waiting["status"] == "queued" and waiting["next_attempt_at"], waiting
+        assert "stopped responding" in waiting["error"] and waiting["attempts"] == 1
         done = wait_job(client, job["id"], timeout=120)
-        assert done["status"] == "succeeded", done
-        assert done["attempts"] == 2
+        assert done["status"] == "succeeded" and done["outcome"] == "succeeded", done
+        assert done["attempts"] == 2 and done["next_attempt_at"] is None
         result = client.get(f"/v1/jobs/{job['id']}/result").json()
         shape_ids = [s["shape_id"] for s in result["subjects"]]
         assert sorted(shape_ids) == sorted(ids[1:])  # every subject, exactly once

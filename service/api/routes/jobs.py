@@ -12,12 +12,10 @@ from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
 from service.api.problems import ProblemError, not_found, problem_responses
 from service.contract.names import ProblemType
-from service.jobs import queue
+from service.jobs import callbacks
+from service.jobs.queue import JobQueue, JobRefused, JobSpec, Outcome
 from service.models import (
-    Collection,
     Job,
-    JobStatus,
-    Shape,
     made_from_image,
 )
 from service.schemas import (
@@ -51,11 +49,19 @@ def job_out(job: Job) -> JobOut:
             "max_attempts": job.max_attempts,
             "cancel_requested": job.cancel_requested,
             "error": job.error,
+            "outcome": job.outcome,
+            "next_attempt_at": job.next_attempt_at,
+            "callback_url": job.callback_url,
             "created_at": job.created_at,
             "updated_at": job.updated_at,
             "started_at": job.started_at,
             "finished_at": job.finished_at,
-            "links": {"self": base, "result": f"{base}/result", "cancel": f"{base}/cancel"},
+            "links": {
+                "self": base,
+                "result": f"{base}/result",
+                "cancel": f"{base}/cancel",
+                "deliveries": f"{base}/deliveries",
+            },
         }
     )
 
@@ -106,7 +112,9 @@ def _unprocessable(detail: str, type_: str = ProblemType.INVALID_JOB) -> Problem
     "`max_rotation`, a collection whose shapes were all uploaded as PNG or JPEG images is "
     "registered `upright` (within 30 degrees of the shapes as uploaded), any other with "
     "`rotation`; the job's `params` name the pose used and `pose_source` why. A "
-    "`max_rotation` with a pose other than `upright` is a 422.",
+    "`max_rotation` with a pose other than `upright` is a 422. A `callback_url` is called "
+    "when the job ends (see `GET /v1/jobs/{job_id}/deliveries`); one on a host outside the "
+    "setting `callback_allowed_hosts`, or on a server without `callback_secret`, is a 422.",
 )
 def create_job(
     body: JobCreate,
@@ -117,56 +125,37 @@ def create_job(
     idempotency_key: IdempotencyKeyDep = None,
 ) -> JobOut:
     scope = f"POST {request.url.path}"
-    # A body without pose hashes as before pose existed: a retry across the upgrade matches.
-    request_hash = idempotency.hash_json(
-        body.model_dump(mode="json", exclude={"pose"} if body.pose is None else None)
+    # A body without pose (or callback_url) hashes as before they existed: a retry across
+    # the upgrade matches.
+    unset = {key for key in ("pose", "callback_url") if getattr(body, key) is None}
+    request_hash = idempotency.hash_json(body.model_dump(mode="json", exclude=unset or None))
+    if body.callback_url is not None:
+        try:
+            callbacks.check_url(body.callback_url, settings)
+        except ValueError as e:
+            raise _unprocessable(str(e), "/problems/callback-refused") from None
+    spec = JobSpec(
+        collection_id=body.collection_id,
+        model_shape_id=body.model_shape_id,
+        method=body.method,
+        params_for=lambda formats: {
+            **body.model_dump(
+                mode="json",
+                include={"similarity_threshold", "error_threshold", "compare_direct", "cpd"},
+            ),
+            **resolve_pose(body, formats),
+        },
+        callback_url=body.callback_url,
     )
     with db.write() as session:
         entry = idempotency.lookup(session, scope, idempotency_key, request_hash)
         if entry is not None:
             job = _get_job(session, entry.resource_ids[0])
         else:
-            if session.get(Collection, body.collection_id) is None:
-                raise _unprocessable(f"collection {body.collection_id} does not exist")
-            model = session.get(Shape, body.model_shape_id)
-            if model is None:
-                raise _unprocessable(f"model shape {body.model_shape_id} does not exist")
-            if model.collection_id != body.collection_id:
-                raise _unprocessable(
-                    f"model shape {body.model_shape_id} belongs to collection "
-                    f"{model.collection_id}, not to collection {body.collection_id}"
-                )
-            rows = session.execute(
-                select(Shape.id, Shape.source_format)
-                .where(Shape.collection_id == body.collection_id)
-                .order_by(Shape.id)
-            ).all()
-            shape_ids = [row.id for row in rows]
-            if len(shape_ids) < 2:
-                raise _unprocessable(
-                    f"collection {body.collection_id} has {len(shape_ids)} shape(s); a job "
-                    "needs the model and at least one other shape"
-                )
-            params = body.model_dump(
-                mode="json",
-                include={"similarity_threshold", "error_threshold", "compare_direct", "cpd"},
-            )
-            params.update(resolve_pose(body, [row.source_format for row in rows]))
-            job = Job(
-                collection_id=body.collection_id,
-                model_shape_id=body.model_shape_id,
-                shape_ids=shape_ids,
-                method=body.method,
-                params=params,
-                status=JobStatus.queued.value,
-                max_attempts=settings.max_attempts,
-                progress_done=0,
-                progress_total=0,
-                attempts=0,
-                cancel_requested=False,
-            )
-            session.add(job)
-            session.flush()
+            try:
+                job = JobQueue.from_settings(db, settings).enqueue(spec, session=session)
+            except JobRefused as e:
+                raise _unprocessable(str(e)) from None
             idempotency.remember(
                 session,
                 scope,
@@ -219,18 +208,18 @@ def get_job(job_id: DbInt, db: DbDep) -> JobOut:
     response_model=JobOut,
     responses=problem_responses(404, 409),
     summary="Cancel a job",
-    description="A queued job is cancelled at once. A running job gets `cancel_requested`; its "
+    description="A queued job (waiting for its first attempt or a retry) is cancelled at "
+    "once: status `cancelled`, outcome `cancelled`. A running job gets `cancel_requested`; its "
     "worker sees the request within the setting `cancel_poll_seconds` (1 s by default), stops "
-    "the registrations in progress and ends the job `cancelled` (never `succeeded`). A "
-    "finished job: 409.",
+    "the registrations in progress and ends the job with status `cancelled` and outcome "
+    "`aborted` (never `succeeded`). A finished job: 409.",
 )
-def cancel_job(job_id: DbInt, db: DbDep) -> JobOut:
+def cancel_job(job_id: DbInt, db: DbDep, settings: SettingsDep) -> JobOut:
     with db.write() as session:
-        # Row-locked on PostgreSQL: a worker's claim or completion cannot interleave.
-        job = _get_job(session, job_id, for_update=True)
-        if not queue.request_cancel(session, job):
+        outcome = JobQueue.from_settings(db, settings).cancel(job_id, session=session)
+        job = _get_job(session, job_id)
+        if outcome is Outcome.finished:
             raise ProblemError(
                 409, f"job {job_id} already {job.status}", type_=ProblemType.JOB_FINISHED
             )
-        session.flush()
         return job_out(job)

@@ -1,8 +1,8 @@
 """keep the similarity D a job computed
 
-Revision ID: 0003
-Revises: 0002
-Create Date: 2027-01-10
+Revision ID: 0004
+Revises: 0003
+Create Date: 2026-12-01
 
 ``results.similarity_npy``: the (n, n) similarity matrix D of a succeeded job as ``.npy``
 bytes (``GET /v1/jobs/{id}/similarity``); null for results stored before.
@@ -13,8 +13,8 @@ from collections.abc import Sequence
 import sqlalchemy as sa
 from alembic import op
 
-revision: str = "0003"
-down_revision: str | None = "0002"
+revision: str = "0004"
+down_revision: str | None = "0003"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
