@@ -76,11 +76,17 @@ def invert_points(
     starts = _seeds(transform) if seeds is None else np.asarray(seeds, dtype=np.float64)
     if stalled.size and starts is not None and len(starts):
         images = transform.apply(starts)
-        nearest = cKDTree(images).query(y[stalled])[1]
-        z2, res2 = _newton(transform, y[stalled], starts[nearest].copy(), tol, max_iter, h)
-        better = res2 < res[stalled]
-        z[stalled[better]] = z2[better]
-        res[stalled[better]] = res2[better]
+        usable = np.flatnonzero(np.isfinite(images).all(axis=1))
+        # a query too far away for finite distances (|y| ~ 1e200) finds no neighbour: the
+        # tree answers with index len(usable), and such a point keeps its first result
+        nearest = cKDTree(images[usable]).query(y[stalled])[1] if usable.size else None
+        if nearest is not None:
+            found = nearest < usable.size
+            stalled, nearest = stalled[found], usable[nearest[found]]
+            z2, res2 = _newton(transform, y[stalled], starts[nearest].copy(), tol, max_iter, h)
+            better = res2 < res[stalled]
+            z[stalled[better]] = z2[better]
+            res[stalled[better]] = res2[better]
     return z, res
 
 

@@ -9,6 +9,8 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from service.contract.names import ProblemType
+
 if TYPE_CHECKING:
     from service.client import RegtreeClient
 
@@ -83,7 +85,7 @@ def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
     except RegtreeError as e:
         code = EXIT_FAILED if e.status is not None else EXIT_CONNECTION
         message = describe_error(e) if e.status is not None else f"{e}"
-        if e.type == "/problems/name-conflict":
+        if e.type == ProblemType.NAME_CONFLICT:
             message += "; to upload anyway: --on-conflict replace or --on-conflict keep"
         raise CLIError(
             f"{message}; collection {collection.name!r} (id {collection.id}) keeps the "

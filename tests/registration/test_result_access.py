@@ -108,3 +108,19 @@ def test_every_step_has_one_key_scheme(tree) -> None:  # type: ignore[no-untyped
     assert isinstance(_step_from_dict(old_affine), AffineTransform)
     old_nonrigid = {k: v for k, v in steps[-1].items() if k != "type"}
     assert type(_step_from_dict(old_nonrigid)).__name__ == "NonrigidTransform"
+
+
+def test_inverting_points_too_far_for_finite_distances_keeps_the_first_result():
+    # a fuzzer's point at 1e233 stalls and is too far from every restart seed for a finite
+    # distance: the KD-tree answers "no neighbour" (index n), which used to be indexed
+    class Blows:
+        def apply(self, p):
+            p = np.asarray(p, dtype=np.float64)
+            out = 1.1 * p
+            out[np.abs(p).max(axis=1) > 1e100] = np.inf
+            return out
+
+    seeds = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    z, residual = invert_points(Blows(), [[3.3e233, 4e16], [0.55, 1.1]], seeds=seeds)
+    assert residual[0] == np.inf and residual[1] < 1e-9
+    np.testing.assert_allclose(z[1], [0.5, 1.0])

@@ -390,7 +390,7 @@ def test_runner_fails_bad_input_at_once_with_the_message(
     assert runner.run_claimed(q, _runner_settings(job_with_shapes), claim) is Outcome.failed
     job = _job(job_with_shapes)
     assert job.status == JobStatus.failed and job.attempts == 1
-    assert job.error == "ValueError: shapes[1] has zero size"
+    assert job.error == "ValueError: shape 2 's2' has zero size"  # named, not a position
 
 
 def test_runner_retries_when_the_database_is_locked(

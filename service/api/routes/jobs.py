@@ -133,7 +133,7 @@ def create_job(
         try:
             callbacks.check_url(body.callback_url, settings)
         except ValueError as e:
-            raise _unprocessable(str(e), "/problems/callback-refused") from None
+            raise _unprocessable(str(e), ProblemType.CALLBACK_REFUSED) from None
     spec = JobSpec(
         collection_id=body.collection_id,
         model_shape_id=body.model_shape_id,

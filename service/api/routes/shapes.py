@@ -43,6 +43,7 @@ from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDe
 from service.api.problems import ProblemError, not_found, problem_responses
 from service.api.routes.collections import get_collection_or_404
 from service.api.shape_store import NewShape, OnConflict, content_name
+from service.contract.names import ProblemType
 from service.core.config import Settings
 from service.core.limits import bounds, example
 from service.models import Shape
@@ -291,13 +292,13 @@ def _refused(e: Exception) -> ProblemError:
     if isinstance(e, shape_store.NameConflict):
         existing = [{"id": sid, "name": name} for sid, name in e.existing]
         return ProblemError(
-            409, str(e), type_="/problems/name-conflict", extra={"existing": existing}
+            409, str(e), type_=ProblemType.NAME_CONFLICT, extra={"existing": existing}
         )
     if isinstance(e, shape_store.DuplicateNames):
         return ProblemError(
             422,
             str(e),
-            type_="/problems/duplicate-names",
+            type_=ProblemType.DUPLICATE_NAMES,
             extra={"name": e.name, "files": e.labels},
         )
     if isinstance(e, shape_store.ShapesInUse):
