@@ -96,12 +96,6 @@ class RegistrationQuality:
         """Estimated probability that the correspondences are right (0 when folded)."""
         if not self.min_jacobian > 0:
             return 0.0
-        return self.fit_confidence
-
-    @property
-    def fit_confidence(self) -> float:
-        """The confidence model's estimate whether or not the warp folds: for ranking
-        registrations that all fold somewhere (the model was fitted on unfolded ones)."""
         z = (self.features() - np.asarray(_MEAN)) / np.asarray(_SCALE)
         logit = _INTERCEPT + float(np.dot(_WEIGHTS, z))
         return float(1.0 / (1.0 + math.exp(-min(max(logit, -50.0), 50.0))))
