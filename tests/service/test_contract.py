@@ -162,7 +162,9 @@ def test_the_client_reads_results_through_the_contract(client: httpx.Client) -> 
 
 
 def test_app_js_reads_the_servers_attached_and_status() -> None:
-    text = (Path(REPO) / "service" / "static" / "app.js").read_text()
+    from service.api.routes.pages import SCRIPTS
+
+    text = "\n".join((Path(REPO) / "service" / "static" / n).read_text() for n in SCRIPTS)
     assert "const isAttached = (s) => s.attached === true;" in text
     assert "s.layer !== null" not in text
 

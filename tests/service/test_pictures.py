@@ -229,7 +229,13 @@ def test_page_files_are_public_and_pictures_need_the_key(
             assert response.status_code == 200, asset
             assert response.headers["content-type"].startswith(media_type)
         assert "http://" not in html and "https://" not in html  # nothing from elsewhere
-        assert "X-API-Key" in client.get("/ui/app.js").text
+        assert "X-API-Key" in client.get("/ui/core.js").text
+        # the entry's modules are served, each as JavaScript
+        from service.api.routes.pages import SCRIPTS
+
+        for name in SCRIPTS:
+            module = client.get(f"/ui/{name}")
+            assert module.status_code == 200 and "javascript" in module.headers["content-type"]
         root = client.get("/", follow_redirects=False)
         assert root.status_code == 307 and root.headers["location"] == "/ui"
         # only the page's own files are public

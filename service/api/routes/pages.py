@@ -18,9 +18,12 @@ from service.contract.names import ProblemType
 
 router = APIRouter(include_in_schema=False)
 
+#: The page's JavaScript: ES modules, ``app.js`` the entry (routing, lists, the job), the
+#: others one part each (no build step; the browser resolves their imports).
+SCRIPTS = ("app.js", "core.js", "tree.js", "search.js", "subjects.js")
 #: File name -> media type of what ``/ui/<name>`` serves.
 ASSETS = {
-    "app.js": "text/javascript; charset=utf-8",
+    **{name: "text/javascript; charset=utf-8" for name in SCRIPTS},
     "app.css": "text/css; charset=utf-8",
     "favicon.svg": "image/svg+xml",
 }
