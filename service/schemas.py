@@ -268,7 +268,9 @@ class JobCreate(BaseModel):
             "examples": [
                 {
                     "collection_id": 1,
+                    "collection_name": "永 from 73 fonts",
                     "model_shape_id": 7,
+                    "model_name": "yong_song",
                     "method": "dynamic_tree",
                     "similarity_threshold": None,
                     "error_threshold": None,
@@ -381,7 +383,13 @@ class JobOut(BaseModel):
 
     id: int
     collection_id: int
+    collection_name: str | None = Field(
+        default=None, description="The collection's name; null once it is deleted."
+    )
     model_shape_id: int
+    model_name: str | None = Field(
+        default=None, description="The model shape's name; null once the shape is deleted."
+    )
     method: Method
     params: dict[str, Any] = Field(
         description="The job's options as it runs them: the thresholds, compare_direct, cpd, "

@@ -42,8 +42,36 @@ NAME_LIMIT = 40  # characters of a name drawn; longer names end in "…"
 
 _LEFT_PX, _RIGHT_PX, _TOP_PX, _BOTTOM_PX = 64, 120, 56, 24
 _LEGEND_PX = 14  # room under the title for the legend, when there are leaves
-_WIDE_PX = 2400  # widest default picture with names written across
+#: The results page's tree box on a 1440 x 1000 screen (a tree wider than half the page gets
+#: three fifths of it), where the picture is fitted whole.
+_VIEW_W, _VIEW_H = 680, 700
 _UPRIGHT_SLOT_PX = 30  # room per shape in a row when names are upright
+
+
+@dataclass
+class _Plan:
+    """A way to write the names, and the picture it makes."""
+
+    rotation: int  # 0: across, 270: upright
+    lines: int  # names across take turns on this many lines
+    fontsize: float
+    fig_w: int
+    fig_h: int
+    axes_w: float
+    slot_px: float
+    row_y: list[float]
+    below: float
+    u_fontsize: float
+    per_row: int
+    u_rows: int
+    u_box: float
+    fits: bool  # every name within its room
+
+    def fitted_px(self) -> float:
+        """Names' point size in screen pixels once the picture is fitted into the page's box
+        (never enlarged)."""
+        scale = min(1.0, _VIEW_W / self.fig_w, _VIEW_H / self.fig_h)
+        return self.fontsize * 100 / 72 * scale
 
 
 @dataclass
@@ -216,10 +244,12 @@ def render_tree(
     there are leaves). Shapes no member could register are in a separate box labelled
     "unattached" below.
     The layout is tidy (see `_layout`): each parent at the mean x of its children, rows that
-    never cross, subtrees packed side by side. Names are written across below their shapes
-    when that keeps the picture at most 2400 px wide by default; otherwise (or when a
-    ``width`` leaves too little room) they stand upright, read downwards from the shape
-    (``label_rotation`` 270), and the shapes of a row are about 30 px apart.
+    never cross, subtrees packed side by side. Names are written across below their shapes,
+    in one line or taking turns on two or three (a name may be that many slots wide), or upright,
+    read downwards from the shape (``label_rotation`` 270, the shapes of a row about 30 px
+    apart): by default whichever shows the names largest once the whole picture is fitted
+    into the results page's tree box (680 x 700 px; a 40-shape glyph tree nine layers deep
+    takes two lines), with a given ``width`` the first of them that fits.
 
     In SVG the tree is the group ``<g id="tree">`` and the box ``<g id="unattached">``; each
     name is a ``<text>`` in a group ``node-<shape_id>`` (``unattached-<shape_id>``); the
@@ -248,61 +278,83 @@ def render_tree(
         if len(nodes) > 1
         else _chars(shorten(nodes[root].name, NAME_LIMIT))
     )
-    auto_slot = float(min(120, max(34, 7.5 * label_len + 14)))
-    if width:
-        fig_w = width
-    elif _LEFT_PX + _RIGHT_PX + slots * auto_slot <= _WIDE_PX:
-        fig_w = int(max(640, _LEFT_PX + _RIGHT_PX + slots * auto_slot))
-    else:
-        # names side by side would make a very wide picture: they stand upright instead,
-        # and the shapes of a row come closer
-        fig_w = int(min(20_000, max(640, _LEFT_PX + _RIGHT_PX + slots * _UPRIGHT_SLOT_PX)))
-    axes_w = max(fig_w - _LEFT_PX - _RIGHT_PX, 40)
-    slot_px = axes_w / slots
-
-    # labels: horizontal if they fit their slot, else vertical, shrinking down to 4 pt
-    fontsize, rotation = 9.0, 0
-    while fontsize > 4 and _text_px(label_len, fontsize, dpi) > 0.92 * slot_px:
-        if rotation == 0 and 1.4 * fontsize * dpi / 72 < 0.9 * slot_px:
-            rotation = 270  # upright, read downwards from the node
-            break
-        fontsize -= 0.5
-    label_px = (_text_px(label_len, fontsize, dpi) if rotation else 1.4 * fontsize * dpi / 72) + 10
-
     u_len = max((_chars(shorten(n, NAME_LIMIT)) for _, n in unattached), default=0.0)
-    u_fontsize = min(9.0, fontsize + 1)
-    u_slot = max(34.0, _text_px(u_len, u_fontsize, dpi) + 16)
-    per_row = max(1, int(axes_w // u_slot))
-    u_rows = math.ceil(len(unattached) / per_row) if unattached else 0
-    u_box = 34 + 30 * u_rows if unattached else 0
     leaves = [n for n in nodes.values() if n.leaf and n.parent is not None]
     top_px = _TOP_PX + (_LEGEND_PX if leaves else 0)
+    # each shape's line of names in its row: names written across in two lines take turns
+    # (by x within the row), so that a name may be as wide as two slots
+    rank: dict[int, int] = {}
+    for layer in layers:
+        in_row = sorted((n for n in nodes.values() if n.layer == layer), key=lambda n: n.x)
+        rank.update({n.shape_id: i for i, n in enumerate(in_row)})
 
-    # each row's names hang below it (the model's goes above): a row is as far below the
-    # previous one as that row's longest name needs, so short names make short gaps
-    row_label_px = [0.0] * len(layers)
-    for node in nodes.values():
-        if node.parent is None:
-            continue
-        chars = _chars(shorten(node.name, NAME_LIMIT))
-        need = (_text_px(chars, fontsize, dpi) if rotation else 1.4 * fontsize * dpi / 72) + 10
-        i = layer_index[node.layer]
-        row_label_px[i] = max(row_label_px[i], need)
-    # ... and a wide fan of edges gets some height, so that its edges can be told apart
-    fan_px = [0.0] * len(layers)
-    for node in nodes.values():
-        if node.parent is not None:
-            parent = nodes[node.parent]
-            i = layer_index[parent.layer]
-            fan_px[i] = max(fan_px[i], abs(node.x - parent.x) * slot_px)
-    row_y = [0.0]  # in pixels, downwards from the model's row
-    for i in range(len(layers) - 1):
-        gap = max(64.0, row_label_px[i] + 42, min(200.0, 0.2 * fan_px[i]))
-        row_y.append(row_y[-1] - gap)
-    below = row_label_px[-1] if len(layers) > 1 else label_px
+    def plan(rotation: int, lines: int, fontsize: float = 9.0) -> _Plan:
+        """The picture's size with names written so (``width``/``height`` as asked)."""
+        text = _text_px(label_len, fontsize, dpi)
+        line_px = 1.4 * fontsize * dpi / 72
+        if width:
+            fig_w = width
+            slot_px = max(width - _LEFT_PX - _RIGHT_PX, 40) / slots
+        else:
+            slot_px = _UPRIGHT_SLOT_PX if rotation else max(34.0, text / (0.92 * lines) + 4)
+        # a name across the last shape of a row reaches past it: room before the colour bar
+        right_px = _RIGHT_PX + (0.0 if rotation else max(0.0, 0.5 * (text - slot_px) + 12))
+        if not width:
+            fig_w = int(min(20_000, max(640, _LEFT_PX + right_px + slots * slot_px)))
+        axes_w = max(fig_w - _LEFT_PX - right_px, 40)
+        slot_px = axes_w / slots
+        u_fontsize = min(9.0, fontsize + 1)
+        u_slot = max(34.0, _text_px(u_len, u_fontsize, dpi) + 16)
+        per_row = max(1, int(axes_w // u_slot))
+        u_rows = math.ceil(len(unattached) / per_row) if unattached else 0
+        u_box = 34 + 30 * u_rows if unattached else 0
+        # each row's names hang below it (the model's goes above): a row is as far below
+        # the previous one as that row's longest name needs, so short names make short gaps
+        row_label_px = [0.0] * len(layers)
+        for node in nodes.values():
+            if node.parent is None:
+                continue
+            chars = _chars(shorten(node.name, NAME_LIMIT))
+            line = rank[node.shape_id] % lines
+            need = (_text_px(chars, fontsize, dpi) if rotation else line_px * (line + 1)) + 10
+            i = layer_index[node.layer]
+            row_label_px[i] = max(row_label_px[i], need)
+        # ... and a wide fan of edges gets some height, so that its edges can be told apart
+        fan_px = [0.0] * len(layers)
+        for node in nodes.values():
+            if node.parent is not None:
+                parent = nodes[node.parent]
+                i = layer_index[parent.layer]
+                fan_px[i] = max(fan_px[i], abs(node.x - parent.x) * slot_px)
+        row_y = [0.0]  # in pixels, downwards from the model's row
+        for i in range(len(layers) - 1):
+            gap = max(64.0, row_label_px[i] + 42, min(200.0, 0.2 * fan_px[i]))
+            row_y.append(row_y[-1] - gap)
+        label_px = (text if rotation else line_px) + 10
+        below = row_label_px[-1] if len(layers) > 1 else label_px
+        tree_px = -row_y[-1] + below + 36
+        fig_h = height or int(min(6000, max(320, top_px + tree_px + u_box + _BOTTOM_PX + 20)))
+        fits = rotation != 0 or text <= 0.92 * lines * slot_px
+        return _Plan(rotation, lines, fontsize, fig_w, fig_h, axes_w, slot_px, row_y, below,
+                     u_fontsize, per_row, u_rows, u_box, fits)  # fmt: skip
+
+    # names: across in one line, taking turns on two or three, or upright, whichever shows
+    # them largest when the whole picture is fitted into the results page's tree box (a narrower
+    # picture wins a tie: it leaves room to zoom); with a given width, the first that fits
+    candidates = [plan(0, 1), plan(0, 2), plan(0, 3), plan(270, 1)]
+    if width:
+        chosen = next(c for c in candidates if c.fits)
+        while chosen.rotation and chosen.fontsize > 4 and 1.4 * chosen.fontsize * dpi / 72 > (
+            0.9 * chosen.slot_px
+        ):
+            chosen = plan(270, 1, chosen.fontsize - 0.5)  # crowded: smaller upright names
+    else:
+        chosen = max(candidates, key=lambda c: (round(c.fitted_px(), 1), -c.fig_w))
+    rotation, fontsize, lines = chosen.rotation, chosen.fontsize, chosen.lines
+    fig_w, fig_h, axes_w, slot_px = chosen.fig_w, chosen.fig_h, chosen.axes_w, chosen.slot_px
+    row_y, below, u_fontsize = chosen.row_y, chosen.below, chosen.u_fontsize
+    per_row, u_rows, u_box = chosen.per_row, chosen.u_rows, chosen.u_box
     above = 1.6 * fontsize * dpi / 72 + 14
-    tree_px = -row_y[-1] + below + 36
-    fig_h = height or int(min(6000, max(320, top_px + tree_px + u_box + _BOTTOM_PX + 20)))
 
     def y_of(node: _Node) -> float:
         return row_y[layer_index[node.layer]]
@@ -404,7 +456,14 @@ def render_tree(
                 # vertical names beside the node, clear of an edge going straight down
                 where = {"xytext": (2, -offset), "ha": "left", "va": "top"}
             else:
-                where = {"xytext": (0, -offset), "ha": "center", "va": "top"}
+                line = rank[node.shape_id] % lines  # a later line is a name lower,
+                drop = offset + 1.4 * fontsize * line
+                where = {"xytext": (0, -drop), "ha": "center", "va": "top"}
+                if line:  # tied to its shape by a faint line
+                    where["arrowprops"] = {
+                        "arrowstyle": "-", "color": "#bbbbbb", "lw": 0.6, "shrinkA": 0,
+                        "shrinkB": 2,
+                    }  # fmt: skip
             text = ax.annotate(
                 label,
                 (node.x, y_of(node)),
@@ -529,6 +588,7 @@ def render_tree(
             "e_range": [norm.vmin, norm.vmax] if segments else None,
             "rows": {layer: row_y[i] for i, layer in enumerate(layers)},
             "label_rotation": rotation,
+            "label_lines": lines,
             "data_to_pixel": data_to_pixel(fig, ax),
             "label_fontsize": fontsize,
             "warnings": warnings,

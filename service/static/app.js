@@ -121,6 +121,7 @@ function renderJobs(total) {
       href: `#/jobs/${job.id}`, class: job.id === openId ? "active" : "", "data-job-id": String(job.id),
     },
     el("div", { class: "title" }, el("span", { class: "name", text: `Job ${job.id}` }), statusBadge(job.status)),
+    el("div", { class: "sub", "data-field": "names", text: jobNames(job) }),
     el("div", { class: "sub", text: `${methodLabel(job.method)} · ${job.n_shapes} shapes · ${fmtTime(job.created_at)}` }));
     if (!TERMINAL.has(job.status)) {
       const p = job.progress || {};
@@ -130,6 +131,13 @@ function renderJobs(total) {
   }
   if (!state.jobs.length) list.append(el("li", { class: "empty", text: "No jobs yet." }));
   if (total > state.jobs.length) list.append(el("li", { class: "empty", text: `${total - state.jobs.length} older not shown` }));
+}
+
+// "collection · model shape": what a job registered, by name (ids when a name is gone)
+function jobNames(job) {
+  const collection = job.collection_name ?? `collection #${job.collection_id}`;
+  const model = job.model_name ?? `#${job.model_shape_id}`;
+  return `${collection} · model ${model}`;
 }
 
 function scheduleListPoll() {
@@ -174,7 +182,15 @@ async function pollJob(token) {
   } catch (e) {
     if (token !== state.loadToken) return;
     if (e.status === 404) {
-      $("ui-job-title").textContent = `Job ${state.route.jobId} not found`;
+      // a clear state for a link to a job this service does not have
+      $("ui-job-title").textContent = `No job ${state.route.jobId}`;
+      $("ui-job-status").replaceChildren(el("span", { class: "status missing", text: "not found", "data-status": "missing" }));
+      const err = $("ui-job-error");
+      err.hidden = false;
+      err.dataset.state = "not-found";
+      err.textContent = `This service has no job ${state.route.jobId}: it was deleted with its `
+        + "collection, or the link comes from another service. Pick a job on the left, or see all jobs.";
+      err.append(" ", el("a", { href: "#/", text: "All jobs" }));
     } else if (e.status !== 401) {
       notice(`Could not read the job: ${e.message}`);
       state.jobTimer = setTimeout(() => pollJob(token), 3 * POLL_MS);

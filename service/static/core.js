@@ -135,11 +135,17 @@ export function setupKeyForm(onKey) {
 }
 
 // --- formatting -----------------------------------------------------------------------------
+// One number format for the whole page: `digits` significant digits, trailing zeros kept, in
+// decimals from 1e-6 to 1e5 (e and D of a job span 1e-6 to 1: "0.00000815", "0.0170", "0.123"
+// line up in a column and compare at a glance) and in exponent form only outside that range.
 export function fmtNum(v, digits = 3) {
   if (v === null || v === undefined || Number.isNaN(v)) return "–";
   if (v === 0) return "0";
   const a = Math.abs(v);
-  if (a >= 1e-3 && a < 1e4) return Number(v.toPrecision(digits)).toString();
+  if (a >= 1e-6 && a < 1e5) {
+    const magnitude = Math.floor(Math.log10(Number(a.toPrecision(digits))));
+    return v.toFixed(Math.max(0, digits - 1 - magnitude));
+  }
   return v.toExponential(digits - 1);
 }
 export function fmtTime(iso) {

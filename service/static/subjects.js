@@ -163,6 +163,7 @@ export function selectSubject(shapeId) {
       number("layer", "1", "layer"),
       number("parent", "– (root)", "parent"));
     $("ui-subject-reason").textContent = "Every other shape is registered from the model, directly or through the tree.";
+    renderBestAttempt(null);
     img.hidden = true;
     state.overlayToken += 1;
     overlayStatus.textContent = "";
@@ -173,6 +174,7 @@ export function selectSubject(shapeId) {
     title.textContent = `Shape ${shapeId}`;
     $("ui-subject-numbers").replaceChildren();
     $("ui-subject-reason").textContent = "This shape is not a subject of this job.";
+    renderBestAttempt(null);
     img.hidden = true;
     overlayStatus.textContent = "";
     return;
@@ -207,10 +209,33 @@ export function selectSubject(shapeId) {
     ? ` Path: ${s.path_shape_ids.map(nameOf).join(" → ")}.`
     : "";
   $("ui-subject-reason").textContent = (s.reason ? `${s.reason}.` : "") + path;
+  renderBestAttempt(attached ? null : bestRejected(s));
   // in the one-column layout the card is under the tree: bring it into view
   const card = $("ui-subject").getBoundingClientRect();
   if (card.top > window.innerHeight - 80) $("ui-subject").scrollIntoView({ block: "start" });
   loadOverlay(shapeId);
+}
+
+// An unattached shape's best rejected registration: the tried one with the lowest e (every
+// attempt registers this same subject, so their e compare like with like).
+export function bestRejected(s) {
+  const tried = (s.attempts || []).filter((a) => !a.accepted && hasNumber(a.error));
+  return tried.length ? tried.reduce((a, b) => (b.error < a.error ? b : a)) : null;
+}
+
+function renderBestAttempt(attempt) {
+  const p = $("ui-subject-attempt");
+  p.hidden = attempt === null;
+  if (attempt === null) { p.replaceChildren(); return; }
+  const from = attempt.member_shape_id ?? null;
+  const member = from === null ? `member ${attempt.member}` : nameOf(from);
+  const limit = hasNumber(attempt.limit) ? ` (its limit ${fmtNum(attempt.limit)})` : "";
+  p.replaceChildren(
+    el("strong", { text: "Best rejected attempt: " }),
+    `from ${member} at layer ${attempt.layer}, e = ${fmtNum(attempt.error)}${limit}`,
+    attempt.reason ? ` — ${attempt.reason}.` : ".",
+  );
+  p.dataset.member = from === null ? "" : String(from);
 }
 
 export async function loadOverlay(shapeId) {

@@ -83,8 +83,11 @@ export async function loadTree(token) {
   tv.unitPx = unitPx;
   makeNodesClickable(imported);
   if (unattachedBox) unattachedBox.remove();
-  // a wide tree takes more of the page's width (before the box is measured)
-  box.closest(".panes").classList.toggle("big-tree", content.w * tv.unitPx > 1200);
+  // a tree wider than its half of the page takes more of the page's width (before the box
+  // is measured), so that it is shown larger when fitted
+  const panes = box.closest(".panes");
+  panes.classList.remove("big-tree");
+  panes.classList.toggle("big-tree", content.w * tv.unitPx > box.clientWidth);
   sizeTreeBox();
   const first = Math.min(fitScale(), 1);
   setView(viewAt(first, content.x + content.w / 2, content.y + content.h / 2));

@@ -257,7 +257,7 @@ def get_export_zip(
             similarity: dict[str, Any] | None = similarity_document(session, job_id)
         except ProblemError:
             similarity = None
-        job_json = job_out(job).model_dump(mode="json")
+        job_json = job_out(session, job).model_dump(mode="json")
         pictures = _pictures(session, job, document, subject_pictures)
     files: dict[str, bytes] = {
         "result.json": json.dumps(document, ensure_ascii=False).encode("utf-8"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request, Response, status
@@ -15,7 +16,9 @@ from service.contract.names import ProblemType
 from service.jobs import callbacks
 from service.jobs.queue import JobQueue, JobRefused, JobSpec, Outcome
 from service.models import (
+    Collection,
     Job,
+    Shape,
     made_from_image,
 )
 from service.schemas import (
@@ -29,13 +32,38 @@ from service.schemas import (
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
 
-def job_out(job: Job) -> JobOut:
+def job_outs(session: Session, jobs: Sequence[Job]) -> list[JobOut]:
+    """The jobs as the API shows them, with their collection's and model shape's names (two
+    queries for the whole list; a name is null once its collection or shape is deleted)."""
+    collection_ids = {j.collection_id for j in jobs}
+    shape_ids = {j.model_shape_id for j in jobs}
+    collections: dict[int, str] = {}
+    shapes: dict[int, str] = {}
+    if collection_ids:
+        query = select(Collection.id, Collection.name).where(Collection.id.in_(collection_ids))
+        collections = {i: name for i, name in session.execute(query).tuples()}
+    if shape_ids:
+        query = select(Shape.id, Shape.name).where(Shape.id.in_(shape_ids))
+        shapes = {i: name for i, name in session.execute(query).tuples()}
+    return [
+        _job_out(j, collections.get(j.collection_id), shapes.get(j.model_shape_id)) for j in jobs
+    ]
+
+
+def job_out(session: Session, job: Job) -> JobOut:
+    """One job as the API shows it (names read through ``session``)."""
+    return job_outs(session, [job])[0]
+
+
+def _job_out(job: Job, collection_name: str | None, model_name: str | None) -> JobOut:
     base = f"/v1/jobs/{job.id}"
     return JobOut.model_validate(
         {
             "id": job.id,
             "collection_id": job.collection_id,
+            "collection_name": collection_name,
             "model_shape_id": job.model_shape_id,
+            "model_name": model_name,
             "method": job.method,
             "params": job.params,
             "n_shapes": len(job.shape_ids),
@@ -165,7 +193,7 @@ def create_job(
                 resource_type="job",
                 resource_ids=[job.id],
             )
-        out = job_out(job)
+        out = job_out(session, job)
     response.headers["Location"] = out.links.self
     return out
 
@@ -190,7 +218,7 @@ def list_jobs(
         jobs = session.scalars(
             query.order_by(Job.id.desc()).limit(page.limit).offset(page.offset)
         ).all()
-        items = [job_out(j) for j in jobs]
+        items = job_outs(session, jobs)
     return Page[JobOut](items=items, total=total, limit=page.limit, offset=page.offset)
 
 
@@ -199,7 +227,7 @@ def list_jobs(
 )
 def get_job(job_id: DbInt, db: DbDep) -> JobOut:
     with db.read() as session:
-        return job_out(_get_job(session, job_id))
+        return job_out(session, _get_job(session, job_id))
 
 
 @router.post(
@@ -222,4 +250,4 @@ def cancel_job(job_id: DbInt, db: DbDep, settings: SettingsDep) -> JobOut:
             raise ProblemError(
                 409, f"job {job_id} already {job.status}", type_=ProblemType.JOB_FINISHED
             )
-        return job_out(job)
+        return job_out(session, job)
