@@ -14,8 +14,16 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from ._fgt import FGT_MAX_RANK, ChebGrid, bounding_box, fgt_ranks
 from ._field import _BLOCK_ELEMS, FloatArray, _gauss_kernel
 
+#: The grid E-step is used when ``(M + N) r_x r_y`` times this is below ``M N`` (the dense
+#: E-step's pairs); measured on fish contours of 1000-8000 points (bench_estep.py).
+FGT_PAIR_COST = 0.5
+#: Cost of one pair of the float32 dense E-step relative to float64 (measured).
+DENSE_PAIR_COST_F32 = 0.6
+#: Cost of one pair of the truncated E-step relative to the float64 dense E-step.
+TRUNCATED_PAIR_COST = 3.0
 #: Relative bound on every posterior changed by the truncated E-step.
 TRUNCATION_EPS = 1e-10
 #: The truncated E-step's neighbour list is built with this multiple of the radius, so it
@@ -24,6 +32,8 @@ TRUNCATION_SKIN = 1.3
 #: ... and rebuilt when its radius exceeds this multiple of the current radius.
 TRUNCATION_SHRINK = 1.8
 _DEN_FLOOR = 1e-300
+#: The final correspondence pass is dense up to this many (model, subject) pairs.
+POSTERIOR_DENSE_MAX_PAIRS = 1 << 21
 
 
 @dataclass
@@ -115,6 +125,38 @@ class _EStep:
         nll += n * math.log(sigma2)  # N D/2 log sigma2, D = 2
         return _EStepOut(p1, pt1, px, nll, m * n)
 
+    # -- grid (fast Gauss transform) ----------------------------------------------------
+    def grid_cost(self, t: FloatArray, sigma2: float) -> float | None:
+        """Estimated cost of :meth:`grid` in dense pairs, or None if its ranks are too
+        large."""
+        rx, ry = fgt_ranks(*bounding_box(t, self.x), math.sqrt(sigma2))
+        if max(rx, ry) > FGT_MAX_RANK:
+            return None
+        return FGT_PAIR_COST * (self.m + self.n) * rx * ry
+
+    def grid(self, t: FloatArray, sigma2: float) -> _EStepOut:
+        """The dense E-step's sums through two Chebyshev-grid Gauss transforms
+        (:mod:`._fgt`): the column sums of the kernel at the subject points, then ``P1`` and
+        ``P X`` at the centroids from the weights ``1 / den`` and ``x / den``."""
+        m, n, x = self.m, self.n, self.x
+        sigma = math.sqrt(sigma2)
+        c = _outlier_const(sigma2, self.w, m, n)
+        grid = ChebGrid(*bounding_box(t, x), sigma)
+        tx, ty = grid.interp(t)
+        xx, xy = grid.interp(x)
+        colsum = grid.gather(xx, xy, grid.spread(tx, ty, np.ones((m, 1))))[:, 0]
+        np.maximum(colsum, 0.0, out=colsum)
+        den = colsum + c
+        np.maximum(den, _DEN_FLOOR, out=den)
+        inv = 1.0 / den
+        q = np.empty((n, 3))
+        q[:, 0] = inv
+        q[:, 1:] = x * inv[:, None]
+        acc = grid.gather(tx, ty, grid.spread(xx, xy, q))
+        nll = -float(np.sum(np.log(den))) + n * math.log(sigma2)
+        return _EStepOut(np.ascontiguousarray(acc[:, 0]), colsum * inv,
+                         np.ascontiguousarray(acc[:, 1:]), nll, 0)
+
     # -- truncated ---------------------------------------------------------------------
     def radius(self, t: FloatArray, sigma2: float) -> float:
         """Truncation radius: dropped terms change no posterior by more than TRUNCATION_EPS.
@@ -201,7 +243,43 @@ class _EStep:
 
 def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float
                    ) -> tuple[NDArray[np.intp], FloatArray]:
-    """For each centroid, ``argmax_n`` and ``max_n`` of ``P(m | x_n)`` (dense, chunked)."""
+    """For each centroid, ``argmax_n`` and ``max_n`` of ``P(m | x_n)``.
+
+    Above :data:`POSTERIOR_DENSE_MAX_PAIRS` pairs, from the pairs within the truncation
+    radius (every posterior within ``TRUNCATION_EPS`` relative of the dense one, every
+    dropped one below ``TRUNCATION_EPS``); centroids with no pair within it take the dense
+    row.  Falls back to the dense pass when the radius holds a quarter of the pairs.
+    """
+    m, n = len(t), len(x)
+    if m * n <= POSTERIOR_DENSE_MAX_PAIRS:
+        return _posterior_max_dense(t, x, sigma2, w)
+    est = _EStep(x, m, w, "float64")
+    r = est.radius(t, sigma2)
+    pairs = cKDTree(t).sparse_distance_matrix(est.tree_x, r, output_type="ndarray")
+    if len(pairs) > 0.25 * m * n:
+        return _posterior_max_dense(t, x, sigma2, w)
+    i = pairs["i"].astype(np.intp)
+    j = pairs["j"].astype(np.intp)
+    e = np.exp(-0.5 / sigma2 * pairs["v"] ** 2)
+    den = np.bincount(j, weights=e, minlength=n) + _outlier_const(sigma2, w, m, n)
+    np.maximum(den, _DEN_FLOOR, out=den)
+    p = e / den[j]
+    order = np.lexsort((-p, i))
+    first = order[np.r_[True, i[order][1:] != i[order][:-1]]] if len(order) else order
+    best = np.zeros(m)
+    arg = np.zeros(m, dtype=np.intp)
+    best[i[first]] = p[first]
+    arg[i[first]] = j[first]
+    lone = np.setdiff1d(np.arange(m), i[first])
+    if len(lone):
+        rows = _gauss_kernel(t[lone], x, math.sqrt(sigma2)) / den
+        arg[lone] = np.argmax(rows, axis=1)
+        best[lone] = rows[np.arange(len(lone)), arg[lone]]
+    return arg, np.clip(best, 0.0, 1.0)
+
+
+def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float
+                         ) -> tuple[NDArray[np.intp], FloatArray]:
     m, n = len(t), len(x)
     c = _outlier_const(sigma2, w, m, n)
     best = np.full(m, -1.0)
@@ -219,3 +297,27 @@ def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float
         best[better] = v[better]
         arg[better] = k[better] + a
     return arg, np.clip(best, 0.0, 1.0)
+
+
+def run_estep(estep: _EStep, t: FloatArray, sigma2: float, truncate: bool | None,
+              gauss_grid: bool | None, sample: NDArray[np.intp]) -> _EStepOut:
+    """One E-step by the cheapest method allowed: truncated (``truncate``), grid
+    (``gauss_grid``) or dense; ``None`` lets the estimated cost decide, ``True`` forces a
+    method where it applies (truncation first), ``False`` rules it out."""
+    m, n = estep.m, estep.n
+    dense_cost = m * n * (DENSE_PAIR_COST_F32 if estep.dtype == np.float32 else 1.0)
+    grid_cost = estep.grid_cost(t, sigma2) if gauss_grid is not False else None
+    if truncate is not False and (estep.w > 0 or truncate):
+        r = estep.radius(t, sigma2)
+        use = bool(truncate) or estep._list_valid(t, r)
+        if not use and not gauss_grid:
+            dens = estep.density(t, TRUNCATION_SKIN * r, sample)
+            use = dens < estep.max_density and (
+                grid_cost is None or TRUNCATED_PAIR_COST * dens * m * n < grid_cost)
+        if use:
+            out = estep.truncated(t, sigma2, r)
+            if out is not None:
+                return out
+    if grid_cost is not None and (gauss_grid or grid_cost < dense_cost):
+        return estep.grid(t, sigma2)
+    return estep.dense(t, sigma2)
