@@ -11,15 +11,19 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import scipy.sparse
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from ._fgt import FGT_MAX_RANK, ChebGrid, bounding_box, fgt_ranks
 from ._field import _BLOCK_ELEMS, FloatArray, _gauss_kernel
 
-#: The grid E-step is used when ``(M + N) r_x r_y`` times this is below ``M N`` (the dense
-#: E-step's pairs); measured on fish contours of 1000-8000 points (bench_estep.py).
-FGT_PAIR_COST = 0.5
+#: Cost of the grid E-step per point and grid node (``(M + N) r_x r_y`` of them), in units
+#: of one pair of the float64 dense E-step (fitted on fish contours of 1000 and 4000
+#: points at sigma 0.08-0.6, ranks 550-10000 nodes).
+FGT_NODE_COST = 0.06
+#: ... plus this per point (interpolation weights), in the same units.
+FGT_POINT_COST = 72.0
 #: Cost of one pair of the float32 dense E-step relative to float64 (measured).
 DENSE_PAIR_COST_F32 = 0.6
 #: Cost of one pair of the truncated E-step relative to the float64 dense E-step.
@@ -70,6 +74,7 @@ class _EStep:
         self._pi: NDArray[np.intp] | None = None
         self._pj: NDArray[np.intp] | None = None
         self._xj: FloatArray | None = None
+        self._kmat: scipy.sparse.csr_matrix | None = None
         self._t_build: FloatArray | None = None
         self._r_build = 0.0
 
@@ -132,7 +137,7 @@ class _EStep:
         rx, ry = fgt_ranks(*bounding_box(t, self.x), math.sqrt(sigma2))
         if max(rx, ry) > FGT_MAX_RANK:
             return None
-        return FGT_PAIR_COST * (self.m + self.n) * rx * ry
+        return (self.m + self.n) * (FGT_NODE_COST * rx * ry + FGT_POINT_COST)
 
     def grid(self, t: FloatArray, sigma2: float) -> _EStepOut:
         """The dense E-step's sums through two Chebyshev-grid Gauss transforms
@@ -198,27 +203,28 @@ class _EStep:
         if not self._list_valid(t, r):
             if not self._build_list(t, TRUNCATION_SKIN * r):
                 return None
-        i, j, xj = self._pi, self._pj, self._xj
-        assert i is not None and j is not None and xj is not None
+        i, j, xj, kmat = self._pi, self._pj, self._xj, self._kmat
+        assert i is not None and j is not None and xj is not None and kmat is not None
         c = _outlier_const(sigma2, self.w, m, n)
         ti = t[i]
         ti -= xj
-        np.square(ti, out=ti)
-        e = ti[:, 0] + ti[:, 1]
-        e *= -0.5 / sigma2
+        e64 = np.einsum("ij,ij->i", ti, ti)
+        e64 *= -0.5 / sigma2
+        e = e64.astype(self.dtype, copy=False)
         np.exp(e, out=e)
+        kmat.data = e  # the kernel on the listed pairs, rows sorted by centroid
         colsum = np.bincount(j, weights=e, minlength=n)
         den = colsum + c
         np.maximum(den, _DEN_FLOOR, out=den)
         inv = 1.0 / den
-        e *= inv[j]  # e is now P on the listed pairs
-        p1: FloatArray = np.bincount(i, weights=e, minlength=m).astype(np.float64)
-        px = np.empty((m, 2))
-        px[:, 0] = np.bincount(i, weights=e * xj[:, 0], minlength=m)
-        px[:, 1] = np.bincount(i, weights=e * xj[:, 1], minlength=m)
+        rhs = np.empty((n, 3), dtype=self.dtype)
+        rhs[:, 0] = inv
+        rhs[:, 1:] = self.x * inv[:, None]
+        acc = np.asarray(kmat @ rhs, dtype=np.float64)
         pt1 = colsum * inv
         nll = -float(np.sum(np.log(den))) + n * math.log(sigma2)
-        return _EStepOut(p1, pt1, px, nll, len(e))
+        return _EStepOut(np.ascontiguousarray(acc[:, 0]), pt1,
+                         np.ascontiguousarray(acc[:, 1:]), nll, len(e))
 
     def _list_valid(self, t: FloatArray, r: float) -> bool:
         if self._pi is None or self._t_build is None:
@@ -233,9 +239,15 @@ class _EStep:
         if len(pairs) > self.max_density * self.m * self.n and not self.force_truncate:
             self._pi = None
             return False
-        self._pi = pairs["i"].astype(np.intp)
-        self._pj = pairs["j"].astype(np.intp)
+        order = np.argsort(pairs["i"], kind="stable")
+        self._pi = pairs["i"][order].astype(np.intp)
+        self._pj = pairs["j"][order].astype(np.intp)
         self._xj = self.x[self._pj]
+        indptr = np.zeros(self.m + 1, dtype=np.intp)
+        np.cumsum(np.bincount(self._pi, minlength=self.m), out=indptr[1:])
+        self._kmat = scipy.sparse.csr_matrix(
+            (np.zeros(len(order), dtype=self.dtype), self._pj, indptr),
+            shape=(self.m, self.n))
         self._t_build = t.copy()
         self._r_build = r_build
         return True

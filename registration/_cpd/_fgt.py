@@ -33,7 +33,7 @@ from ._field import FloatArray
 FGT_ABS_TOL = 1e-10
 #: Largest Chebyshev rank per axis (the transform is not worth it beyond: the caller uses
 #: another E-step when :func:`fgt_ranks` exceeds it).
-FGT_MAX_RANK = 160
+FGT_MAX_RANK = 400
 
 
 def cheb_rank(length_over_sigma: float, extra: int = 0) -> int:
