@@ -13,8 +13,9 @@ iteration (wall clock), "E cpu" the same in this process's CPU time (BLAS runs o
 thread, so it is the work done, less sensitive to a loaded machine), "all ms/it" the whole
 run's wall time per iteration (kernel, M-step, final correspondences included), "trunc" how
 many iterations took the truncated (sparse) E-step, "grid" how many the Chebyshev-grid
-Gauss transform, "all cpu" the whole run's CPU time per iteration, "k(all)" its growth.  "dense cpu" is one dense E-step at the
-initial sigma^2 in CPU ms, the best of 3: what every iteration costs without truncation.
+Gauss transform, "all cpu" the whole run's CPU time per iteration, "k(all)" its growth.
+"dense cpu" is one dense E-step at the initial sigma^2 in CPU ms, the best of 3: what every
+iteration costs without truncation.
 The growth exponents compare each size with the previous one (CPU time ~ n^k); issue 9 asks
 for <= 1.3 per iteration from 1000 to 8000.  Compare runs made side by side.  The fish
 contours are looked up like bench_cpd.py does (``$REGTREE_DATA``, e.g. /work/shared/data).

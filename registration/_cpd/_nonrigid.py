@@ -32,8 +32,9 @@ SIGMA2_FLOOR_REL = 1e-8
 #: per-iteration Cholesky against the one-off randomised eigendecomposition; bench_cpd.py).
 AUTO_LOW_RANK_MIN_M = 150
 #: Automatic truncation switches on when the estimated fraction of (model, subject) pairs
-#: within the truncation radius is below this (dense float64 / float32 E-step).
-AUTO_TRUNCATE_MAX_DENSITY = {"float64": 0.15, "float32": 0.05}
+#: within the truncation radius is below this (dense float64 / float32 E-step): the
+#: truncated E-step's cost per pair over the dense one's (``_estep.TRUNCATED_PAIR_COST``).
+AUTO_TRUNCATE_MAX_DENSITY = {"float64": 0.6, "float32": 0.45}
 #: BLAS threads used during a call (via threadpoolctl when it is installed; ``None`` leaves
 #: the BLAS alone).  The heavy BLAS calls here are memory-bound products with 3-4 columns,
 #: which gain little from threads, while a threaded OpenBLAS on an oversubscribed machine
@@ -190,7 +191,7 @@ def cpd_nonrigid(
         Truncated (sparse) E-step: only pairs within a radius of roughly 9 sigma are
         evaluated, chosen so that no posterior changes by more than ``1e-10`` relatively
         (see ``_EStep.radius``).  ``None``: used on iterations where a cheap sample estimates
-        that less than 15% (float64) / 5% (float32) of the pairs lie within the radius.
+        that less than 60% (float64) / 45% (float32) of the pairs lie within the radius.
     backend : {"native", "pycpd"}, default "native"
         ``"pycpd"`` runs ``pycpd.DeformableRegistration`` (alpha=lmbda, beta, w, tolerance,
         max_iterations, sigma2) on the same normalised data as a reference.  Its stopping
