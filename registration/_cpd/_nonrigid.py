@@ -182,8 +182,9 @@ def cpd_nonrigid(
         Use the low-rank kernel ``G ~= U U^T`` and the Woodbury M-step.  ``None``: on when
         ``M > AUTO_LOW_RANK_MIN_M`` (150).
     num_eig : int, optional
-        Rank of the low-rank kernel.  ``None``: keep every eigenvalue above
-        ``1e-12 * lambda_max`` (numerically the exact kernel).
+        Rank of the low-rank kernel.  ``None``: a pivoted Cholesky factor of ``G`` (never
+        formed) grown until the trace of what it leaves out is ``<= 1e-12 M`` (numerically
+        the exact kernel; ``O(M k^2)``).
     dtype : {"float64", "float32"}, default "float64"
         Precision of the dense E-step's exponentials and products (exponents are always
         formed in float64; the M-step is always float64).
@@ -191,12 +192,22 @@ def cpd_nonrigid(
         Truncated (sparse) E-step: only pairs within a radius of roughly 9 sigma are
         evaluated, chosen so that no posterior changes by more than ``1e-10`` relatively
         (see ``_EStep.radius``).  ``None``: used on iterations where a cheap sample estimates
-        that less than 60% (float64) / 45% (float32) of the pairs lie within the radius.
+        that less than 60% (float64) / 45% (float32) of the pairs lie within the radius
+        and the truncated E-step is estimated cheaper than the grid E-step.
+    gauss_grid : bool, optional
+        Grid E-step: the E-step's sums through a Chebyshev-grid fast Gauss transform
+        (``registration._cpd._fgt``), ``O((M + N) r^2)`` with ``r`` nodes per axis growing
+        as the bounding box over sigma, so it pays while sigma is wide.  Every kernel value
+        is interpolated to about ``1e-10`` absolute (the peak is 1), so the sums ``P1``,
+        ``Pt1``, ``P X`` match the dense ones to ``1e-8`` relative (tests check it).
+        ``None``: used on iterations where its estimated cost is below the dense and the
+        truncated E-step's.  ``True``: whenever its grid stays under 400 nodes per axis.
     backend : {"native", "pycpd"}, default "native"
         ``"pycpd"`` runs ``pycpd.DeformableRegistration`` (alpha=lmbda, beta, w, tolerance,
         max_iterations, sigma2) on the same normalised data as a reference.  Its stopping
         rule is pycpd's (``|sigma2 - sigma2_old| <= tol``) and its callback objective is
-        that difference.  ``low_rank``, ``num_eig``, ``dtype`` and ``truncate`` are ignored.
+        that difference.  ``low_rank``, ``num_eig``, ``dtype``, ``truncate`` and
+        ``gauss_grid`` are ignored.
     callback : callable, optional
         ``callback(iteration, sigma2, objective)`` after every iteration (``iteration``
         counts from 1, ``sigma2`` in caller units squared, ``objective`` in normalised
@@ -224,8 +235,11 @@ def cpd_nonrigid(
       sigma^2, the previous (finite) iterate is kept and the run stops with
       ``converged=False``.  The result never contains NaN.
     * Tolerances of the accelerations against dense float64 (measured, tests check them):
-      low-rank (automatic rank) and truncation change the warped points by less than
-      ``1e-6`` of the subject's RMS radius; float32 by less than ``1e-4``.
+      low-rank (automatic rank), truncation and the grid E-step change the warped points
+      by less than ``1e-6`` of the subject's RMS radius; float32 by less than ``1e-4``.
+      Without a dense ``G`` (low rank) the final ``G W`` also comes from the grid
+      transform (about ``1e-13`` per kernel value), and the final correspondences from
+      the pairs within the truncation radius (same argmax and maximum as the dense pass).
       ``transform.apply(model)`` equals ``warped`` to ``1e-8`` relative in every mode.
     """
     with _blas_limit():
@@ -279,7 +293,7 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
 
     use_low_rank = (m > AUTO_LOW_RANK_MIN_M) if low_rank is None else bool(low_rank)
     basis = _low_rank_factor(y, beta, num_eig) if use_low_rank else None
-    g = None if use_low_rank else _gauss_kernel(y, y, beta)
+    gk: FloatArray | None = None if use_low_rank else _gauss_kernel(y, y, beta)
 
     estep = _EStep(x, m, w, dtype)
     estep.force_truncate = bool(truncate)
@@ -308,9 +322,9 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
             w_new, disp = _mstep_low_rank(basis[0], basis[1], y, est, reg)
             t_new = y + disp
         else:
-            assert g is not None
-            w_new = _mstep_dense(g, y, est, reg)
-            t_new = y + g @ w_new
+            assert gk is not None
+            w_new = _mstep_dense(gk, y, est, reg)
+            t_new = y + gk @ w_new
         np_sum = float(np.sum(est.p1))
         s2_new = abs(float(np.dot(est.pt1, estep.xsq))
                      + float(np.dot(est.p1, np.einsum("ij,ij->i", t_new, t_new)))
@@ -329,7 +343,7 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
             converged = True
             break
 
-    return _finish(x, y, wmat=wmat, g=g, s2=s2, w=w, beta=beta, xd=xd, xs=xs,
+    return _finish(x, y, wmat=wmat, g=gk, s2=s2, w=w, beta=beta, xd=xd, xs=xs,
                    yd=yd, ys=ys, iterations=it, converged=converged, objective=objective)
 
 
