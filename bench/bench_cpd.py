@@ -178,7 +178,7 @@ def main() -> None:
     impls: list[tuple[str, Runner | str, int]] = [
         ("ours (auto: low-rank + truncation)", ours(), args.repeat),
         ("ours float32 (auto)", ours(dtype="float32"), args.repeat),
-        ("ours float32, no grid (issue 9 before)", ours(dtype="float32", gauss_grid=False),
+        ("ours float32, gauss_grid=False", ours(dtype="float32", gauss_grid=False),
          args.repeat),
         ("ours dense f64 (no low-rank, no trunc)", ours(low_rank=False, truncate=False), 1),
         ("ours low-rank only", ours(truncate=False), args.repeat),
