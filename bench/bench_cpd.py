@@ -167,6 +167,8 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=1000)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="skip pycpd in fixed mode")
+    ap.add_argument("--only", nargs="+", metavar="PREFIX",
+                    help="run only implementations whose name starts with one of these")
     args = ap.parse_args()
 
     shapes, note = load_shapes(args.pairs, args.points)
@@ -176,6 +178,8 @@ def main() -> None:
     impls: list[tuple[str, Runner | str, int]] = [
         ("ours (auto: low-rank + truncation)", ours(), args.repeat),
         ("ours float32 (auto)", ours(dtype="float32"), args.repeat),
+        ("ours float32, gauss_grid=False", ours(dtype="float32", gauss_grid=False),
+         args.repeat),
         ("ours dense f64 (no low-rank, no trunc)", ours(low_rank=False, truncate=False), 1),
         ("ours low-rank only", ours(truncate=False), args.repeat),
         ("pycpd 2.0.0", run_pycpd, 1),
@@ -184,12 +188,15 @@ def main() -> None:
         ("probreg", probreg_runner(), 1),
     ]
 
+    if args.only:
+        impls = [i for i in impls if i[0].startswith(tuple(args.only))]
+
     for mode in ("fixed", "default"):
         fixed = mode == "fixed"
         print(f"\n== mode: {mode} "
               + ("(150 iterations, tol=0)" if fixed else "(each implementation's default stop)"))
         header = (f"{'implementation':40s} {'ms/iter':>9s} {'total ms':>10s} {'iters':>7s} "
-                  f"{'gt err %':>9s} {'pycpd/ours':>11s}")
+                  f"{'gt err %':>9s} {'pycpd/ours':>11s} {'t/rustcpd':>9s}")
         print(header)
         print("-" * len(header))
         rows: dict[str, tuple[float, float, float, float]] = {}
@@ -214,9 +221,12 @@ def main() -> None:
             rows[name] = (tot / its * 1e3, tot / npair * 1e3, its / npair,
                           100 * float(np.mean(errs)))
         ref = rows.get("pycpd 2.0.0")
+        rust = rows.get("rustcpd (default low_rank=300)")
         for name, (msit, total, mean_its, err) in rows.items():
             ratio = f"{ref[0] / msit:10.1f}x" if ref else "n/a"
-            print(f"{name:40s} {msit:9.2f} {total:10.1f} {mean_its:7.1f} {err:9.3f} {ratio:>11s}")
+            vs_rust = f"{total / rust[1]:8.3f}x" if rust else "n/a"
+            print(f"{name:40s} {msit:9.2f} {total:10.1f} {mean_its:7.1f} {err:9.3f} {ratio:>11s} "
+                  f"{vs_rust:>9s}")
 
 
 if __name__ == "__main__":

@@ -12,8 +12,10 @@ the truncation decisions (radius, density estimate).  "E ms/it" is that time per
 iteration (wall clock), "E cpu" the same in this process's CPU time (BLAS runs on one
 thread, so it is the work done, less sensitive to a loaded machine), "all ms/it" the whole
 run's wall time per iteration (kernel, M-step, final correspondences included), "trunc" how
-many iterations took the truncated (sparse) E-step.  "dense cpu" is one dense E-step at the
-initial sigma^2 in CPU ms, the best of 3: what every iteration costs without truncation.
+many iterations took the truncated (sparse) E-step, "grid" how many the Chebyshev-grid
+Gauss transform, "all cpu" the whole run's CPU time per iteration, "k(all)" its growth.
+"dense cpu" is one dense E-step at the initial sigma^2 in CPU ms, the best of 3: what every
+iteration costs without truncation.
 The growth exponents compare each size with the previous one (CPU time ~ n^k); issue 9 asks
 for <= 1.3 per iteration from 1000 to 8000.  Compare runs made side by side.  The fish
 contours are looked up like bench_cpd.py does (``$REGTREE_DATA``, e.g. /work/shared/data).
@@ -42,13 +44,13 @@ from registration import cpd_nonrigid  # noqa: E402
 from registration._cpd import _estep  # noqa: E402
 from registration._cpd._nonrigid import _blas_limit  # noqa: E402
 
-ESTEP_METHODS = ("dense", "truncated", "radius", "density", "_list_valid")
+ESTEP_METHODS = ("dense", "truncated", "grid", "radius", "density", "_list_valid", "grid_cost")
 
 
 @contextmanager
 def timed_estep() -> Iterator[dict[str, float]]:
     """Time every call of the E-step's methods while the block runs."""
-    spent = {"seconds": 0.0, "cpu": 0.0, "truncated": 0}
+    spent = {"seconds": 0.0, "cpu": 0.0, "truncated": 0, "grid": 0}
     originals = {name: getattr(_estep._EStep, name) for name in ESTEP_METHODS}
 
     def wrap(name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -59,8 +61,8 @@ def timed_estep() -> Iterator[dict[str, float]]:
             finally:
                 spent["seconds"] += time.perf_counter() - t
                 spent["cpu"] += time.process_time() - c
-            if name == "truncated" and out is not None:
-                spent["truncated"] += 1
+            if name in ("truncated", "grid") and out is not None:
+                spent[name] += 1
             return out
         return timed
 
@@ -104,33 +106,36 @@ def main() -> None:
     print(f"CPD E-step per iteration, tol=0, {args.iters} iterations, beta={BETA}, "
           f"lambda={LMBDA}, w={W}")
     header = (f"{'dtype':8} {'points':>6} {'E ms/it':>8} {'E cpu':>8} {'all ms/it':>9} "
-              f"{'E share':>7} {'trunc':>7} {'dense cpu':>9} {'k(E cpu)':>8} {'k(dense)':>8} "
-              f"{'gt err %':>8}")
+              f"{'all cpu':>8} {'E share':>7} {'trunc':>7} {'grid':>4} {'dense cpu':>9} "
+              f"{'k(E cpu)':>8} {'k(all)':>6} {'k(dense)':>8} {'gt err %':>8}")
     for dtype in args.dtypes:
         print(header)
-        prev: tuple[int, float, float] | None = None
+        prev: tuple[int, float, float, float] | None = None
         for size in args.sizes:
             shapes, source = load_shapes(1, size)
             model, subject, truth, scale = make_pair(shapes[0], seed=0)
             dense = dense_once(model, subject, dtype)
             with timed_estep() as spent:
-                t = time.perf_counter()
+                t, c = time.perf_counter(), time.process_time()
                 res = cpd_nonrigid(model, subject, beta=BETA, lmbda=LMBDA, w=W, tol=0.0,
                                    max_iter=args.iters, dtype=dtype)
                 total = time.perf_counter() - t
+                all_cpu = (time.process_time() - c) / res.iterations
             per_it = spent["seconds"] / res.iterations
             cpu_it = spent["cpu"] / res.iterations
             err = float(np.mean(np.linalg.norm(res.warped - truth, axis=1))) / scale * 100
-            k_it = k_dense = "-"
+            k_it = k_all = k_dense = "-"
             if prev is not None:
                 ratio = math.log(size / prev[0])
                 k_it = f"{math.log(cpu_it / prev[1]) / ratio:.2f}"
                 k_dense = f"{math.log(dense / prev[2]) / ratio:.2f}"
+                k_all = f"{math.log(all_cpu / prev[3]) / ratio:.2f}"
             print(f"{dtype:8} {size:>6} {per_it * 1e3:>8.2f} {cpu_it * 1e3:>8.2f} "
-                  f"{total / res.iterations * 1e3:>9.2f} {spent['seconds'] / total:>7.0%} "
-                  f"{spent['truncated']:>3}/{res.iterations:<3} {dense * 1e3:>9.2f} {k_it:>8} "
-                  f"{k_dense:>8} {err:>8.3f}")
-            prev = (size, cpu_it, dense)
+                  f"{total / res.iterations * 1e3:>9.2f} {all_cpu * 1e3:>8.2f} "
+                  f"{spent['seconds'] / total:>7.0%} "
+                  f"{spent['truncated']:>3}/{res.iterations:<3} {spent['grid']:>4} "
+                  f"{dense * 1e3:>9.2f} {k_it:>8} {k_all:>6} {k_dense:>8} {err:>8.3f}")
+            prev = (size, cpu_it, dense, all_cpu)
     print(f"data: {source}")
 
 

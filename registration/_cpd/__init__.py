@@ -2,18 +2,23 @@
 
 This package implements the Gaussian-RBF non-rigid CPD of the reference MATLAB code
 (``cpd_GRBF.m`` called from ``cpd_register.m``) with the same defaults and stopping rule,
-plus three optional accelerations, each exact to within a stated tolerance of the dense
+plus four optional accelerations, each exact to within a stated tolerance of the dense
 float64 computation:
 
 * a vectorised, chunked E-step: the exponents ``-|x - t|^2 / (2 sigma^2)`` of one block of
   subject points come out of a single BLAS product of augmented 4-column matrices (no
   ``M x N x D`` temporary), the exponential is taken in place, and ``P1``, ``Pt1`` and ``P X``
   come out of one more product, without ever normalising ``P`` explicitly;
-* a low-rank kernel ``G ~= U U^T`` (randomised eigendecomposition, rank chosen from the
-  spectrum) with the Woodbury M-step of the paper's fast variant;
+* a low-rank kernel ``G ~= U U^T`` (pivoted Cholesky without forming ``G``, rank chosen
+  by a trace tolerance) with the Woodbury M-step of the paper's fast variant;
+* a grid E-step while sigma is wide: a Chebyshev-grid fast Gauss transform
+  (:mod:`._fgt`), linear in the points;
 * a truncated E-step once sigma is small: only pairs closer than a radius derived from a
-  rigorous bound on the dropped mass are evaluated (``scipy.spatial.cKDTree``), giving a
-  sparse ``P``.
+  rigorous bound on the dropped mass are evaluated (``scipy.spatial.cKDTree`` pairs kept
+  as a CSR kernel while the centroids move little), giving a sparse ``P``.
+
+The cheapest allowed E-step is chosen on every iteration from estimated costs
+(``_estep.run_estep``).
 
 Conventions: ``model`` is ``Y`` in the CPD paper (M x 2, the GMM centroids, the set that
 moves) and ``subject`` is ``X`` (N x 2, the data).  The kernel is

@@ -17,7 +17,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._executor import checkpoint
 from .._points import as_points
-from ._estep import TRUNCATION_SKIN, _EStep, _EStepOut, _posterior_max
+from ._estep import _EStep, _posterior_max, run_estep
+from ._fgt import gauss_transform
 from ._field import FloatArray, NonrigidTransform, _gauss_kernel
 from ._mstep import _low_rank_factor, _mstep_dense, _mstep_low_rank
 from ._options import CPDOptions, check_run_options
@@ -31,8 +32,9 @@ SIGMA2_FLOOR_REL = 1e-8
 #: per-iteration Cholesky against the one-off randomised eigendecomposition; bench_cpd.py).
 AUTO_LOW_RANK_MIN_M = 150
 #: Automatic truncation switches on when the estimated fraction of (model, subject) pairs
-#: within the truncation radius is below this (dense float64 / float32 E-step).
-AUTO_TRUNCATE_MAX_DENSITY = {"float64": 0.15, "float32": 0.05}
+#: within the truncation radius is below this (dense float64 / float32 E-step): the
+#: truncated E-step's cost per pair over the dense one's (``_estep.TRUNCATED_PAIR_COST``).
+AUTO_TRUNCATE_MAX_DENSITY = {"float64": 0.6, "float32": 0.45}
 #: BLAS threads used during a call (via threadpoolctl when it is installed; ``None`` leaves
 #: the BLAS alone).  The heavy BLAS calls here are memory-bound products with 3-4 columns,
 #: which gain little from threads, while a threaded OpenBLAS on an oversubscribed machine
@@ -139,6 +141,7 @@ def cpd_nonrigid(
     num_eig: int | None = None,
     dtype: str = "float64",
     truncate: bool | None = None,
+    gauss_grid: bool | None = None,
     backend: Literal["native", "pycpd"] = "native",
     callback: Callable[[int, float, float], None] | None = None,
 ) -> CPDResult:
@@ -179,8 +182,9 @@ def cpd_nonrigid(
         Use the low-rank kernel ``G ~= U U^T`` and the Woodbury M-step.  ``None``: on when
         ``M > AUTO_LOW_RANK_MIN_M`` (150).
     num_eig : int, optional
-        Rank of the low-rank kernel.  ``None``: keep every eigenvalue above
-        ``1e-12 * lambda_max`` (numerically the exact kernel).
+        Rank of the low-rank kernel.  ``None``: a pivoted Cholesky factor of ``G`` (never
+        formed) grown until the trace of what it leaves out is ``<= 1e-12 M`` (numerically
+        the exact kernel; ``O(M k^2)``).
     dtype : {"float64", "float32"}, default "float64"
         Precision of the dense E-step's exponentials and products (exponents are always
         formed in float64; the M-step is always float64).
@@ -188,12 +192,22 @@ def cpd_nonrigid(
         Truncated (sparse) E-step: only pairs within a radius of roughly 9 sigma are
         evaluated, chosen so that no posterior changes by more than ``1e-10`` relatively
         (see ``_EStep.radius``).  ``None``: used on iterations where a cheap sample estimates
-        that less than 15% (float64) / 5% (float32) of the pairs lie within the radius.
+        that less than 60% (float64) / 45% (float32) of the pairs lie within the radius
+        and the truncated E-step is estimated cheaper than the grid E-step.
+    gauss_grid : bool, optional
+        Grid E-step: the E-step's sums through a Chebyshev-grid fast Gauss transform
+        (``registration._cpd._fgt``), ``O((M + N) r^2)`` with ``r`` nodes per axis growing
+        as the bounding box over sigma, so it pays while sigma is wide.  Every kernel value
+        is interpolated to about ``1e-10`` absolute (the peak is 1), so the sums ``P1``,
+        ``Pt1``, ``P X`` match the dense ones to ``1e-8`` relative (tests check it).
+        ``None``: used on iterations where its estimated cost is below the dense and the
+        truncated E-step's.  ``True``: whenever its grid stays under 400 nodes per axis.
     backend : {"native", "pycpd"}, default "native"
         ``"pycpd"`` runs ``pycpd.DeformableRegistration`` (alpha=lmbda, beta, w, tolerance,
         max_iterations, sigma2) on the same normalised data as a reference.  Its stopping
         rule is pycpd's (``|sigma2 - sigma2_old| <= tol``) and its callback objective is
-        that difference.  ``low_rank``, ``num_eig``, ``dtype`` and ``truncate`` are ignored.
+        that difference.  ``low_rank``, ``num_eig``, ``dtype``, ``truncate`` and
+        ``gauss_grid`` are ignored.
     callback : callable, optional
         ``callback(iteration, sigma2, objective)`` after every iteration (``iteration``
         counts from 1, ``sigma2`` in caller units squared, ``objective`` in normalised
@@ -221,26 +235,31 @@ def cpd_nonrigid(
       sigma^2, the previous (finite) iterate is kept and the run stops with
       ``converged=False``.  The result never contains NaN.
     * Tolerances of the accelerations against dense float64 (measured, tests check them):
-      low-rank (automatic rank) and truncation change the warped points by less than
-      ``1e-6`` of the subject's RMS radius; float32 by less than ``1e-4``.
+      low-rank (automatic rank), truncation and the grid E-step change the warped points
+      by less than ``1e-6`` of the subject's RMS radius; float32 by less than ``1e-4``.
+      Without a dense ``G`` (low rank) the final ``G W`` also comes from the grid
+      transform (about ``1e-13`` per kernel value), and the final correspondences from
+      the pairs within the truncation radius (same argmax and maximum as the dense pass).
       ``transform.apply(model)`` equals ``warped`` to ``1e-8`` relative in every mode.
     """
     with _blas_limit():
         return _cpd_nonrigid(model, subject, beta=beta, lmbda=lmbda, w=w, tol=tol,
                              max_iter=max_iter, sigma2=sigma2, normalize=normalize,
                              low_rank=low_rank, num_eig=num_eig, dtype=dtype,
-                             truncate=truncate, backend=backend, callback=callback)
+                             truncate=truncate, gauss_grid=gauss_grid, backend=backend,
+                             callback=callback)
 
 
 def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any, w: Any,
                   tol: Any, max_iter: Any, sigma2: Any, normalize: Any, low_rank: Any,
-                  num_eig: Any, dtype: Any, truncate: Any, backend: Any,
+                  num_eig: Any, dtype: Any, truncate: Any, gauss_grid: Any, backend: Any,
                   callback: Callable[[int, float, float], None] | None) -> CPDResult:
     y_in = as_points(model, name="model")
     x_in = as_points(subject, name="subject")
     m, n = len(y_in), len(x_in)
     CPDOptions(beta=beta, lmbda=lmbda, w=w, max_iter=max_iter, tol=tol, dtype=dtype)
-    check_run_options(sigma2, num_eig, backend, low_rank, truncate, normalize, callback, m)
+    check_run_options(sigma2, num_eig, backend, low_rank, truncate, normalize, callback, m,
+                      gauss_grid)
     beta, lmbda, w, tol = float(beta), float(lmbda), float(w), float(tol)
     max_iter = int(max_iter)
 
@@ -272,9 +291,9 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
         return _finish(x, y, wmat=wmat, g=g, s2=s2, w=w, beta=beta, xd=xd, xs=xs, yd=yd,
                        ys=ys, iterations=it, converged=converged, objective=float("nan"))
 
-    g = _gauss_kernel(y, y, beta)
     use_low_rank = (m > AUTO_LOW_RANK_MIN_M) if low_rank is None else bool(low_rank)
-    basis = _low_rank_factor(g, num_eig) if use_low_rank else None
+    basis = _low_rank_factor(y, beta, num_eig) if use_low_rank else None
+    gk: FloatArray | None = None if use_low_rank else _gauss_kernel(y, y, beta)
 
     estep = _EStep(x, m, w, dtype)
     estep.force_truncate = bool(truncate)
@@ -291,14 +310,7 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
     while it < max_iter:
         checkpoint()  # a serial executor's cancellation check (no-op in pool processes)
         # ---- E-step
-        est: _EStepOut | None = None
-        if truncate is not False and (w > 0 or truncate):
-            r = estep.radius(t, s2)
-            if truncate or estep._list_valid(t, r) or \
-                    estep.density(t, TRUNCATION_SKIN * r, sample) < max_density:
-                est = estep.truncated(t, s2, r)
-        if est is None:
-            est = estep.dense(t, s2)
+        est = run_estep(estep, t, s2, truncate, gauss_grid, sample)
         lval = est.nll + 0.5 * lmbda * float(np.sum(wmat * (t - y)))  # G W = T - Y
         if not math.isfinite(lval):
             break
@@ -310,8 +322,9 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
             w_new, disp = _mstep_low_rank(basis[0], basis[1], y, est, reg)
             t_new = y + disp
         else:
-            w_new = _mstep_dense(g, y, est, reg)
-            t_new = y + g @ w_new
+            assert gk is not None
+            w_new = _mstep_dense(gk, y, est, reg)
+            t_new = y + gk @ w_new
         np_sum = float(np.sum(est.p1))
         s2_new = abs(float(np.dot(est.pt1, estep.xsq))
                      + float(np.dot(est.p1, np.einsum("ij,ij->i", t_new, t_new)))
@@ -330,7 +343,7 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
             converged = True
             break
 
-    return _finish(x, y, wmat=wmat, g=g, s2=s2, w=w, beta=beta, xd=xd, xs=xs,
+    return _finish(x, y, wmat=wmat, g=gk, s2=s2, w=w, beta=beta, xd=xd, xs=xs,
                    yd=yd, ys=ys, iterations=it, converged=converged, objective=objective)
 
 
@@ -341,9 +354,11 @@ def _finish(x: FloatArray, y: FloatArray, *, wmat: FloatArray,
     transform = NonrigidTransform(control_points=y, coefficients=wmat, beta=beta,
                                   model_shift=yd, model_scale=ys, subject_shift=xd,
                                   subject_scale=xs)
-    # The exact kernel defines the result; with low_rank W lies in span(U) so this equals
-    # the internal centroids up to the dropped spectrum.
-    t = y + (g if g is not None else _gauss_kernel(y, y, beta)) @ wmat
+    # The exact kernel defines the result (with low_rank W lies in span(U), so this equals
+    # the internal centroids up to the dropped spectrum); without a dense G, the kernel
+    # product comes from the Chebyshev Gauss transform with 8 nodes per axis above its
+    # 1e-10 rule (about 1e-13 per kernel value).
+    t = y + (g @ wmat if g is not None else gauss_transform(y, wmat, y, beta, extra=8))
     corr, prob = _posterior_max(t, x, s2, w)
     warped = t * xs + xd
     warped.setflags(write=False)

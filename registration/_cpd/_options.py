@@ -121,7 +121,7 @@ class CPDOptions:
 
 
 def check_run_options(sigma2: Any, num_eig: Any, backend: Any, low_rank: Any, truncate: Any,
-                      normalize: Any, callback: Any, m: int) -> None:
+                      normalize: Any, callback: Any, m: int, gauss_grid: Any = None) -> None:
     """Validate the options of one :func:`cpd_nonrigid` call beyond :class:`CPDOptions`
     (``m`` is the number of model points, the largest rank)."""
     if sigma2 is not None and _real("sigma2", sigma2) <= 0:
@@ -132,7 +132,8 @@ def check_run_options(sigma2: Any, num_eig: Any, backend: Any, low_rank: Any, tr
         raise ValueError(f"num_eig must be None or an integer in [1, {m}]; got {num_eig!r}")
     if backend not in BACKENDS:
         raise ValueError(f"backend must be 'native' or 'pycpd'; got {backend!r}")
-    for name, v in (("low_rank", low_rank), ("truncate", truncate)):
+    for name, v in (("low_rank", low_rank), ("truncate", truncate),
+                    ("gauss_grid", gauss_grid)):
         if v is not None and not isinstance(v, bool | np.bool_):
             raise ValueError(f"{name} must be True, False or None; got {v!r}")
     if not isinstance(normalize, bool | np.bool_):

@@ -58,7 +58,8 @@ def big_pair() -> tuple[np.ndarray, np.ndarray]:
 @pytest.fixture(scope="module")
 def dense_big(big_pair: tuple[np.ndarray, np.ndarray]) -> CPDResult:
     model, subject = big_pair
-    return cpd_nonrigid(model, subject, tol=0.0, max_iter=80, low_rank=False, truncate=False)
+    return cpd_nonrigid(model, subject, tol=0.0, max_iter=80, low_rank=False, truncate=False,
+                        gauss_grid=False)
 
 
 # ----------------------------------------------------------------------------------------
@@ -158,7 +159,7 @@ def test_result_is_read_only(pair: tuple[np.ndarray, ...]) -> None:
         (dict(low_rank=True, truncate=False), 1e-6),
         (dict(low_rank=False, truncate=True), 1e-6),
         (dict(), 1e-6),  # auto: both on for this size
-        (dict(dtype="float32", low_rank=False, truncate=False), 1e-4),
+        (dict(dtype="float32", low_rank=False, truncate=False, gauss_grid=False), 1e-4),
         (dict(dtype="float32"), 1e-4),
     ],
 )

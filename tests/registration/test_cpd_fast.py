@@ -1,0 +1,145 @@
+"""CPD's near-linear paths (issue 9) against the dense computation they replace.
+
+Stated tolerances (also in the docstrings of ``registration._cpd._fgt`` and ``_estep``):
+
+* Chebyshev-grid Gauss transform: every sum within ``1e-9 * sum_j |q_j|`` of the dense one;
+  the E-step sums ``P1``, ``Pt1``, ``P X`` within ``1e-8`` relative.
+* Pivoted-Cholesky kernel: ``|G - L L^T| <= trace tolerance``; eigen form reproduces ``G``.
+* Truncated E-step (sparse, CSR): sums within ``1e-8`` relative in float64, ``1e-5`` in float32.
+* Sparse final correspondences: the same argmax and maximum as the dense pass.
+* Whole runs: warped points within ``1e-6`` (float64) / ``1e-4`` (float32) of the subject's
+  RMS radius of the dense float64 run.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from registration._cpd import _estep, cpd_nonrigid
+from registration._cpd._estep import _EStep, _posterior_max, _posterior_max_dense
+from registration._cpd._fgt import gauss_transform, pivoted_cholesky
+from registration._cpd._field import _gauss_kernel
+from registration._cpd._mstep import LOW_RANK_TRACE_TOL, _low_rank_factor
+
+
+def curve(k: int, seed: int = 0, wobble: float = 0.0) -> np.ndarray:
+    """A lobed closed contour normalised to zero mean and unit RMS radius."""
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.uniform(0.0, 2 * np.pi, k))
+    r = 1.0 + 0.25 * np.cos(3 * t) + 0.1 * np.sin(5 * t + 0.3) + wobble * np.sin(7 * t)
+    p = np.column_stack([np.cos(t) * r * 1.4, np.sin(t) * r])
+    p -= p.mean(axis=0)
+    return p / math.sqrt(float(np.mean(np.sum(p * p, axis=1))))
+
+
+def dense_sums(t: np.ndarray, x: np.ndarray, s2: float, w: float) -> _estep._EStepOut:
+    return _EStep(x, len(t), w, "float64").dense(t, s2)
+
+
+def close(a: _estep._EStepOut, b: _estep._EStepOut, rel: float) -> None:
+    for got, want in ((a.p1, b.p1), (a.pt1, b.pt1), (a.px, b.px)):
+        assert np.max(np.abs(got - want)) <= rel * np.max(np.abs(want))
+    assert abs(a.nll - b.nll) <= rel * abs(b.nll) + 1e-9
+
+
+@pytest.mark.parametrize("sigma", [2.0, 0.7, 0.3, 0.12, 0.05])
+def test_gauss_transform_matches_dense(sigma: float) -> None:
+    rng = np.random.default_rng(1)
+    src, tgt = curve(300, 1), curve(250, 2, wobble=0.1) * 1.1
+    q = rng.standard_normal((300, 3))
+    got = gauss_transform(src, q, tgt, sigma)
+    want = _gauss_kernel(tgt, src, sigma) @ q
+    assert np.max(np.abs(got - want)) <= 1e-9 * float(np.max(np.sum(np.abs(q), axis=0)))
+
+
+@pytest.mark.parametrize("sigma", [1.0, 0.4, 0.15])
+@pytest.mark.parametrize("w", [0.1, 0.0])
+def test_grid_estep_matches_dense(sigma: float, w: float) -> None:
+    x, t = curve(400, 3), curve(350, 4, wobble=0.15)
+    got = _EStep(x, len(t), w, "float64").grid(t, sigma * sigma)
+    close(got, dense_sums(t, x, sigma * sigma, w), 1e-8)
+
+
+@pytest.mark.parametrize(("dtype", "rel"), [("float64", 1e-8), ("float32", 1e-5)])
+def test_truncated_estep_matches_dense(dtype: str, rel: float) -> None:
+    x, t = curve(500, 5), curve(450, 6, wobble=0.05)
+    s2 = 0.03**2
+    est = _EStep(x, len(t), 0.1, dtype)
+    est.force_truncate = True
+    want = dense_sums(t, x, s2, 0.1)
+    got = est.truncated(t, s2, est.radius(t, s2))
+    assert got is not None and got.nnz < len(t) * len(x) // 4
+    close(got, want, rel)
+    # the list is reused while the centroids move little: still exact
+    moved = t + 0.002
+    got = est.truncated(moved, s2, est.radius(moved, s2))
+    assert got is not None
+    close(got, dense_sums(moved, x, s2, 0.1), rel)
+
+
+@pytest.mark.parametrize("beta", [2.0, 0.5])
+def test_pivoted_cholesky_and_eigen_form(beta: float) -> None:
+    y = curve(300, 7)
+    g = _gauss_kernel(y, y, beta)
+    lmat = pivoted_cholesky(y, beta, None, LOW_RANK_TRACE_TOL)
+    assert lmat.shape[1] < 300
+    assert np.max(np.abs(g - lmat @ lmat.T)) <= LOW_RANK_TRACE_TOL * 300
+    q, lam = _low_rank_factor(y, beta, None)
+    np.testing.assert_allclose(q.T @ q, np.eye(len(lam)), atol=1e-10)
+    assert np.max(np.abs(g - (q * lam) @ q.T)) <= 1e-9
+    _, lam5 = _low_rank_factor(y, beta, 5)
+    assert len(lam5) == 5
+
+
+def test_sparse_correspondences_match_dense(monkeypatch: pytest.MonkeyPatch) -> None:
+    x, t = curve(400, 8), curve(380, 9, wobble=0.05)
+    monkeypatch.setattr(_estep, "POSTERIOR_DENSE_MAX_PAIRS", 0)
+    for s2, w in ((0.01**2, 0.1), (0.02**2, 0.0), (0.005**2, 0.3)):
+        arg, best = _posterior_max(t, x, s2, w)
+        arg_d, best_d = _posterior_max_dense(t, x, s2, w)
+        np.testing.assert_allclose(best, best_d, rtol=1e-8, atol=1e-12)
+        clear = best_d > 1e-6  # ties among vanishing posteriors may pick another index
+        np.testing.assert_array_equal(arg[clear], arg_d[clear])
+
+
+@pytest.fixture(scope="module")
+def pair() -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(2)
+    model = curve(700, 10) * 40 + [200, 100]
+    subject = curve(750, 11, wobble=0.08) * 42 + [205, 98]
+    return model, subject + 0.1 * rng.standard_normal(subject.shape)
+
+
+@pytest.fixture(scope="module")
+def dense_run(pair: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    model, subject = pair
+    return np.asarray(cpd_nonrigid(model, subject, tol=0.0, max_iter=60, low_rank=False,
+                                   truncate=False, gauss_grid=False).warped)
+
+
+@pytest.mark.parametrize(
+    ("opts", "rel"),
+    [
+        (dict(gauss_grid=True, truncate=False, low_rank=False), 1e-6),
+        (dict(gauss_grid=True), 1e-6),
+        (dict(), 1e-6),
+        (dict(low_rank=True, gauss_grid=False, truncate=False), 1e-6),
+        (dict(dtype="float32"), 1e-4),
+    ],
+)
+def test_runs_match_dense(pair: tuple[np.ndarray, np.ndarray], dense_run: np.ndarray,
+                          opts: dict[str, object], rel: float) -> None:
+    model, subject = pair
+    res = cpd_nonrigid(model, subject, tol=0.0, max_iter=60, **opts)  # type: ignore[arg-type]
+    scale = float(np.sqrt(np.mean(np.sum((subject - subject.mean(0)) ** 2, axis=1))))
+    assert np.max(np.abs(res.warped - dense_run)) < rel * scale
+    np.testing.assert_allclose(res.transform.apply(model), res.warped, rtol=0,
+                               atol=1e-8 * scale)
+
+
+def test_gauss_grid_is_validated(pair: tuple[np.ndarray, np.ndarray]) -> None:
+    with pytest.raises(ValueError, match="gauss_grid must be True, False or None"):
+        cpd_nonrigid(*pair, gauss_grid="yes")  # type: ignore[arg-type]
