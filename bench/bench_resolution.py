@@ -19,7 +19,7 @@ Two parts, each method pair run side by side in this process (default options ot
   (``register_direct(prealign=False, working_points=None)``).
 
     .venv/bin/python bench/bench_resolution.py [--part yong|gt|all] [--limit N]
-        [--gt-points 1200] [--json PATH]
+        [--gt-points 1200] [--gt-designs 3] [--json PATH]
 
 (``REGTREE_DATA=/path/to/shared/data`` when the data is not at ``../shared/data``.)
 """
@@ -128,7 +128,7 @@ def part_yong(limit: int | None) -> dict[str, Any]:
     return out
 
 
-def part_gt(points: int) -> dict[str, Any]:
+def part_gt(points: int, designs: int) -> dict[str, Any]:
     with (GLYPHS / "index.csv").open(newline="") as fh:
         ids = [row["id"] for row in csv.DictReader(fh)] if (GLYPHS / "index.csv").exists() \
             else []
@@ -142,7 +142,7 @@ def part_gt(points: int) -> dict[str, Any]:
     }
     gt: dict[str, list[float]] = {k: [] for k in runs}
     secs = dict.fromkeys(runs, 0.0)
-    for design in (ids[0], ids[36], ids[72]):
+    for design in (ids[0], ids[36], ids[72])[:designs]:
         dense = np.loadtxt(GLYPHS / "points" / f"{design}_edge.txt")
         fam = deformation_chains(dense, n_points=min(points, len(dense)), seed=0)
         truth = fam.root_images(0)
@@ -167,13 +167,14 @@ def main() -> None:
     ap.add_argument("--part", choices=["yong", "gt", "all"], default="all")
     ap.add_argument("--limit", type=int, default=None, help="first N glyphs only")
     ap.add_argument("--gt-points", type=int, default=1200)
+    ap.add_argument("--gt-designs", type=int, default=3, help="the first 1-3 of rows 0, 36, 72")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     out: dict[str, Any] = {}
     if args.part in ("yong", "all"):
         out["yong"] = part_yong(args.limit)
     if args.part in ("gt", "all"):
-        out["gt"] = part_gt(args.gt_points)
+        out["gt"] = part_gt(args.gt_points, args.gt_designs)
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
 
