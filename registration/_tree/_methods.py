@@ -121,9 +121,10 @@ def build_dynamic_tree(
         Decide the tree at this many points per shape, then register each of its edges
         once at the stored resolution, warm-started from the decision's registration
         (see :mod:`registration._tree._resolution`). Shapes with at most this many points
-        are used as they are; None or 0 decides at the stored resolution. The result
-        (warped points, correspondences, transforms, e, confidence) is always at the stored
-        resolution; its attempts, thresholds and similarity are the working resolution's.
+        are used as they are; None or 0 decides at the stored resolution. The result's
+        warped points, correspondences, transforms and e are at the stored resolution; its
+        attempts, thresholds, similarity, confidence and quality checks are the working
+        resolution's (the confidence is calibrated on shapes of a few hundred points).
     names : sequence of str, optional
     executor : Executor, optional
         Where ICP and CPD run; default: serial for small jobs, else a local process pool.

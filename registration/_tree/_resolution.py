@@ -10,9 +10,16 @@ registers each edge of the result once at the stored resolution, parents before
 children: the root model at full resolution, as already warped onto the parent, is moved
 by the coarse edge (its affine pre-alignment and its CPD warp) and a short CPD at full
 resolution warm-started there (:func:`_refine_edge`) puts it onto the full subject. The
-result's warped points, correspondences, transforms, e, quality and confidence are then
-those of the stored shapes; the attempts, thresholds and similarity keep the working
-resolution's figures the decisions were taken on.
+result's warped points, correspondences, transforms and e are then those of the stored
+shapes; the attempts, thresholds, similarity, confidence and quality checks keep the
+working resolution's figures the decisions were taken on (``quality`` adds
+``working_error``, the e decided on, and ``stored_min_jacobian``, the fold check of the
+edge's warp on the stored points). The confidence stays the working resolution's because
+its model is calibrated on shapes of a few hundred points: its e / h^2 feature grows with
+the density of the points (h is the point spacing), and on the 73 永 edge glyphs at their
+stored 1167-2244 points it scored correct registrations near 0.05 (bench/RESULTS.md
+section 8), so that the tree run at the stored resolution left 71 of 72 subjects as
+leaves.
 
 Shapes at or below ``working_points`` are not subsampled; when no shape is above it,
 nothing here runs and the methods behave exactly as without a coarse stage.
@@ -30,10 +37,9 @@ from numpy.typing import NDArray
 from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid
 from .._error import registration_error
 from .._executor import Executor
-from .._quality import RegistrationQuality, measure_quality
 from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
-from .._transform import ChainTransform, PointTransform
+from .._transform import ChainTransform, PointTransform, jacobian_determinants
 from ._collection import _Collection
 from ._rules import _spacing2
 from ._tasks import _map_tasks
@@ -110,7 +116,7 @@ def coarse_collection(full: _Collection, working_points: int | None) -> _Collect
 @dataclass(frozen=True)
 class _Composed:
     """Steps applied one after the other (the coarse CPD warp then the fine one), as one
-    map for the quality checks."""
+    map for the fold check."""
 
     steps: tuple[PointTransform, ...]
 
@@ -131,7 +137,6 @@ class _FineTask:
     steps: tuple[PointTransform, ...]  # the coarse edge: affine pre-alignment, then CPD
     y: FloatArray  # the stored subject, normalised
     cpd: CPDOptions
-    spacing2: float
 
 
 @dataclass(frozen=True)
@@ -142,7 +147,7 @@ class _FineOutcome:
     correspondence: IntArray
     probability: FloatArray
     step: NonrigidTransform
-    quality: RegistrationQuality
+    min_jacobian: float  # of the edge's non-rigid warp (coarse then fine) on the stored model
 
 
 def warm_start_sigma2(start: FloatArray, subject: FloatArray) -> float:
@@ -166,20 +171,18 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
                        max_iter=min(o.max_iter, FINE_MAX_ITER), dtype=o.dtype,
                        sigma2=warm_start_sigma2(start, task.y), normalize=False)
     warped = np.asarray(res.warped, dtype=np.float64)
-    e = registration_error(warped, task.y)
-    quality = measure_quality(pre, warped, task.y, _Composed((task.steps[-1], res.transform)),
-                              e, task.spacing2)
-    return _FineOutcome(subject=task.subject, warped=warped, error=e,
+    det = jacobian_determinants(_Composed((task.steps[-1], res.transform)), pre)
+    return _FineOutcome(subject=task.subject, warped=warped,
+                        error=registration_error(warped, task.y),
                         correspondence=np.asarray(res.correspondence, dtype=np.intp),
                         probability=np.asarray(res.probability, dtype=np.float64),
-                        step=res.transform, quality=quality)
+                        step=res.transform, min_jacobian=float(det.min()))
 
 
 @dataclass
 class _FineNode:
     q: FloatArray
     chain: ChainTransform
-    confidence: float
 
 
 def _edge_steps(res: SubjectResult, parent: ChainTransform) -> tuple[PointTransform, ...]:
@@ -202,7 +205,7 @@ def _refined_subjects(
     """`subjects` (decided at the working resolution) with every registration redone at
     the stored resolution, a layer at a time from the root."""
     root = full.root
-    fine = {root: _FineNode(q=full.normed[root], chain=full.root_chain(), confidence=1.0)}
+    fine = {root: _FineNode(q=full.normed[root], chain=full.root_chain())}
     coarse_chain = {root: full.root_chain()}
     out = {s.index: s for s in subjects}
     pending = sorted((s for s in subjects if s.attached and s.parent is not None),
@@ -219,7 +222,7 @@ def _refined_subjects(
             tasks.append(_FineTask(
                 subject=s.index, q=fine[s.parent].q,
                 steps=_edge_steps(s, coarse_chain[s.parent]), y=full.normed[s.index],
-                cpd=cpd, spacing2=full.spacing2[s.index]))
+                cpd=cpd))
         counted = _counting(progress, stage, done, total)
         for res in _map_tasks(_refine_edge, tasks, executor, counted, stage):
             s = out[res.subject]
@@ -227,17 +230,15 @@ def _refined_subjects(
             parent = fine[s.parent]
             edge = _edge_steps(s, coarse_chain[s.parent])
             chain = parent.chain.extended((*edge, res.step), full.norms[s.index], s.index)
-            confidence = min(parent.confidence, res.quality.confidence)
-            quality = {**(s.quality or {}), **res.quality.to_dict(),
-                       "working_error": s.error}
+            quality = {**(s.quality or {}), "working_error": s.error,
+                       "stored_min_jacobian": res.min_jacobian}
             coarse_chain[s.index] = s.transform
-            fine[s.index] = _FineNode(q=res.warped, chain=chain, confidence=confidence)
+            fine[s.index] = _FineNode(q=res.warped, chain=chain)
             s.error = res.error
             s.warped = full.norms[s.index].invert(res.warped)
             s.correspondence = res.correspondence
             s.probability = res.probability
             s.transform = chain
-            s.confidence = confidence
             s.quality = quality
         done += len(group)
     return [out[s.index] for s in subjects]

@@ -65,6 +65,7 @@ def _check_stored_resolution(res, family):
         np.testing.assert_allclose(s.transform.apply(root_pts), s.warped, atol=1e-8 * norm.scale)
         assert s.transform.path[0] == 0 and s.transform.path[-1] == s.index
         assert s.quality["working_error"] > 0 and 0 <= s.confidence <= 1
+        assert np.isfinite(s.quality["stored_min_jacobian"])
 
 
 def test_results_are_at_the_stored_resolution(runs, family):
