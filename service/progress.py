@@ -28,6 +28,11 @@ if TYPE_CHECKING:
 #: tree takes the rest). Direct CPD is one registration per subject, like a tree layer.
 SIMILARITY_SHARE = 0.2
 DIRECT_SHARE = 0.3
+#: Share of a coarse-to-fine job (``working_points``) for registering every edge at the
+#: stored resolution (stages ``full resolution`` and ``direct full resolution``), after the
+#: decisions at the working resolution take the rest. A job whose shapes are all small has
+#: no such stage: its percentage jumps from there to 100 at the end.
+FINE_SHARE = 0.5
 #: Within the tree's share: the layers up to this, leaves then refinement after.
 LAYERS_SHARE = 0.9
 #: Before this much is done, the time left is not estimated.
@@ -69,13 +74,23 @@ def _tree_position(stage: str, f: float) -> float | None:
 
 
 def overall_fraction(
-    method: str, stage: str | None, done: int, total: int, *, compare_direct: bool
+    method: str, stage: str | None, done: int, total: int, *, compare_direct: bool,
+    coarse_to_fine: bool = False,
 ) -> float | None:
     """The estimated share of a running job that is done, from its current stage; None for
-    a stage this does not know."""
+    a stage this does not know. `coarse_to_fine`: the job decides at a working resolution
+    (its stages up to ``full resolution`` take ``1 - FINE_SHARE`` of it)."""
     if not stage:
         return 0.0
     f = min(1.0, done / total) if total > 0 else 0.0
+    if coarse_to_fine:
+        direct = DIRECT_SHARE if compare_direct and method != "direct" else 0.0
+        if stage == "full resolution":
+            return 1.0 - FINE_SHARE + FINE_SHARE * (1.0 - direct) * f
+        if stage == "direct full resolution":
+            return 1.0 - FINE_SHARE * direct * (1.0 - f)
+        coarse = overall_fraction(method, stage, done, total, compare_direct=compare_direct)
+        return None if coarse is None else (1.0 - FINE_SHARE) * coarse
     if method == "direct":
         if stage == "similarity direct" or stage == "similarity":
             return SIMILARITY_SHARE * f
@@ -158,7 +173,8 @@ class Progress:
             self._run_started = _started(state) or time.monotonic()
         compare = bool(state.params.get("compare_direct"))
         fraction = overall_fraction(
-            state.method, state.stage, state.done, state.total, compare_direct=compare
+            state.method, state.stage, state.done, state.total, compare_direct=compare,
+            coarse_to_fine=bool(state.params.get("working_points")),
         )
         if fraction is None:
             return Estimate(self._fraction or None, None)

@@ -19,6 +19,7 @@ from pydantic import (
 from service.contract.names import (
     DEFAULT_COMPARE_DIRECT,
     DEFAULT_METHOD,
+    DEFAULT_WORKING_POINTS,
     JobOutcomeName,
     JobStatusName,
     Method,
@@ -307,6 +308,15 @@ class JobCreate(BaseModel):
         "bench/RESULTS.md.",
     )
     cpd: CPDParams = Field(default_factory=CPDParams)
+    working_points: int | None = Field(
+        default=DEFAULT_WORKING_POINTS,
+        description="Decide the tree (similarity, candidates, acceptance) with every shape "
+        "subsampled to at most this many points, then register each edge once at the stored "
+        "resolution, warm-started from that decision: the result (warped points, "
+        "correspondences, transforms, e) is at the stored resolution. Shapes with at most this "
+        "many points are used as they are. null or 0: decide at the stored resolution "
+        "(slower on large shapes). At least 20 otherwise.",
+    )
     callback_url: str | None = Field(
         default=None,
         max_length=2000,
@@ -317,6 +327,14 @@ class JobCreate(BaseModel):
 
     _check_similarity = field_validator("similarity_threshold")(_finite_positive)
     _check_error = field_validator("error_threshold")(_finite_positive)
+
+    @field_validator("working_points", mode="before")
+    @classmethod
+    def _check_working_points(cls, value: Any) -> Any:
+        # the library's one rule, imported here so that the API starts without numpy
+        from registration._tree._resolution import check_working_points
+
+        return None if value is None else check_working_points(value)  # ValueError: 422
 
     @model_validator(mode="after")
     def _check_pose(self) -> JobCreate:

@@ -164,16 +164,14 @@ class _TreeStart:
     @classmethod
     def prepare(
         cls,
-        shapes: Sequence[ArrayLike],
-        root: int,
-        names: Sequence[str] | None,
+        coll: _Collection,
         similarity_threshold: float | None,
         candidates: int | None,
         pose: PoseSpec,
         executor: Executor | None,
         progress: ProgressCallback | None,
     ) -> _TreeStart:
-        coll = _Collection.prepare(shapes, root, names)
+        root = coll.root
         sim, allowed = _prepare_similarity(
             coll, similarity_threshold, candidates, executor, progress, pose
         )

@@ -19,6 +19,12 @@ from ._collection import (
     _TreeStart,
 )
 from ._passes import _attach_leaves, _refine_parents
+from ._resolution import (
+    DEFAULT_WORKING_POINTS,
+    at_stored_resolution,
+    check_working_points,
+    coarse_collection,
+)
 from ._rules import (
     ERROR_FACTOR,
     SPACING_FACTOR,
@@ -57,6 +63,7 @@ def build_dynamic_tree(
     refine: bool = True,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
+    working_points: int | None = DEFAULT_WORKING_POINTS,
     executor: Executor | None = None,
     progress: ProgressCallback | None = None,
 ) -> CollectionResult:
@@ -110,6 +117,14 @@ def build_dynamic_tree(
         lower e). No cycles: a subject never moves below itself.
     compare_direct : bool
         Also run direct CPD from the root on every subject, for comparison.
+    working_points : int or None
+        Decide the tree at this many points per shape, then register each of its edges
+        once at the stored resolution, warm-started from the decision's registration
+        (see :mod:`registration._tree._resolution`). Shapes with at most this many points
+        are used as they are; None or 0 decides at the stored resolution. The result's
+        warped points, correspondences, transforms and e are at the stored resolution; its
+        attempts, thresholds, similarity, confidence and quality checks are the working
+        resolution's (the confidence is calibrated on shapes of a few hundred points).
     names : sequence of str, optional
     executor : Executor, optional
         Where ICP and CPD run; default: serial for small jobs, else a local process pool.
@@ -131,8 +146,10 @@ def build_dynamic_tree(
         raise ValueError(f"max_candidates must be at least 1; got {max_candidates}")
     cpd = cpd if cpd is not None else CPDOptions()
     spec = PoseSpec.resolve(pose, max_rotation)
-    start = _TreeStart.prepare(shapes, root, names, similarity_threshold, candidates, spec,
-                               executor, progress)
+    working_points = check_working_points(working_points)
+    full = _Collection.prepare(shapes, root, names)
+    start = _TreeStart.prepare(coarse_collection(full, working_points), similarity_threshold,
+                               candidates, spec, executor, progress)
     coll, sim, allowed, sim_rule = start.coll, start.sim, start.allowed, start.rule
     subjects_idx, nodes, results = start.subjects, start.nodes, start.results
     tau_err = error_threshold
@@ -209,7 +226,7 @@ def build_dynamic_tree(
     direct = (
         _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None
     )
-    return CollectionResult(
+    result = CollectionResult(
         method="dynamic_tree",
         root=root,
         names=coll.names,
@@ -227,6 +244,7 @@ def build_dynamic_tree(
         similarity_pairs=sim.computed,
         similarity=sim.D,
     )
+    return at_stored_resolution(result, full, coll, cpd, working_points, executor, progress)
 
 
 @_owns_executor
@@ -243,6 +261,7 @@ def build_static_tree(
     max_rotation: float | None = None,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
+    working_points: int | None = DEFAULT_WORKING_POINTS,
     executor: Executor | None = None,
     progress: ProgressCallback | None = None,
 ) -> CollectionResult:
@@ -258,7 +277,7 @@ def build_static_tree(
     Parameters
     ----------
     shapes, root, similarity_threshold, candidates, cpd, prealign, pose, max_rotation, names,
-    compare_direct, executor, progress
+    compare_direct, working_points, executor, progress
         As for :func:`build_dynamic_tree`.
     error_threshold : float, optional
         Ignored (the static tree rejects nothing); accepted for a uniform interface.
@@ -277,8 +296,10 @@ def build_static_tree(
     del error_threshold
     cpd = cpd if cpd is not None else CPDOptions()
     spec = PoseSpec.resolve(pose, max_rotation)
-    start = _TreeStart.prepare(shapes, root, names, similarity_threshold, candidates, spec,
-                               executor, progress)
+    working_points = check_working_points(working_points)
+    full = _Collection.prepare(shapes, root, names)
+    start = _TreeStart.prepare(coarse_collection(full, working_points), similarity_threshold,
+                               candidates, spec, executor, progress)
     coll, sim, allowed, sim_rule = start.coll, start.sim, start.allowed, start.rule
     subjects_idx, nodes, results = start.subjects, start.nodes, start.results
     # 1. the tree, from the similarity alone
@@ -315,7 +336,7 @@ def build_static_tree(
     direct = (
         _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None
     )
-    return CollectionResult(
+    result = CollectionResult(
         method="static_tree",
         root=root,
         names=coll.names,
@@ -330,6 +351,7 @@ def build_static_tree(
         similarity_pairs=sim.computed,
         similarity=sim.D,
     )
+    return at_stored_resolution(result, full, coll, cpd, working_points, executor, progress)
 
 
 def _direct_results(
@@ -373,6 +395,7 @@ def register_direct(
     max_rotation: float | None = None,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
+    working_points: int | None = DEFAULT_WORKING_POINTS,
     executor: Executor | None = None,
     progress: ProgressCallback | None = None,
 ) -> CollectionResult:
@@ -394,7 +417,7 @@ def register_direct(
     cpd : CPDOptions, optional
     prealign : bool
         Pose handling as in :func:`build_dynamic_tree`; False for plain CPD.
-    pose, max_rotation
+    pose, max_rotation, working_points
         As for :func:`build_dynamic_tree`.
     names : sequence of str, optional
     executor : Executor, optional
@@ -413,10 +436,12 @@ def register_direct(
     del similarity_threshold, error_threshold, compare_direct
     cpd = cpd if cpd is not None else CPDOptions()
     spec = PoseSpec.resolve(pose, max_rotation)
-    coll = _Collection.prepare(shapes, root, names)
+    working_points = check_working_points(working_points)
+    full = _Collection.prepare(shapes, root, names)
+    coll = coarse_collection(full, working_points)
     sim = Similarity.empty(coll.normed, pose=spec)
     subjects = _direct_results(coll, sim, cpd, prealign, executor, progress)
-    return CollectionResult(
+    result = CollectionResult(
         method="direct",
         root=root,
         names=coll.names,
@@ -427,3 +452,4 @@ def register_direct(
         similarity_pairs=sim.computed,
         similarity=sim.D,
     )
+    return at_stored_resolution(result, full, coll, cpd, working_points, executor, progress)

@@ -24,6 +24,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 P = ParamSpec("P")
 R = TypeVar("R")
+T = TypeVar("T")
 
 # A pose that differs from the pose as given by more than POSE_DISTINCT_DEG (or in
 # handedness) and whose D is below POSE_D_RATIO times the pose as given's is registered
@@ -177,14 +178,27 @@ def _run_tasks(
     progress: ProgressCallback | None,
     stage: str,
 ) -> list[_RegOutcome]:
+    """Every registration of `tasks`, on the executor, in the order of the tasks."""
+    return _map_tasks(_register_task, tasks, executor, progress, stage)
+
+
+def _map_tasks(
+    fn: Callable[[T], R],
+    tasks: list[T],
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+    stage: str,
+) -> list[R]:
+    """``fn`` (a picklable top-level function) on every task, on the executor, reporting
+    progress as `stage`; the results in the order of the tasks."""
     if not tasks:
         return []
-    results: list[_RegOutcome | None] = [None] * len(tasks)
+    results: list[R | None] = [None] * len(tasks)
     with owned_executor(executor, 8 * len(tasks)) as ex:
         if progress is not None:
             progress(stage, 0, len(tasks))
         done = 0
-        for pos, out in ex.map_unordered(_register_task, tasks):
+        for pos, out in ex.map_unordered(fn, tasks):
             results[pos] = out
             done += 1
             if progress is not None:

@@ -14,6 +14,7 @@ from service.contract.names import (
     DEFAULT_IMAGE_MODE,
     DEFAULT_METHOD,
     DEFAULT_ON_CONFLICT,
+    DEFAULT_WORKING_POINTS,
     IMAGE_MODES,
     METHODS,
     ON_CONFLICT_POLICIES,
@@ -46,6 +47,20 @@ def _positive_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
     if not math.isfinite(value) or value <= 0:
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def _working_points(text: str) -> int | None:
+    """A working resolution: a count of points, 0 (or "none") for the stored resolution."""
+    if text.strip().lower() in ("0", "none"):
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a number of points or 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a number of points or 0, got {text!r}")
     return value
 
 
@@ -240,6 +255,15 @@ def add_commands(sub: Any) -> None:
         default=DEFAULT_COMPARE_DIRECT,
         help="also register every subject directly from the model, for comparison (doubles "
         "the registrations; default: off, as on every surface)",
+    )
+    run.add_argument(
+        "--working-points",
+        type=_working_points,
+        default=DEFAULT_WORKING_POINTS,
+        metavar="N",
+        help="decide the tree with every shape subsampled to at most N points, then register "
+        "each edge once at the stored resolution (the result is at the stored resolution); "
+        f"0 decides at the stored resolution (default: {DEFAULT_WORKING_POINTS})",
     )
     run.add_argument(
         "--callback-url",

@@ -136,6 +136,7 @@ def cmd_run(args: argparse.Namespace, rt: RegtreeClient) -> int:
         pose=args.pose,
         max_rotation=args.max_rotation,
         compare_direct=args.compare_direct,
+        working_points=args.working_points,
         callback_url=args.callback_url,
     )
     if args.quiet:

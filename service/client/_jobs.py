@@ -18,6 +18,7 @@ from service.client.models import FloatArray, JobResult, JobStatus, Similarity, 
 from service.contract.names import (
     DEFAULT_COMPARE_DIRECT,
     DEFAULT_METHOD,
+    DEFAULT_WORKING_POINTS,
     Method,
     PoseName,
     SubjectSort,
@@ -42,6 +43,7 @@ class JobsAndResults(HttpClient):
         cpd: Mapping[str, Any] | None = None,
         pose: Pose | None = None,
         max_rotation: float | None = None,
+        working_points: int | None = DEFAULT_WORKING_POINTS,
         idempotency_key: str | None = None,
         callback_url: str | None = None,
     ) -> JobStatus:
@@ -64,6 +66,10 @@ class JobsAndResults(HttpClient):
         record the pose used and ``pose_source``. ``max_rotation`` with another pose is
         refused (:class:`ValidationError`).
 
+        ``working_points``: the tree is decided with every shape subsampled to at most this
+        many points, then each edge is registered once at the stored resolution (the result
+        is at the stored resolution); None or 0 decides at the stored resolution.
+
         Give ``idempotency_key`` to make a resubmission (e.g. after a crash of your script)
         return the same job.
 
@@ -84,6 +90,8 @@ class JobsAndResults(HttpClient):
             body["max_rotation"] = max_rotation
         if cpd is not None:
             body["cpd"] = dict(cpd)
+        if working_points != DEFAULT_WORKING_POINTS:  # the default: what older servers run
+            body["working_points"] = working_points
         if callback_url is not None:
             body["callback_url"] = callback_url
         response = self._request(

@@ -16,6 +16,7 @@ __all__ = [
     "DEFAULT_IMAGE_MODE",
     "DEFAULT_METHOD",
     "DEFAULT_ON_CONFLICT",
+    "DEFAULT_WORKING_POINTS",
     "IMAGE_MODES",
     "JOB_STATUSES",
     "METHODS",
@@ -46,6 +47,12 @@ DEFAULT_METHOD: Method = "dynamic_tree"
 #: on every surface (library, HTTP, client, CLI), since it doubles the registrations and the
 #: tree's own result does not need it.
 DEFAULT_COMPARE_DIRECT = False
+#: Points per shape a job decides its tree at (similarity, candidates, acceptance); every
+#: edge is then registered once at the stored resolution, warm-started from that decision,
+#: and the result is at the stored resolution. None or 0: decide at the stored resolution.
+#: The library's default (``registration._tree._resolution.DEFAULT_WORKING_POINTS``; a
+#: test checks that they agree).
+DEFAULT_WORKING_POINTS: int | None = 400
 #: The library function (``registration.<name>``) that runs each method.
 METHOD_FUNCTIONS: dict[str, str] = {
     "dynamic_tree": "build_dynamic_tree",

@@ -224,6 +224,8 @@ def run_library(
         # number as "upright" and None as its default.
         pose=params.get("pose"),
         max_rotation=params.get("max_rotation"),
+        # Jobs queued before working_points existed asked for the stored resolution.
+        working_points=params.get("working_points"),
     )
     collection_result: CollectionResult = result
     return collection_result

@@ -70,6 +70,29 @@ def test_overall_fraction_only_grows_through_a_run(compare_direct: bool) -> None
     assert deep[0] < deep[1] < leaves  # type: ignore[operator]
 
 
+@pytest.mark.parametrize("method", ["dynamic_tree", "direct"])
+@pytest.mark.parametrize("compare_direct", [True, False])
+def test_coarse_to_fine_jobs_keep_a_share_for_the_full_resolution(
+    method: str, compare_direct: bool
+) -> None:
+    compare = compare_direct and method != "direct"
+    stages = [s for s in STAGES if ("direct" not in s[0] or compare)
+              and (method != "direct" or "direct" in s[0])]  # fmt: skip
+    stages += [("full resolution", 15)] + ([("direct full resolution", 15)] if compare else [])
+    fractions = [
+        overall_fraction(method, stage, done, total, compare_direct=compare_direct,
+                         coarse_to_fine=True)
+        for stage, total in stages
+        for done in range(total + 1)
+    ]  # fmt: skip
+    assert all(f is not None for f in fractions)
+    assert fractions == sorted(fractions)  # type: ignore[type-var]
+    assert fractions[-1] == pytest.approx(1.0)
+    start = overall_fraction(method, "full resolution", 0, 15, compare_direct=compare_direct,
+                             coarse_to_fine=True)  # fmt: skip
+    assert start == pytest.approx(0.5)
+
+
 def test_overall_fraction_of_direct_and_unknown_stages() -> None:
     assert overall_fraction("direct", "similarity direct", 5, 10, compare_direct=False) == (
         pytest.approx(0.1)

@@ -156,6 +156,8 @@ def create_job(
     # A body without pose (or callback_url) hashes as before they existed: a retry across
     # the upgrade matches.
     unset = {key for key in ("pose", "callback_url") if getattr(body, key) is None}
+    if "working_points" not in body.model_fields_set:
+        unset.add("working_points")
     request_hash = idempotency.hash_json(body.model_dump(mode="json", exclude=unset or None))
     if body.callback_url is not None:
         try:
@@ -169,7 +171,8 @@ def create_job(
         params_for=lambda formats: {
             **body.model_dump(
                 mode="json",
-                include={"similarity_threshold", "error_threshold", "compare_direct", "cpd"},
+                include={"similarity_threshold", "error_threshold", "compare_direct", "cpd",
+                         "working_points"},
             ),
             **resolve_pose(body, formats),
         },

@@ -1,0 +1,280 @@
+"""Coarse to fine: decide the tree at a working resolution, register its edges at the
+stored one.
+
+Every decision of a tree method (the similarity, the candidates, acceptance, leaves,
+refinement, the pose of each edge) is taken on the shapes subsampled to at most
+``working_points`` points each (:func:`coarse_collection`: a deterministic farthest-point
+subsample, in the shapes' own normalisation, so that every transform fitted on the coarse
+shapes applies unchanged to the stored points). Then :func:`at_stored_resolution`
+registers each edge of the result once at the stored resolution, parents before
+children: the root model at full resolution, as already warped onto the parent, is moved
+by the coarse edge (its affine pre-alignment and its CPD warp) and a short CPD at full
+resolution warm-started there (:func:`_refine_edge`) puts it onto the full subject. The
+result's warped points, correspondences, transforms and e are then those of the stored
+shapes; the attempts, thresholds, similarity, confidence and quality checks keep the
+working resolution's figures the decisions were taken on (``quality`` adds
+``working_error``, the e decided on, and ``stored_min_jacobian``, the fold check of the
+edge's warp on the stored points). The confidence stays the working resolution's because
+its model is calibrated on shapes of a few hundred points: its e / h^2 feature grows with
+the density of the points (h is the point spacing), and on the 73 永 edge glyphs at their
+stored 1167-2244 points it scored correct registrations near 0.05 (bench/RESULTS.md
+section 8), so that the tree run at the stored resolution left 71 of 72 subjects as
+leaves.
+
+Shapes at or below ``working_points`` are not subsampled; when no shape is above it,
+nothing here runs and the methods behave exactly as without a coarse stage.
+"""
+
+from __future__ import annotations
+
+import numbers
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid
+from .._error import registration_error
+from .._executor import Executor
+from .._result import CollectionResult, SubjectResult
+from .._similarity import ProgressCallback
+from .._transform import ChainTransform, PointTransform, jacobian_determinants
+from ._collection import _Collection
+from ._rules import _spacing2
+from ._tasks import _map_tasks
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: Points per shape the tree's decisions are taken at (None or 0: the stored resolution).
+#: At 400 points the 73 永 edge glyphs (1167-2244 points) build their tree in a fraction
+#: of the full-resolution time with e and correspondences matching a full-resolution run
+#: (bench/bench_resolution.py, bench/RESULTS.md section 8).
+DEFAULT_WORKING_POINTS = 400
+#: Fewest points a working resolution may have.
+MIN_WORKING_POINTS = 20
+#: EM iterations of the warm-started CPD at the stored resolution (at most; it stops
+#: earlier on CPD's own tolerance).
+FINE_MAX_ITER = 20
+#: Initial sigma^2 of the warm start, times half the e (eq. 10) of the warm-started model:
+#: e is a mean squared 2-D distance, sigma^2 a per-coordinate variance.
+FINE_SIGMA2_FACTOR = 1.0
+
+
+def check_working_points(value: Any) -> int | None:
+    """The working resolution as an int, or None for none; ValueError if invalid."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"working_points must be None, 0 or an integer >= "
+                         f"{MIN_WORKING_POINTS}; got {value!r}")
+    n = int(value)
+    if n == 0:
+        return None
+    if n < MIN_WORKING_POINTS:
+        raise ValueError(f"working_points must be None, 0 or an integer >= "
+                         f"{MIN_WORKING_POINTS}; got {value!r}")
+    return n
+
+
+def farthest_point_indices(points: FloatArray, n: int) -> IntArray:
+    """Indices (sorted) of a farthest-point subsample of `n` of `points` (all if fewer).
+
+    Deterministic and independent of the order of the points up to ties: it starts at the
+    point farthest from the centroid and adds, each time, the point farthest from those
+    chosen, so the subsample covers the shape evenly whatever the density of the input
+    (scans and edge maps are denser in places).
+    """
+    m = points.shape[0]
+    if m <= n:
+        return np.arange(m, dtype=np.intp)
+    chosen = np.empty(n, dtype=np.intp)
+    chosen[0] = int(np.argmax(np.sum((points - points.mean(axis=0)) ** 2, axis=1)))
+    d2 = np.sum((points - points[chosen[0]]) ** 2, axis=1)
+    for k in range(1, n):
+        nxt = int(np.argmax(d2))
+        chosen[k] = nxt
+        np.minimum(d2, np.sum((points - points[nxt]) ** 2, axis=1), out=d2)
+    return np.sort(chosen)
+
+
+def coarse_collection(full: _Collection, working_points: int | None) -> _Collection:
+    """The collection at the working resolution; `full` itself when no shape is above it.
+
+    Coarse shapes keep the stored shapes' normalisation (their normalised points are a
+    subset of the stored ones), so a transform fitted between coarse shapes applies to the
+    stored points as it is.
+    """
+    if working_points is None or all(len(p) <= working_points for p in full.normed):
+        return full
+    normed = [p[farthest_point_indices(p, working_points)] for p in full.normed]
+    return _Collection(normed=normed, norms=list(full.norms), names=list(full.names),
+                       root=full.root, spacing2=[_spacing2(p) for p in normed])
+
+
+@dataclass(frozen=True)
+class _Composed:
+    """Steps applied one after the other (the coarse CPD warp then the fine one), as one
+    map for the fold check."""
+
+    steps: tuple[PointTransform, ...]
+
+    def apply(self, points: Any) -> FloatArray:
+        p = np.asarray(points, dtype=np.float64)
+        for step in self.steps:
+            p = step.apply(p)
+        return p
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"type": "composed", "steps": [s.to_dict() for s in self.steps]}
+
+
+@dataclass(frozen=True)
+class _FineTask:
+    subject: int
+    q: FloatArray  # the full root model as warped onto the parent (parent's normalised coords)
+    steps: tuple[PointTransform, ...]  # the coarse edge: affine pre-alignment, then CPD
+    y: FloatArray  # the stored subject, normalised
+    cpd: CPDOptions
+
+
+@dataclass(frozen=True)
+class _FineOutcome:
+    subject: int
+    warped: FloatArray
+    error: float
+    correspondence: IntArray
+    probability: FloatArray
+    step: NonrigidTransform
+    min_jacobian: float  # of the edge's non-rigid warp (coarse then fine) on the stored model
+
+
+def warm_start_sigma2(start: FloatArray, subject: FloatArray) -> float:
+    """Initial CPD variance for a model already lying near the subject: half its e."""
+    return max(FINE_SIGMA2_FACTOR * 0.5 * registration_error(start, subject), 1e-12)
+
+
+def _refine_edge(task: _FineTask) -> _FineOutcome:
+    """One edge at the stored resolution: the coarse edge's steps, then a short CPD.
+
+    The warm-started CPD runs in the subject's normalised frame (``normalize=False``: both
+    sets stay where the coarse edge put them) from a variance of half the remaining e, so
+    it corrects locally instead of registering again from scratch.
+    """
+    pre = task.q
+    for step in task.steps[:-1]:
+        pre = step.apply(pre)
+    start = task.steps[-1].apply(pre)
+    o = task.cpd
+    res = cpd_nonrigid(start, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, tol=o.tol,
+                       max_iter=min(o.max_iter, FINE_MAX_ITER), dtype=o.dtype,
+                       sigma2=warm_start_sigma2(start, task.y), normalize=False)
+    warped = np.asarray(res.warped, dtype=np.float64)
+    det = jacobian_determinants(_Composed((task.steps[-1], res.transform)), pre)
+    return _FineOutcome(subject=task.subject, warped=warped,
+                        error=registration_error(warped, task.y),
+                        correspondence=np.asarray(res.correspondence, dtype=np.intp),
+                        probability=np.asarray(res.probability, dtype=np.float64),
+                        step=res.transform, min_jacobian=float(det.min()))
+
+
+@dataclass
+class _FineNode:
+    q: FloatArray
+    chain: ChainTransform
+
+
+def _edge_steps(res: SubjectResult, parent: ChainTransform) -> tuple[PointTransform, ...]:
+    assert res.transform is not None
+    chain = res.transform
+    if tuple(chain.path[:-1]) != tuple(parent.path):
+        raise AssertionError(f"subject {res.index}: its path {chain.path} does not extend "
+                             f"its parent's {parent.path}")
+    return chain.steps[len(parent.steps):]
+
+
+def _refined_subjects(
+    full: _Collection,
+    subjects: list[SubjectResult],
+    cpd: CPDOptions,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+    stage: str,
+) -> list[SubjectResult]:
+    """`subjects` (decided at the working resolution) with every registration redone at
+    the stored resolution, a layer at a time from the root."""
+    root = full.root
+    fine = {root: _FineNode(q=full.normed[root], chain=full.root_chain())}
+    coarse_chain = {root: full.root_chain()}
+    out = {s.index: s for s in subjects}
+    pending = sorted((s for s in subjects if s.attached and s.parent is not None),
+                     key=lambda s: (len(s.path), s.index))
+    by_depth: dict[int, list[SubjectResult]] = {}
+    for s in pending:
+        by_depth.setdefault(len(s.path), []).append(s)
+    total, done = len(pending), 0
+    for depth in sorted(by_depth):
+        group = by_depth[depth]
+        tasks = []
+        for s in group:
+            assert s.parent is not None and s.transform is not None
+            tasks.append(_FineTask(
+                subject=s.index, q=fine[s.parent].q,
+                steps=_edge_steps(s, coarse_chain[s.parent]), y=full.normed[s.index],
+                cpd=cpd))
+        counted = _counting(progress, stage, done, total)
+        for res in _map_tasks(_refine_edge, tasks, executor, counted, stage):
+            s = out[res.subject]
+            assert s.parent is not None and s.transform is not None
+            parent = fine[s.parent]
+            edge = _edge_steps(s, coarse_chain[s.parent])
+            chain = parent.chain.extended((*edge, res.step), full.norms[s.index], s.index)
+            quality = {**(s.quality or {}), "working_error": s.error,
+                       "stored_min_jacobian": res.min_jacobian}
+            coarse_chain[s.index] = s.transform
+            fine[s.index] = _FineNode(q=res.warped, chain=chain)
+            s.error = res.error
+            s.warped = full.norms[s.index].invert(res.warped)
+            s.correspondence = res.correspondence
+            s.probability = res.probability
+            s.transform = chain
+            s.quality = quality
+        done += len(group)
+    return [out[s.index] for s in subjects]
+
+
+def _counting(progress: ProgressCallback | None, stage: str, offset: int,
+              total: int) -> ProgressCallback | None:
+    """A progress callback that reports one layer's count within the whole stage's."""
+    if progress is None:
+        return None
+
+    def report(_stage: str, done: int, _total: int) -> None:
+        progress(stage, offset + done, total)
+
+    return report
+
+
+def at_stored_resolution(
+    result: CollectionResult,
+    full: _Collection,
+    coarse: _Collection,
+    cpd: CPDOptions,
+    working_points: int | None,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+) -> CollectionResult:
+    """`result`, decided on `coarse`, with its registrations at the stored resolution.
+
+    Unchanged (but for ``options["working_points"]``) when `coarse` is `full`.
+    """
+    result.options["working_points"] = working_points
+    if coarse is full:
+        return result
+    result.subjects = _refined_subjects(full, result.subjects, cpd, executor, progress,
+                                        "full resolution")
+    if result.direct is not None:
+        result.direct = _refined_subjects(full, result.direct, cpd, executor, progress,
+                                          "direct full resolution")
+    return result

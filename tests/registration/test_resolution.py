@@ -1,0 +1,147 @@
+"""Coarse to fine (`working_points`): the tree decided on subsampled shapes, its results at
+the stored resolution."""
+
+import json
+
+import numpy as np
+import pytest
+
+from registration import (
+    CPDOptions,
+    SerialExecutor,
+    build_dynamic_tree,
+    build_static_tree,
+    register_direct,
+    registration_error,
+)
+from registration._points import normalise
+from registration._tree._resolution import (
+    DEFAULT_WORKING_POINTS,
+    farthest_point_indices,
+)
+from registration.synthetic import (
+    base_outline,
+    chained_family,
+    correspondence_error,
+    deformation_chains,
+)
+
+FAST_CPD = CPDOptions(max_iter=60)
+WORKING = 60
+
+
+@pytest.fixture(scope="module")
+def family():
+    # 240 points a shape, decided at 60: every shape is subsampled
+    return deformation_chains(base_outline(1500), n_chains=2, chain_length=3, n_points=240,
+                              seed=0)
+
+
+@pytest.fixture(scope="module")
+def runs(family):
+    kw = {"cpd": FAST_CPD, "executor": SerialExecutor(), "names": family.names}
+    return {
+        "c2f": build_dynamic_tree(family.shapes, 0, working_points=WORKING,
+                                  compare_direct=True, **kw),
+        "full": build_dynamic_tree(family.shapes, 0, working_points=None, **kw),
+    }
+
+
+def _check_stored_resolution(res, family):
+    n_root = len(family.shapes[0])
+    root_pts = family.shapes[0]
+    for s in [*res.subjects, *(res.direct or [])]:
+        assert s.attached
+        y = family.shapes[s.index]
+        assert s.warped.shape == (n_root, 2)
+        assert s.correspondence.shape == (n_root,) and s.probability.shape == (n_root,)
+        assert 0 <= s.correspondence.min() and s.correspondence.max() < len(y)
+        # indices into the full subject, not into its 60-point subsample
+        assert s.correspondence.max() >= WORKING
+        # e is that of the stored shapes
+        yn, norm = normalise(y)
+        assert s.error == pytest.approx(registration_error(norm.apply(s.warped), yn), rel=1e-9)
+        # the transform reproduces the warped model from the full root
+        np.testing.assert_allclose(s.transform.apply(root_pts), s.warped, atol=1e-8 * norm.scale)
+        assert s.transform.path[0] == 0 and s.transform.path[-1] == s.index
+        assert s.quality["working_error"] > 0 and 0 <= s.confidence <= 1
+        assert np.isfinite(s.quality["stored_min_jacobian"])
+
+
+def test_results_are_at_the_stored_resolution(runs, family):
+    res = runs["c2f"]
+    assert res.options["working_points"] == WORKING
+    _check_stored_resolution(res, family)
+    json.dumps(res.to_dict())
+
+
+def test_coarse_to_fine_matches_a_full_resolution_run(runs, family):
+    c2f, full = runs["c2f"], runs["full"]
+    assert full.options["working_points"] is None
+    e_c = np.array([s.error for s in c2f.subjects])
+    e_f = np.array([s.error for s in full.subjects])
+    assert e_c.mean() <= 1.3 * e_f.mean()
+
+    truth = family.root_images(0)
+
+    def gt(res):
+        return np.mean([correspondence_error(s.warped, truth[s.index], family.shapes[s.index])
+                        for s in res.subjects])
+
+    # measured 0.032 (coarse to fine) vs 0.037 (full resolution)
+    assert gt(c2f) <= 1.2 * gt(full)
+
+
+def test_static_tree_and_direct_are_at_the_stored_resolution(family):
+    kw = {"cpd": FAST_CPD, "executor": SerialExecutor(), "working_points": WORKING}
+    for fn in (build_static_tree, register_direct):
+        res = fn(family.shapes, 0, **kw)
+        assert res.options["working_points"] == WORKING
+        _check_stored_resolution(res, family)
+
+
+def test_small_shapes_are_not_touched():
+    fam = chained_family(n_chains=1, chain_length=3, n_points=80, seed=2)
+    kw = {"cpd": FAST_CPD, "executor": SerialExecutor()}
+    a = build_dynamic_tree(fam.shapes, 0, **kw)  # default working_points: 400 > 80
+    b = build_dynamic_tree(fam.shapes, 0, working_points=None, **kw)
+    c = build_dynamic_tree(fam.shapes, 0, working_points=0, **kw)
+    assert a.options["working_points"] == DEFAULT_WORKING_POINTS
+    assert c.options["working_points"] is None
+    for sa, sb, sc in zip(a.subjects, b.subjects, c.subjects, strict=True):
+        assert sa.error == sb.error == sc.error
+        np.testing.assert_array_equal(sa.warped, sb.warped)
+        np.testing.assert_array_equal(sa.correspondence, sb.correspondence)
+        assert "working_error" not in sa.quality
+
+
+def test_a_mix_of_small_and_large_shapes(family):
+    shapes = list(family.shapes[:4])
+    shapes[2] = shapes[2][::5]  # 48 points: below the working resolution, used as is
+    res = register_direct(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor(),
+                          working_points=WORKING)
+    s = res.subject(2)
+    assert s.warped.shape == (len(shapes[0]), 2) and s.correspondence.max() < 48
+
+
+@pytest.mark.parametrize("bad", [-1, 5, 2.5, True, "400"])
+def test_bad_working_points_raise(family, bad):
+    with pytest.raises(ValueError, match="working_points"):
+        register_direct(family.shapes[:3], 0, working_points=bad)
+
+
+def test_farthest_point_subsample_is_deterministic_and_even():
+    rng = np.random.default_rng(0)
+    # a dense cluster and a sparse line: the subsample covers both
+    pts = np.concatenate([rng.normal(0, 0.01, size=(900, 2)),
+                          np.column_stack([np.linspace(1, 2, 100), np.zeros(100)])])
+    idx = farthest_point_indices(pts, 50)
+    assert len(idx) == 50 and len(np.unique(idx)) == 50 and np.all(np.diff(idx) > 0)
+    np.testing.assert_array_equal(idx, farthest_point_indices(pts, 50))
+    assert np.sum(idx >= 900) > 25  # most of it on the line, not in the cluster
+    # without ties (random points) the choice does not depend on the order of the points
+    scatter = rng.uniform(size=(500, 2))
+    perm = rng.permutation(len(scatter))
+    assert set(perm[farthest_point_indices(scatter[perm], 50)]) == set(
+        farthest_point_indices(scatter, 50))
+    np.testing.assert_array_equal(farthest_point_indices(pts[:10], 50), np.arange(10))
