@@ -19,6 +19,7 @@ from ._collection import (
     _TreeStart,
 )
 from ._passes import _attach_leaves, _refine_parents
+from ._polish import POLISH_MIN_LAYER, _polish_subjects
 from ._rules import (
     ERROR_FACTOR,
     SPACING_FACTOR,
@@ -55,6 +56,7 @@ def build_dynamic_tree(
     max_rotation: float | None = None,
     fold_check: bool = True,
     refine: bool = True,
+    polish: bool = False,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
     executor: Executor | None = None,
@@ -108,6 +110,11 @@ def build_dynamic_tree(
         that joined the tree after it and is more similar to it than its parent, when
         the registration from there is better (higher confidence, or as confident with a
         lower e). No cycles: a subject never moves below itself.
+    polish : bool
+        Finally, every subject at layer >= 3 is registered once more by CPD from the root
+        model where its chain left it, and takes that registration when it does not fold,
+        lowers e and keeps a confidence >= 0.2 (see :mod:`._polish`): the slide a chain
+        accumulates link by link can relax. One more CPD per deep subject.
     compare_direct : bool
         Also run direct CPD from the root on every subject, for comparison.
     names : sequence of str, optional
@@ -205,6 +212,8 @@ def build_dynamic_tree(
         _refine_parents(coll, sim, sim_rule, nodes, results, tried, tau_err, floors,
                         error_threshold is not None, fold_check, cpd, prealign, spec, executor,
                         progress)
+    if polish:
+        _polish_subjects(coll, results, cpd, executor, progress)
     out_subjects = [results[s] for s in subjects_idx]
     direct = (
         _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None
@@ -221,6 +230,7 @@ def build_dynamic_tree(
             else f"auto: max({ERROR_FACTOR} x lower quartile of layer-2 e, "
             f"{SPACING_FACTOR} x the subject's squared point spacing)",
             "fold_check": fold_check,
+            "polish": f"layer >= {POLISH_MIN_LAYER}" if polish else "off",
         },
         options=_options_dict(cpd, prealign, max_candidates, spec),
         direct=direct,
