@@ -303,6 +303,11 @@ def report_case(case: Case, rows: list[dict[str, Any]]) -> dict[str, Any]:
                 + ("" if case.depth[case.root] == 0
                    else " (counted along the generation tree through shape 0)"))
     print(stats_line("far", far_st) + f"   [{far_note}]")
+    if "variant" in METHODS:
+        print(f"  variant*/plain all {f2(all_st['variant/plain'])}, "
+              f"far {f2(far_st['variant/plain'])}"
+              f" (tree*/plain {f2(all_st['tree/plain'])}, {f2(far_st['tree/plain'])}); "
+              f"variant {case.seconds['variant']:.1f}s")
     unatt = {m: [r["name"] for r in rows if not r[m]["attached"]] for m in METHODS}
     for m, names in unatt.items():
         if names:

@@ -354,3 +354,28 @@ def test_a_leaf_keeps_the_lowest_e_registration_even_when_it_folds(family, monke
     assert s.leaf and s.confidence == 0.0
     assert len(seen) >= 3  # from the root and from several members
     assert (s.error, s.parent) == min(seen)
+
+
+def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
+    shapes = family.shapes[:8]
+    plain = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+    res = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, polish=True, executor=SerialExecutor())
+    assert plain.thresholds["polish"] == "off" and res.thresholds["polish"] == "layer >= 3"
+    polished = {s.index for s in res.subjects if "polish" in (s.quality or {})}
+    assert polished, "no subject was polished on a chained family"
+    for s in res.subjects:
+        before = plain.subject(s.index)
+        # the tree itself is the same: polish is a final pass
+        assert (s.parent, s.layer) == (before.parent, before.layer)
+        if s.index not in polished:
+            assert s.error == before.error
+            continue
+        assert s.layer is not None and s.layer >= 3
+        p = s.quality["polish"]
+        assert p["error_before"] == before.error and s.error <= before.error
+        assert p["min_jacobian"] > 0 and p["confidence"] >= 0.2
+        assert s.confidence <= before.confidence
+        assert "polished" in s.reason
+        # the reported transform still maps the root model onto the reported warped model
+        assert np.allclose(s.transform.apply(shapes[0]), s.warped, atol=1e-8)
+        assert len(s.transform.steps) == len(before.transform.steps) + 1
