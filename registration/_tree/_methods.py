@@ -56,7 +56,7 @@ def build_dynamic_tree(
     max_rotation: float | None = None,
     fold_check: bool = True,
     refine: bool = True,
-    polish: bool = False,
+    polish: bool = True,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
     executor: Executor | None = None,
@@ -114,7 +114,9 @@ def build_dynamic_tree(
         Finally, every subject at layer >= 3 is registered once more by CPD from the root
         model where its chain left it, and takes that registration when it does not fold,
         lowers e and keeps a confidence >= 0.2 (see :mod:`._polish`): the slide a chain
-        accumulates link by link can relax. One more CPD per deep subject.
+        accumulates link by link can relax. One more CPD per deep subject. On the
+        ground-truth chains of bench/bench_groundtruth.py it lowered the correspondence
+        error on every family (bench/RESULTS.md, 0.00); False: the tree as built.
     compare_direct : bool
         Also run direct CPD from the root on every subject, for comparison.
     names : sequence of str, optional

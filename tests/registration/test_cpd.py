@@ -340,7 +340,7 @@ def test_pycpd_backend_transform_and_callback(pair: tuple[np.ndarray, ...]) -> N
 # warm start (init_warped)
 # ----------------------------------------------------------------------------------------
 def test_init_warped_starts_from_the_given_positions(pair: Any) -> None:
-    model, subject, truth, _ = pair
+    model, subject, _, _ = pair
     first = cpd_nonrigid(model, subject)
     # started where a converged run ended, from a small sigma^2, CPD stays there: the
     # kernel and the regulariser are still the model's, the field still model -> subject
