@@ -50,7 +50,11 @@ def test_dynamic_tree_result_contract(dynamic, family):
             assert s["path"][-2] == s["parent"]
             accepted = [a for a in s["attempts"] if a["accepted"]]
             assert len(accepted) == 1 and accepted[0]["member"] == s["parent"]
-            assert s["error"] == accepted[0]["error"] < accepted[0]["limit"]
+            # a polished subject reports the polish's e; the chain's is kept beside it
+            polish = (s["quality"] or {}).get("polish")
+            chained = polish["error_before"] if polish else s["error"]
+            assert chained == accepted[0]["error"] < accepted[0]["limit"]
+            assert s["error"] <= chained
             assert accepted[0]["limit"] >= dynamic.thresholds["error"]
     assert doc["summary"]["direct"]["all"]["count"] == doc["summary"]["attached"]
 
@@ -349,7 +353,9 @@ def test_a_leaf_keeps_the_lowest_e_registration_even_when_it_folds(family, monke
         return out
 
     monkeypatch.setattr(tree_module, "_register_task", recording)
-    res = build_dynamic_tree(family.shapes[:8], 0, cpd=FAST_CPD, executor=SerialExecutor())
+    # the leaf rule itself: no polish afterwards
+    res = build_dynamic_tree(family.shapes[:8], 0, cpd=FAST_CPD, polish=False,
+                             executor=SerialExecutor())
     s = res.subject(5)
     assert s.leaf and s.confidence == 0.0
     assert len(seen) >= 3  # from the root and from several members
