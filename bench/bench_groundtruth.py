@@ -241,7 +241,7 @@ def group_stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
         out[m] = {"mean": _mean(att), "pen": _mean(pen), "p95": _p95(att),
                   "attached": len(att), "unattached": len(rows) - len(att)}
     plain_pen = out["plain"]["pen"]
-    for m in ("tree", "direct"):
+    for m in [m for m in METHODS if m != "plain"]:
         same = [r["plain"]["gt"] for r in rows
                 if r[m]["gt"] is not None and r["plain"]["gt"] is not None]
         out[f"{m}/plain"] = out[m]["pen"] / plain_pen if plain_pen > 0 else float("nan")
@@ -303,6 +303,11 @@ def report_case(case: Case, rows: list[dict[str, Any]]) -> dict[str, Any]:
                 + ("" if case.depth[case.root] == 0
                    else " (counted along the generation tree through shape 0)"))
     print(stats_line("far", far_st) + f"   [{far_note}]")
+    if "variant" in METHODS:
+        print(f"  variant*/plain all {f2(all_st['variant/plain'])}, "
+              f"far {f2(far_st['variant/plain'])}"
+              f" (tree*/plain {f2(all_st['tree/plain'])}, {f2(far_st['tree/plain'])}); "
+              f"variant {case.seconds['variant']:.1f}s")
     unatt = {m: [r["name"] for r in rows if not r[m]["attached"]] for m in METHODS}
     for m, names in unatt.items():
         if names:
@@ -447,7 +452,29 @@ RUNNERS: dict[str, Callable[[list[np.ndarray], int], CollectionResult]] = {
 }
 
 
+def variant_summary(cases: list[Case], reports: list[dict[str, Any]],
+                    rows_by_case: list[list[dict[str, Any]]], spec: str) -> None:
+    """The tree with the options of ``--compare`` beside the default tree, same runs."""
+    print(f"\nTREE VARIANT ({spec}) beside the default tree, both against plain CPD "
+          "(penalised means, pooled; worst = largest per-run ratio over all subjects)")
+    print(f"{'family':13s} {'runs':>4s} {'tree/pl all':>11s} {'far':>6s} {'worst':>6s} | "
+          f"{'variant/pl all':>14s} {'far':>6s} {'worst':>6s}")
+    kinds = list(dict.fromkeys(c.kind for c in cases))
+    for kind in [*kinds, "ALL"]:
+        idx = [i for i, c in enumerate(cases) if kind in (c.kind, "ALL")]
+        rows = [r for i in idx for r in rows_by_case[i]]
+        st_all = group_stats(rows)
+        st_far = group_stats([r for r in rows if r["far"]])
+        cols = []
+        for m in ("tree", "variant"):
+            worst = max(reports[i]["all"][f"{m}/plain"] for i in idx)
+            cols.append(f"{f2(st_all[f'{m}/plain']):>11s} {f2(st_far[f'{m}/plain']):>6s} "
+                        f"{f2(worst):>6s}")
+        print(f"{kind:13s} {len(idx):4d} {cols[0]} | {cols[1]:>28s}")
+
+
 def main() -> None:
+    global METHODS, DATA, GLYPHS, CHUI
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true",
                     help="1 design, 1 seed, 1 Chui trial, root 0 only")
@@ -460,11 +487,23 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
                     "generated)")
+    ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
+                    help="also run the dynamic tree with these options (e.g. polish=False) "
+                    "as method 'variant' and print it beside the default tree")
+    ap.add_argument("--data", type=Path, default=None,
+                    help=f"the shared data directory (default {DATA})")
     ap.add_argument("--json", type=Path, default=None, help="dump every per-subject number")
     args = ap.parse_args()
     seeds = list(range(1 if args.quick else args.seeds))
     trials = list(range(1 if args.quick else args.trials))
     mid_root = not args.quick
+    if args.data is not None:
+        DATA, GLYPHS, CHUI = args.data, args.data / "glyphs_yong", args.data / "chui_rangarajan"
+    if args.compare:
+        kw = {k.strip(): _literal(v) for k, v in
+              (item.split("=", 1) for item in args.compare.split(",") if item.strip())}
+        RUNNERS["variant"] = lambda shapes, r: build_dynamic_tree(shapes, root=r, **kw)
+        METHODS = (*METHODS, "variant")
 
     cases: list[Case] = []
     if not DATA.is_dir():
@@ -499,6 +538,8 @@ def main() -> None:
         rows_by_case.append(rows)
         reports.append(report_case(case, rows))
     summary(cases, reports, rows_by_case)
+    if args.compare:
+        variant_summary(cases, reports, rows_by_case, args.compare)
 
     if args.json is not None:
         doc = [{"family": c.kind, "label": c.label, "seed": c.seed, "root": c.root,
@@ -508,6 +549,16 @@ def main() -> None:
                for c, rep, rows in zip(cases, reports, rows_by_case, strict=True)]
         args.json.write_text(json.dumps(_clean(doc), indent=1, allow_nan=False))
         print(f"\nper-subject numbers written to {args.json}")
+
+
+def _literal(text: str) -> Any:
+    """An option value of ``--compare``: a Python literal (True, 3, 0.5) or a string."""
+    import ast
+
+    try:
+        return ast.literal_eval(text.strip())
+    except (ValueError, SyntaxError):
+        return text.strip()
 
 
 def _clean(o: Any) -> Any:

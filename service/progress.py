@@ -3,11 +3,11 @@
 estimate of the time left.
 
 The library reports progress per stage (``similarity``, ``layer 2``, ``layer 3``, ...,
-``leaves``, ``refine``, ``direct``), each with its own count: pairs of shapes for the
-similarity stages, registrations (a subject from a candidate parent) for the others. The
+``leaves``, ``refine``, ``polish``, ``direct``), each with its own count: pairs of shapes for
+the similarity stages, registrations (a subject from a candidate parent) for the others. The
 overall percentage places the stage within the whole run: the similarity first, the tree's
 layers next (how many there will be is not known in advance, so each layer is given half of
-what is left of the tree's share), then leaves and refinement, and direct CPD last when the
+what is left of the tree's share), then leaves, refinement and polish, and direct CPD last when the
 job compares with it. It never goes back, and it is an estimate, as is the time left it gives
 (elapsed time x what is left / what is done).
 """
@@ -69,7 +69,9 @@ def _tree_position(stage: str, f: float) -> float | None:
     if stage == "leaves":
         return LAYERS_SHARE + rest * 0.5 * f
     if stage == "refine":
-        return LAYERS_SHARE + rest * (0.5 + 0.5 * f)
+        return LAYERS_SHARE + rest * (0.5 + 0.25 * f)
+    if stage == "polish":
+        return LAYERS_SHARE + rest * (0.75 + 0.25 * f)
     return None
 
 

@@ -144,6 +144,7 @@ def cpd_nonrigid(
     gauss_grid: bool | None = None,
     backend: Literal["native", "pycpd"] = "native",
     callback: Callable[[int, float, float], None] | None = None,
+    init_warped: ArrayLike | None = None,
 ) -> CPDResult:
     """Non-rigid Coherent Point Drift: move ``model`` onto ``subject``.
 
@@ -213,6 +214,12 @@ def cpd_nonrigid(
         counts from 1, ``sigma2`` in caller units squared, ``objective`` in normalised
         units).  An exception raised by it propagates unchanged and aborts the run;
         nothing the caller owns has been modified.
+    init_warped : array_like, shape (M, 2), optional
+        Warm start: the starting positions of the model points on the subject, in the
+        subject's (caller's) coordinates, e.g. a previous registration to refine.  The
+        kernel and the regulariser stay those of ``model`` (the field is still model ->
+        subject); the first E-step uses these positions and the default initial sigma^2 is
+        computed from them instead of from ``model``.  Native backend only.
 
     Returns
     -------
@@ -247,13 +254,14 @@ def cpd_nonrigid(
                              max_iter=max_iter, sigma2=sigma2, normalize=normalize,
                              low_rank=low_rank, num_eig=num_eig, dtype=dtype,
                              truncate=truncate, gauss_grid=gauss_grid, backend=backend,
-                             callback=callback)
+                             callback=callback, init_warped=init_warped)
 
 
 def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any, w: Any,
                   tol: Any, max_iter: Any, sigma2: Any, normalize: Any, low_rank: Any,
                   num_eig: Any, dtype: Any, truncate: Any, gauss_grid: Any, backend: Any,
-                  callback: Callable[[int, float, float], None] | None) -> CPDResult:
+                  callback: Callable[[int, float, float], None] | None,
+                  init_warped: ArrayLike | None = None) -> CPDResult:
     y_in = as_points(model, name="model")
     x_in = as_points(subject, name="subject")
     m, n = len(y_in), len(x_in)
@@ -271,6 +279,15 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
         yd, xs, ys = xd, 1.0, 1.0
     x = (x_in - xd) / xs
     y = (y_in - yd) / ys
+    t0 = y
+    if init_warped is not None:
+        if backend != "native":
+            raise ValueError("init_warped needs backend='native'")
+        w_in = as_points(init_warped, name="init_warped")
+        if w_in.shape != y_in.shape:
+            raise ValueError(f"init_warped must have the model's shape {y_in.shape}; "
+                             f"got {w_in.shape}")
+        t0 = (w_in - xd) / xs
     s2_ref = float(np.mean(np.sum(x * x, axis=1))) if not normalize else 1.0
     if not s2_ref > 0:
         s2_ref = 1.0
@@ -278,8 +295,8 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
 
     if sigma2 is None:
         # sum_{m,n} |x_n - y_m|^2 / (D M N), expanded (MATLAB's cpd_GRBF)
-        s2 = float((m * np.sum(x * x) + n * np.sum(y * y)
-                    - 2.0 * np.dot(x.sum(axis=0), y.sum(axis=0))) / (2 * m * n))
+        s2 = float((m * np.sum(x * x) + n * np.sum(t0 * t0)
+                    - 2.0 * np.dot(x.sum(axis=0), t0.sum(axis=0))) / (2 * m * n))
     else:
         s2 = float(sigma2) / (xs * xs)
     if not (math.isfinite(s2) and s2 > floor):
@@ -303,6 +320,18 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
 
     wmat = np.zeros((m, 2))
     t = y.copy()
+    if init_warped is not None:
+        # W of the start (slightly ridged: G is ill-conditioned), so that a run stopped
+        # before its first M-step still returns about the start, and the first objective
+        # carries the start's regulariser
+        # (the low-rank kernel's W reproduces the start within the kernel's range)
+        if gk is not None:
+            wmat = np.asarray(np.linalg.solve(gk + 1e-8 * np.eye(m), t0 - y), dtype=np.float64)
+        else:
+            assert basis is not None
+            q, lam = basis
+            wmat = q @ ((q.T @ (t0 - y)) / (lam + 1e-8)[:, None])
+        t = t0.copy()
     objective = float("nan")
     l_old = float("nan")
     converged = False

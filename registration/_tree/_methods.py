@@ -25,6 +25,7 @@ from ._resolution import (
     check_working_points,
     coarse_collection,
 )
+from ._polish import POLISH_MIN_LAYER, _polish_subjects
 from ._rules import (
     ERROR_FACTOR,
     SPACING_FACTOR,
@@ -61,6 +62,7 @@ def build_dynamic_tree(
     max_rotation: float | None = None,
     fold_check: bool = True,
     refine: bool = True,
+    polish: bool = True,
     compare_direct: bool = False,
     names: Sequence[str] | None = None,
     working_points: int | None = DEFAULT_WORKING_POINTS,
@@ -115,6 +117,13 @@ def build_dynamic_tree(
         that joined the tree after it and is more similar to it than its parent, when
         the registration from there is better (higher confidence, or as confident with a
         lower e). No cycles: a subject never moves below itself.
+    polish : bool
+        Finally, every subject at layer >= 3 is registered once more by CPD from the root
+        model where its chain left it, and takes that registration when it does not fold,
+        lowers e and keeps a confidence >= 0.2 (see :mod:`._polish`): the slide a chain
+        accumulates link by link can relax. One more CPD per deep subject. On the
+        ground-truth chains of bench/bench_groundtruth.py it lowered the correspondence
+        error on every family (bench/RESULTS.md, 0.00); False: the tree as built.
     compare_direct : bool
         Also run direct CPD from the root on every subject, for comparison.
     working_points : int or None
@@ -222,6 +231,8 @@ def build_dynamic_tree(
         _refine_parents(coll, sim, sim_rule, nodes, results, tried, tau_err, floors,
                         error_threshold is not None, fold_check, cpd, prealign, spec, executor,
                         progress)
+    if polish:
+        _polish_subjects(coll, results, cpd, executor, progress)
     out_subjects = [results[s] for s in subjects_idx]
     direct = (
         _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None
@@ -238,6 +249,7 @@ def build_dynamic_tree(
             else f"auto: max({ERROR_FACTOR} x lower quartile of layer-2 e, "
             f"{SPACING_FACTOR} x the subject's squared point spacing)",
             "fold_check": fold_check,
+            "polish": f"layer >= {POLISH_MIN_LAYER}" if polish else "off",
         },
         options=_options_dict(cpd, prealign, max_candidates, spec),
         direct=direct,

@@ -185,13 +185,23 @@ class _FineNode:
     chain: ChainTransform
 
 
-def _edge_steps(res: SubjectResult, parent: ChainTransform) -> tuple[PointTransform, ...]:
-    assert res.transform is not None
-    chain = res.transform
+def _edge_steps(chain: ChainTransform, parent: ChainTransform) -> tuple[PointTransform, ...]:
+    """The steps `chain` adds to its parent's."""
     if tuple(chain.path[:-1]) != tuple(parent.path):
-        raise AssertionError(f"subject {res.index}: its path {chain.path} does not extend "
-                             f"its parent's {parent.path}")
+        raise AssertionError(f"subject {chain.path[-1]}: its path {chain.path} does not "
+                             f"extend its parent's {parent.path}")
     return chain.steps[len(parent.steps):]
+
+
+def _as_built(res: SubjectResult) -> ChainTransform:
+    """The chain `res` was attached with: a polished subject's chain (see :mod:`._polish`)
+    ends in one more CPD step that its children were not built on."""
+    assert res.transform is not None
+    if (res.quality or {}).get("polish") is None:
+        return res.transform
+    chain = res.transform
+    return ChainTransform(source=chain.source, target=chain.target, steps=chain.steps[:-1],
+                          path=chain.path)
 
 
 def _refined_subjects(
@@ -203,7 +213,10 @@ def _refined_subjects(
     stage: str,
 ) -> list[SubjectResult]:
     """`subjects` (decided at the working resolution) with every registration redone at
-    the stored resolution, a layer at a time from the root."""
+    the stored resolution, a layer at a time from the root.
+
+    A polished subject is redone twice: its edge as built (what its children start from),
+    then its polish step from there (what it reports)."""
     root = full.root
     fine = {root: _FineNode(q=full.normed[root], chain=full.root_chain())}
     coarse_chain = {root: full.root_chain()}
@@ -213,7 +226,9 @@ def _refined_subjects(
     by_depth: dict[int, list[SubjectResult]] = {}
     for s in pending:
         by_depth.setdefault(len(s.path), []).append(s)
-    total, done = len(pending), 0
+    polished = [s for s in pending if _as_built(s) is not s.transform]
+    total, done = len(pending) + len(polished), 0
+    fine_outcome: dict[int, _FineOutcome] = {}
     for depth in sorted(by_depth):
         group = by_depth[depth]
         tasks = []
@@ -221,26 +236,44 @@ def _refined_subjects(
             assert s.parent is not None and s.transform is not None
             tasks.append(_FineTask(
                 subject=s.index, q=fine[s.parent].q,
-                steps=_edge_steps(s, coarse_chain[s.parent]), y=full.normed[s.index],
-                cpd=cpd))
+                steps=_edge_steps(_as_built(s), coarse_chain[s.parent]),
+                y=full.normed[s.index], cpd=cpd))
         counted = _counting(progress, stage, done, total)
         for res in _map_tasks(_refine_edge, tasks, executor, counted, stage):
             s = out[res.subject]
-            assert s.parent is not None and s.transform is not None
-            parent = fine[s.parent]
-            edge = _edge_steps(s, coarse_chain[s.parent])
-            chain = parent.chain.extended((*edge, res.step), full.norms[s.index], s.index)
-            quality = {**(s.quality or {}), "working_error": s.error,
-                       "stored_min_jacobian": res.min_jacobian}
-            coarse_chain[s.index] = s.transform
+            assert s.parent is not None
+            built = _as_built(s)
+            edge = _edge_steps(built, coarse_chain[s.parent])
+            chain = fine[s.parent].chain.extended((*edge, res.step), full.norms[s.index],
+                                                  s.index)
+            coarse_chain[s.index] = built
             fine[s.index] = _FineNode(q=res.warped, chain=chain)
-            s.error = res.error
-            s.warped = full.norms[s.index].invert(res.warped)
-            s.correspondence = res.correspondence
-            s.probability = res.probability
-            s.transform = chain
-            s.quality = quality
+            fine_outcome[s.index] = res
         done += len(group)
+    # the polish steps, from the stored-resolution chains their subjects were built on
+    tasks = []
+    for s in polished:
+        assert s.transform is not None
+        tasks.append(_FineTask(subject=s.index, q=fine[s.index].q,
+                               steps=(s.transform.steps[-1],), y=full.normed[s.index],
+                               cpd=cpd))
+    counted = _counting(progress, stage, done, total)
+    for res in _map_tasks(_refine_edge, tasks, executor, counted, stage):
+        node = fine[res.subject]
+        step = out[res.subject].transform.steps[-1]  # type: ignore[union-attr]
+        chain = ChainTransform(source=node.chain.source, target=node.chain.target,
+                               steps=(*node.chain.steps, step, res.step), path=node.chain.path)
+        fine[res.subject] = _FineNode(q=res.warped, chain=chain)
+        fine_outcome[res.subject] = res
+    for index, res in fine_outcome.items():
+        s = out[index]
+        s.quality = {**(s.quality or {}), "working_error": s.error,
+                     "stored_min_jacobian": res.min_jacobian}
+        s.error = res.error
+        s.warped = full.norms[index].invert(res.warped)
+        s.correspondence = res.correspondence
+        s.probability = res.probability
+        s.transform = fine[index].chain
     return [out[s.index] for s in subjects]
 
 

@@ -335,3 +335,34 @@ def test_pycpd_backend_transform_and_callback(pair: tuple[np.ndarray, ...]) -> N
     assert its == list(range(1, 31))
     assert res.iterations == 30
     assert np.linalg.norm(res.warped - truth, axis=1).mean() < 1.0
+
+
+# ----------------------------------------------------------------------------------------
+# warm start (init_warped)
+# ----------------------------------------------------------------------------------------
+def test_init_warped_starts_from_the_given_positions(pair: Any) -> None:
+    model, subject, _, _ = pair
+    first = cpd_nonrigid(model, subject)
+    # started where a converged run ended, from a small sigma^2, CPD stays there: the
+    # kernel and the regulariser are still the model's, the field still model -> subject
+    again = cpd_nonrigid(model, subject, init_warped=first.warped, sigma2=first.sigma2)
+    scale = rms_radius(subject)
+    assert np.sqrt(np.mean(np.sum((again.warped - first.warped) ** 2, axis=1))) < 0.02 * scale
+    assert np.allclose(again.transform.apply(model), again.warped, atol=1e-8 * scale)
+    # with sigma^2 left to its default it is computed from the start, not from the model
+    calls: list[float] = []
+    cpd_nonrigid(model, subject, init_warped=first.warped, max_iter=1,
+                 callback=lambda it, s2, obj: calls.append(s2))
+    cold: list[float] = []
+    cpd_nonrigid(model, subject, max_iter=1, callback=lambda it, s2, obj: cold.append(s2))
+    assert calls[0] < cold[0]
+
+
+def test_init_warped_is_validated(pair: Any) -> None:
+    model, subject, _, _ = pair
+    with pytest.raises(ValueError, match="init_warped must have the model's shape"):
+        cpd_nonrigid(model, subject, init_warped=model[:-1])
+    with pytest.raises(ValueError, match="init_warped needs backend='native'"):
+        cpd_nonrigid(model, subject, init_warped=model, backend="pycpd")
+    with pytest.raises(ValueError, match="init_warped"):
+        cpd_nonrigid(model, subject, init_warped=np.full_like(model, np.nan))

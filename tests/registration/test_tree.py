@@ -50,7 +50,11 @@ def test_dynamic_tree_result_contract(dynamic, family):
             assert s["path"][-2] == s["parent"]
             accepted = [a for a in s["attempts"] if a["accepted"]]
             assert len(accepted) == 1 and accepted[0]["member"] == s["parent"]
-            assert s["error"] == accepted[0]["error"] < accepted[0]["limit"]
+            # a polished subject reports the polish's e; the chain's is kept beside it
+            polish = (s["quality"] or {}).get("polish")
+            chained = polish["error_before"] if polish else s["error"]
+            assert chained == accepted[0]["error"] < accepted[0]["limit"]
+            assert s["error"] <= chained
             assert accepted[0]["limit"] >= dynamic.thresholds["error"]
     assert doc["summary"]["direct"]["all"]["count"] == doc["summary"]["attached"]
 
@@ -349,8 +353,36 @@ def test_a_leaf_keeps_the_lowest_e_registration_even_when_it_folds(family, monke
         return out
 
     monkeypatch.setattr(tree_module, "_register_task", recording)
-    res = build_dynamic_tree(family.shapes[:8], 0, cpd=FAST_CPD, executor=SerialExecutor())
+    # the leaf rule itself: no polish afterwards
+    res = build_dynamic_tree(family.shapes[:8], 0, cpd=FAST_CPD, polish=False,
+                             executor=SerialExecutor())
     s = res.subject(5)
     assert s.leaf and s.confidence == 0.0
     assert len(seen) >= 3  # from the root and from several members
     assert (s.error, s.parent) == min(seen)
+
+
+def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
+    shapes = family.shapes[:8]
+    plain = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, polish=False,
+                               executor=SerialExecutor())
+    res = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+    assert plain.thresholds["polish"] == "off" and res.thresholds["polish"] == "layer >= 3"
+    polished = {s.index for s in res.subjects if "polish" in (s.quality or {})}
+    assert polished, "no subject was polished on a chained family"
+    for s in res.subjects:
+        before = plain.subject(s.index)
+        # the tree itself is the same: polish is a final pass
+        assert (s.parent, s.layer) == (before.parent, before.layer)
+        if s.index not in polished:
+            assert s.error == before.error
+            continue
+        assert s.layer is not None and s.layer >= 3
+        p = s.quality["polish"]
+        assert p["error_before"] == before.error and s.error <= before.error
+        assert p["min_jacobian"] > 0 and p["confidence"] >= 0.2
+        assert s.confidence <= before.confidence
+        assert "polished" in s.reason
+        # the reported transform still maps the root model onto the reported warped model
+        assert np.allclose(s.transform.apply(shapes[0]), s.warped, atol=1e-8)
+        assert len(s.transform.steps) == len(before.transform.steps) + 1

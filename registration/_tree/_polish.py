@@ -1,0 +1,123 @@
+"""A final polish of each chained registration: one more CPD from the root model as warped
+along the chain onto the subject, so the slide the chain accumulated can relax.
+
+Each edge of a tree path registers the root model, as already warped onto the parent,
+onto the child; the error of one link (0.035-0.04 of the subject's size on the 永
+deformation chains, near the sampling floor) adds up along the path. After the tree is
+built, every attached subject at layer >= ``POLISH_MIN_LAYER`` is registered once more:
+CPD moves the root's points, where the chain left them, onto the subject again (the same
+CPD options; the points keep the root's order), with sigma^2 starting from the start's
+residual rather than from the spread of all pairs (it starts aligned). The polished
+registration replaces the chained one only when it passes the checks the tree holds every
+registration to: its warp does not fold, its e is no larger, and its own confidence is at
+least ``MIN_CONFIDENCE``. Figures: bench/RESULTS.md, section 0.00.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._cpd import CPDOptions, cpd_nonrigid
+from .._error import registration_error
+from .._executor import Executor, owned_executor
+from .._quality import RegistrationQuality, measure_quality
+from .._result import SubjectResult
+from .._similarity import ProgressCallback
+from .._transform import ChainTransform, PointTransform
+from ._collection import _Collection
+from ._rules import MIN_CONFIDENCE
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: Subjects at this tree layer or deeper are polished (layer 2 is registered from the root
+#: directly: nothing accumulated to relax).
+POLISH_MIN_LAYER = 3
+
+
+@dataclass(frozen=True)
+class _PolishTask:
+    subject: int
+    start: FloatArray  # the root model warped along the chain (subject's normalised coords)
+    y: FloatArray  # the subject, normalised coordinates
+    cpd: CPDOptions
+    spacing2: float
+
+
+@dataclass(frozen=True)
+class _PolishOutcome:
+    subject: int
+    warped: FloatArray
+    error: float
+    correspondence: IntArray
+    probability: FloatArray
+    step: PointTransform
+    quality: RegistrationQuality
+
+
+def _polish_task(task: _PolishTask) -> _PolishOutcome:
+    o = task.cpd
+    # the start already lies on the subject: sigma^2 from its residual (e = mean squared
+    # nearest distance, both ways; sigma^2 is per coordinate), not from the spread of all
+    # pairs, which would let CPD wander off again; never below the squared point spacing
+    sigma2 = max(0.5 * registration_error(task.start, task.y), task.spacing2)
+    res = cpd_nonrigid(task.start, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w,
+                       max_iter=o.max_iter, tol=o.tol, dtype=o.dtype, sigma2=sigma2)
+    warped = np.asarray(res.warped, dtype=np.float64)
+    e = registration_error(warped, task.y)
+    return _PolishOutcome(
+        subject=task.subject, warped=warped, error=e,
+        correspondence=np.asarray(res.correspondence, dtype=np.intp),
+        probability=np.asarray(res.probability, dtype=np.float64), step=res.transform,
+        quality=measure_quality(task.start, warped, task.y, res.transform, e, task.spacing2),
+    )
+
+
+def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome) -> SubjectResult:
+    """`old` with the polished registration in place of the chained one."""
+    assert old.transform is not None and old.confidence is not None
+    chain = replace(old.transform, steps=(*old.transform.steps, out.step))
+    assert isinstance(chain, ChainTransform)
+    quality = {**(old.quality or {}), "polish": {
+        "error_before": old.error, **out.quality.to_dict()}}
+    return replace(
+        old, error=out.error, warped=coll.norms[out.subject].invert(out.warped),
+        correspondence=out.correspondence, probability=out.probability, transform=chain,
+        confidence=min(old.confidence, out.quality.confidence), quality=quality,
+        reason=f"{old.reason}; polished: one more CPD from the chained model (e "
+               f"{old.error:.3g} -> {out.error:.3g})",
+    )
+
+
+def _polish_subjects(
+    coll: _Collection,
+    results: dict[int, SubjectResult],
+    cpd: CPDOptions,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+    min_layer: int = POLISH_MIN_LAYER,
+) -> None:
+    """Polish every attached subject at layer >= `min_layer` in place (see the module doc)."""
+    tasks = [
+        _PolishTask(subject=s, start=coll.norms[s].apply(r.warped), y=coll.normed[s], cpd=cpd,
+                    spacing2=coll.spacing2[s])
+        for s, r in sorted(results.items())
+        if r.warped is not None and r.layer is not None and r.layer >= min_layer
+        and r.error is not None and r.transform is not None and r.confidence is not None
+    ]
+    if not tasks:
+        return
+    with owned_executor(executor, 8 * len(tasks)) as ex:
+        if progress is not None:
+            progress("polish", 0, len(tasks))
+        for done, (_, out) in enumerate(ex.map_unordered(_polish_task, tasks), start=1):
+            old = results[out.subject]
+            assert old.error is not None
+            if (out.quality.min_jacobian > 0 and out.error <= old.error
+                    and out.quality.confidence >= MIN_CONFIDENCE):
+                results[out.subject] = _polished(coll, old, out)
+            if progress is not None:
+                progress("polish", done, len(tasks))
