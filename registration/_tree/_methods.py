@@ -19,13 +19,13 @@ from ._collection import (
     _TreeStart,
 )
 from ._passes import _attach_leaves, _refine_parents
+from ._polish import POLISH_MIN_LAYER, _polish_subjects
 from ._resolution import (
     DEFAULT_WORKING_POINTS,
     at_stored_resolution,
     check_working_points,
     coarse_collection,
 )
-from ._polish import POLISH_MIN_LAYER, _polish_subjects
 from ._rules import (
     ERROR_FACTOR,
     SPACING_FACTOR,
