@@ -1,8 +1,9 @@
 """RFC 9457 problem details (``application/problem+json``) for every error the API returns.
 
 Handlers are installed for :class:`ProblemError` (raised by our own code), Starlette's
-``HTTPException`` (404 for unknown paths, 405, and FastAPI's own 400s), request validation
-errors (422) and any unexpected exception (500, without internals in the body).
+``HTTPException`` (404 for unknown paths, 405, 400 for a multipart body that cannot be parsed),
+request validation errors (422, a JSON body that cannot be read included) and any unexpected
+exception (500, without internals in the body).
 """
 
 from __future__ import annotations
@@ -116,8 +117,30 @@ async def _problem_error_handler(request: Request, exc: Exception) -> JSONRespon
     )
 
 
+def _unreadable_json(exc: StarletteHTTPException) -> str | None:
+    """Why a JSON body could not be read, when FastAPI's bare 400 hides that it is JSON's fault.
+
+    FastAPI answers a body that ``json.loads`` refuses with a ``JSONDecodeError`` as a 422
+    (``json_invalid``), but bytes that are not UTF-8 (``UnicodeDecodeError``) or nesting past
+    the parser's depth (``RecursionError``) as "400 There was an error parsing the body".
+    Both are the same mistake, so both get the same 422.
+    """
+    cause = exc.__cause__
+    if exc.status_code != 400:
+        return None
+    if isinstance(cause, UnicodeDecodeError):
+        return f"not UTF-8 text ({cause.reason} at byte {cause.start})"
+    if isinstance(cause, RecursionError):
+        return "nested too deeply"
+    return None
+
+
 async def _http_exception_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
+    reason = _unreadable_json(exc)
+    if reason is not None:
+        error = {"loc": ["body"], "msg": "JSON decode error", "type": "json_invalid"}
+        return _validation_problem(request, [{**error, "ctx": {"error": reason}}])
     detail = exc.detail if isinstance(exc.detail, str) else None
     type_ = ProblemType.BODY_TOO_LARGE if exc.status_code == 413 else "about:blank"
     if exc.status_code == 404 and detail == "Not Found":
@@ -143,10 +166,18 @@ def _clean_error(error: dict[str, Any]) -> dict[str, Any]:
 
 async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
-    errors = [_clean_error(e) for e in exc.errors()]
+    return _validation_problem(request, [_clean_error(e) for e in exc.errors()])
+
+
+def _validation_problem(request: Request, errors: list[dict[str, Any]]) -> JSONResponse:
+    """The 422 of request validation; its detail is the first error's."""
     first = errors[0] if errors else None
     detail = "request validation failed"
-    if first is not None:
+    if first is not None and first["type"] == "json_invalid":
+        loc = first["loc"]
+        at = f" at character {loc[1]}" if len(loc) > 1 else ""
+        detail = f"the request body is not valid JSON: {first.get('ctx', {}).get('error')}{at}"
+    elif first is not None:
         where = ".".join(str(part) for part in first["loc"])
         detail = f"{where}: {first['msg']}" if where else str(first["msg"])
     return problem_response(

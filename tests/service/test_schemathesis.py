@@ -28,9 +28,10 @@ bounded (``MAX_EXAMPLES`` per operation in the fuzzing phase) so that it takes a
 per database on two cores. Set ``REGTREE_SCHEMATHESIS_EXAMPLES`` to fuzz longer locally.
 
 The schema documents every error as ``application/problem+json``, including the 422 of
-request validation and the 400 of a body that cannot be parsed (``service.main``), and both
-are checked here. One known gap is tolerated, and named where it is: a schemathesis 4.32.5
-bug with ``prefixItems`` in responses (KNOWN GAP 3, :func:`_homogeneous_tuples_as_items`).
+request validation (a JSON body that cannot be read included) and the 400 of a multipart body
+that cannot be parsed (``service.main``), and both are checked here. One known gap is
+tolerated, and named where it is: a schemathesis 4.32.5 bug with ``prefixItems`` in responses
+(KNOWN GAP 3, :func:`_homogeneous_tuples_as_items`).
 """
 
 from __future__ import annotations
