@@ -67,6 +67,23 @@ class ProblemError(Exception):
         self.headers = headers
         self.extra = extra or {}
 
+    def response(self, request: Request | None) -> JSONResponse:
+        """The problem document answering ``request``."""
+        body: dict[str, Any] = {
+            "type": self.type,
+            "title": self.title,
+            "status": self.status,
+            "detail": self.detail,
+            "instance": request.url.path if request is not None else None,
+            **self.extra,
+        }
+        return JSONResponse(
+            jsonable_encoder(body),
+            status_code=self.status,
+            headers=self.headers,
+            media_type=PROBLEM_MEDIA_TYPE,
+        )
+
 
 class BodyTooLarge(StarletteHTTPException):
     """Raised while a request body is read once it passes the configured limit.
@@ -80,41 +97,9 @@ class BodyTooLarge(StarletteHTTPException):
         self.limit = limit
 
 
-def problem_response(
-    request: Request | None,
-    status: int,
-    detail: str | None = None,
-    *,
-    type_: str = "about:blank",
-    title: str | None = None,
-    headers: dict[str, str] | None = None,
-    extra: dict[str, Any] | None = None,
-) -> JSONResponse:
-    body: dict[str, Any] = {
-        "type": type_,
-        "title": title or _title(status),
-        "status": status,
-        "detail": detail,
-        "instance": request.url.path if request is not None else None,
-    }
-    if extra:
-        body.update(extra)
-    return JSONResponse(
-        jsonable_encoder(body), status_code=status, headers=headers, media_type=PROBLEM_MEDIA_TYPE
-    )
-
-
 async def _problem_error_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, ProblemError)
-    return problem_response(
-        request,
-        exc.status,
-        exc.detail,
-        type_=exc.type,
-        title=exc.title,
-        headers=exc.headers,
-        extra=exc.extra,
-    )
+    return exc.response(request)
 
 
 def _unreadable_json(exc: StarletteHTTPException) -> str | None:
@@ -147,9 +132,8 @@ async def _http_exception_handler(request: Request, exc: Exception) -> JSONRespo
         detail = f"no route for {request.method} {request.url.path}"
     if exc.status_code == 405:
         detail = f"method {request.method} not allowed on {request.url.path}"
-    return problem_response(
-        request, exc.status_code, detail, type_=type_, headers=getattr(exc, "headers", None)
-    )
+    headers = getattr(exc, "headers", None)
+    return ProblemError(exc.status_code, detail, type_=type_, headers=headers).response(request)
 
 
 def _clean_error(error: dict[str, Any]) -> dict[str, Any]:
@@ -180,14 +164,13 @@ def _validation_problem(request: Request, errors: list[dict[str, Any]]) -> JSONR
     elif first is not None:
         where = ".".join(str(part) for part in first["loc"])
         detail = f"{where}: {first['msg']}" if where else str(first["msg"])
-    return problem_response(
-        request,
+    return ProblemError(
         422,
         detail,
         type_=ProblemType.VALIDATION_ERROR,
         title="Request validation failed",
         extra={"errors": errors},
-    )
+    ).response(request)
 
 
 async def _unexpected_handler(request: Request, exc: Exception) -> JSONResponse:
@@ -196,9 +179,9 @@ async def _unexpected_handler(request: Request, exc: Exception) -> JSONResponse:
         exc_info=exc,
         extra={"method": request.method, "path": request.url.path},
     )
-    return problem_response(
-        request, 500, "internal error; the server log has the details", type_=ProblemType.INTERNAL
-    )
+    return ProblemError(
+        500, "internal error; the server log has the details", type_=ProblemType.INTERNAL
+    ).response(request)
 
 
 def install_problem_handlers(app: FastAPI) -> None:
