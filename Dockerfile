@@ -20,14 +20,14 @@ RUN apt-get update \
     && apt-get install -y --no-install-recommends fonts-noto-cjk \
     && rm -rf /var/lib/apt/lists/*
 
-# Same install as the README (pip install of the project; here not editable, and with the
-# postgres extra so that a PostgreSQL REGTREE_DATABASE_URL works too). The migrations are
+# Same install as the README's demo (the server extra; here not editable, and with the
+# postgres extra too, so that a PostgreSQL REGTREE_DATABASE_URL works). The migrations are
 # not part of the package: they are copied beside it.
 COPY pyproject.toml README.md alembic.ini ./
 COPY registration ./registration
 COPY service ./service
 COPY migrations ./migrations
-RUN pip install '.[postgres]' \
+RUN pip install '.[server,postgres]' \
     && useradd --create-home --uid 10001 regtree \
     && mkdir -p /app/var \
     && chown regtree /app/var

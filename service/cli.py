@@ -62,9 +62,46 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: The extra (pyproject.toml) that installs each optional top-level module a command imports.
+EXTRA_OF = {
+    "httpx": "client",
+    "pydantic": "client",
+    "fastapi": "server",
+    "starlette": "server",
+    "uvicorn": "server",
+    "sqlalchemy": "server",
+    "alembic": "server",
+    "pydantic_settings": "server",
+    "multipart": "server",
+    "matplotlib": "plots",
+    "PIL": "images",
+    "skimage": "images",
+    "psycopg": "postgres",
+}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run a command; a part of the install it needs that is missing is a usage error (2)
+    naming the extra to install."""
     argv = cli_client.join_option_values(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
+    try:
+        return _run(args)
+    except ModuleNotFoundError as e:
+        module = (e.name or "").split(".")[0]
+        if module not in EXTRA_OF:
+            raise
+        # the server's commands need all of the server extra, whichever module was first
+        extra = EXTRA_OF[module] if args.command in cli_client.COMMANDS else "server"
+        print(
+            f"regtree: this command needs {module}, which is not installed: "
+            f"pip install 'regtree[{extra}]' (in a checkout: pip install -e '.[{extra}]')",
+            file=sys.stderr,
+        )
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.command in cli_client.COMMANDS:
         return cli_client.main(args)
     if args.command in ("serve", "worker", "demo"):

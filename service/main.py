@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
@@ -17,7 +18,12 @@ from service.api.middleware import (
     BodyLimitMiddleware,
     RequestLogMiddleware,
 )
-from service.api.problems import Problem, ProblemError, install_problem_handlers
+from service.api.problems import (
+    Problem,
+    ProblemError,
+    install_problem_handlers,
+    problem_responses,
+)
 from service.api.routes import (
     collections,
     deliveries,
@@ -105,8 +111,15 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
     app.include_router(pages.router)  # the results page at /ui
     install_docs(app)  # /docs and /redoc
 
-    @app.get("/healthz", tags=["health"], summary="Liveness and database check")
+    @app.get(
+        "/healthz",
+        tags=["health"],
+        summary="Liveness and database check",
+        responses=problem_responses(503),
+    )
     def healthz() -> dict[str, str]:
+        """`{"status": "ok"}` when the service runs and its database answers; 503 otherwise.
+        Open without an API key."""
         try:
             with database.read() as session:
                 session.execute(text("SELECT 1"))
@@ -132,6 +145,7 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
                 schemas.setdefault(name, sub)
             schemas.setdefault(model.__name__, model_schema)
         _document_errors_as_problems(schema)
+        _markdown_descriptions(schema)
         # The limits the document states are this app's settings, as enforced.
         schema = resolve_limits(schema, settings)
         components = schema["components"]
@@ -158,12 +172,55 @@ _PROBLEM_CONTENT = {
 }
 
 
+#: The 422 of an operation that takes JSON: what it covers, as the service answers it.
+MALFORMED_JSON_422 = (
+    "Unprocessable Content: a parameter or the body is invalid, and so is a body that is not "
+    "valid JSON (a syntax error, bytes that are not UTF-8, nesting too deep)."
+)
+#: The 400 of an operation that takes multipart/form-data (Starlette's parser refuses it).
+MALFORMED_MULTIPART_400 = (
+    "Bad Request: the multipart/form-data body cannot be parsed (no boundary, or malformed)."
+)
+
+
+#: reStructuredText inline markup of docstrings: a role (``:func:`x```, ``:class:`~a.b```,
+#: ``:ref:`text <target>```) or a double-backquoted literal.
+_RST_ROLE = re.compile(r":[a-z]+(?::[a-z]+)?:`~?(?:([^`<]*?)\s*<[^`>]*>|([^`]*))`")
+_RST_LITERAL = re.compile(r"``(.+?)``", re.DOTALL)
+
+
+def rst_to_markdown(text: str) -> str:
+    """Docstring markup as /docs and ReDoc render it (Markdown): roles and ``x`` become `x`."""
+
+    def role(match: re.Match[str]) -> str:
+        shown = match.group(1) or match.group(2)
+        if match.group(0).split("`", 1)[1].startswith("~"):
+            shown = shown.rsplit(".", 1)[-1]
+        return f"`{shown}`"
+
+    return _RST_LITERAL.sub(r"`\1`", _RST_ROLE.sub(role, text))
+
+
+def _markdown_descriptions(node: Any) -> None:
+    """Every description in the document in Markdown: docstrings (routes, models) are reST."""
+    if isinstance(node, dict):
+        for key, value in node.items():
+            if key == "description" and isinstance(value, str):
+                node[key] = rst_to_markdown(value)
+            else:
+                _markdown_descriptions(value)
+    elif isinstance(node, list):
+        for value in node:
+            _markdown_descriptions(value)
+
+
 def _document_errors_as_problems(schema: dict[str, Any]) -> None:
     """Make the schema say what the service sends: every error is a problem document.
 
     FastAPI documents its automatic 422 as ``application/json`` ``HTTPValidationError``,
-    while the validation handler answers ``application/problem+json``; and a request body
-    that cannot be parsed at all is refused with 400 before any route code runs.
+    while the validation handler answers ``application/problem+json``. A JSON body that
+    cannot be read is a 422 (``service.api.problems``), a multipart body that cannot be
+    parsed a 400; each operation documents the one its body types can get.
     """
     for item in schema.get("paths", {}).values():
         for operation in item.values():
@@ -172,10 +229,15 @@ def _document_errors_as_problems(schema: dict[str, Any]) -> None:
             responses = operation.setdefault("responses", {})
             if "422" in responses:
                 responses["422"]["content"] = dict(_PROBLEM_CONTENT)
-            if "requestBody" in operation and "400" not in responses:
+            body_types = set(operation.get("requestBody", {}).get("content", {}))
+            if "application/json" in body_types:
+                responses["422"] = {
+                    "description": MALFORMED_JSON_422,
+                    "content": dict(_PROBLEM_CONTENT),
+                }
+            if "multipart/form-data" in body_types:
                 responses["400"] = {
-                    "description": "The request body cannot be parsed (malformed JSON or "
-                    "multipart).",
+                    "description": MALFORMED_MULTIPART_400,
                     "content": dict(_PROBLEM_CONTENT),
                 }
             if "requestBody" in operation:

@@ -42,10 +42,11 @@ NO_NUL = r"^[^\x00]*$"
 
 #: Largest value of SQLite's INTEGER (a signed 64-bit integer).
 INT64_MAX = 2**63 - 1
-#: An integer that is bound into SQL: an id, a filter or an offset. SQLite cannot bind a
-#: Python int outside 64 bits (OverflowError, a 500), so such a value is refused up front
-#: with 422 like any other invalid parameter, and the schema says so.
-DbInt = Annotated[int, Interval(ge=-(2**63), le=INT64_MAX)]
+#: A database id (of a collection, shape or job): 1 or more, and at most SQLite's largest
+#: INTEGER, which is also the most a Python int bound into SQL may be (beyond it, an
+#: OverflowError and a 500). Anything else is refused up front with 422 like any other
+#: invalid parameter, and the schema says so (``minimum: 1``).
+DbId = Annotated[int, Interval(ge=1, le=INT64_MAX)]
 
 # The vocabulary (methods, image modes, poses, statuses) is service.contract.names's.
 
@@ -282,8 +283,8 @@ class JobCreate(BaseModel):
         },
     )
 
-    collection_id: DbInt
-    model_shape_id: DbInt = Field(description="The model shape; it must be in the collection.")
+    collection_id: DbId
+    model_shape_id: DbId = Field(description="The model shape; it must be in the collection.")
     method: Method = DEFAULT_METHOD
     similarity_threshold: float | None = Field(
         default=None, description="Largest similarity distance D for a tree edge; null = auto."

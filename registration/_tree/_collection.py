@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._cpd import CPDOptions
 from .._executor import Executor
 from .._points import Normalization, normalise
 from .._pose import PoseSpec
@@ -149,9 +150,12 @@ def _ensure_frontier(
 
 @dataclass
 class _TreeStart:
-    """What both tree methods start from: the prepared collection, the similarity store
-    with the pairs it may hold, the similarity rule, the root's node and a blank result
-    for every subject."""
+    """What both tree methods start from: the CPD options and pose rule, the prepared
+    collection, the similarity store with the pairs it may hold, the similarity rule, the
+    root's node and a blank result for every subject."""
+
+    cpd: CPDOptions
+    pose: PoseSpec
 
     coll: _Collection
     sim: Similarity
@@ -167,16 +171,20 @@ class _TreeStart:
         coll: _Collection,
         similarity_threshold: float | None,
         candidates: int | None,
-        pose: PoseSpec,
+        cpd: CPDOptions | None,
+        pose: str | None,
+        max_rotation: float | None,
         executor: Executor | None,
         progress: ProgressCallback | None,
     ) -> _TreeStart:
         root = coll.root
+        spec = PoseSpec.resolve(pose, max_rotation)
         sim, allowed = _prepare_similarity(
-            coll, similarity_threshold, candidates, executor, progress, pose
+            coll, similarity_threshold, candidates, executor, progress, spec
         )
         subjects = [k for k in range(coll.n) if k != root]
         return cls(
+            cpd=cpd if cpd is not None else CPDOptions(), pose=spec,
             coll=coll, sim=sim, allowed=allowed,
             rule=_SimilarityRule.build(sim, similarity_threshold), subjects=subjects,
             nodes={root: coll.root_node()},

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict
+from typing import Any
 
 from numpy.typing import ArrayLike
 
@@ -34,6 +35,7 @@ from ._rules import (
     _error_limit,
     _rejection,
     _similarity_report,
+    _SimilarityRule,
     _spacing_floor,
 )
 from ._tasks import (
@@ -153,12 +155,11 @@ def build_dynamic_tree(
     _check_threshold("error_threshold", error_threshold)
     if max_candidates < 1:
         raise ValueError(f"max_candidates must be at least 1; got {max_candidates}")
-    cpd = cpd if cpd is not None else CPDOptions()
-    spec = PoseSpec.resolve(pose, max_rotation)
     working_points = check_working_points(working_points)
     full = _Collection.prepare(shapes, root, names)
     start = _TreeStart.prepare(coarse_collection(full, working_points), similarity_threshold,
-                               candidates, spec, executor, progress)
+                               candidates, cpd, pose, max_rotation, executor, progress)
+    cpd, spec = start.cpd, start.pose
     coll, sim, allowed, sim_rule = start.coll, start.sim, start.allowed, start.rule
     subjects_idx, nodes, results = start.subjects, start.nodes, start.results
     tau_err = error_threshold
@@ -233,17 +234,10 @@ def build_dynamic_tree(
                         progress)
     if polish:
         _polish_subjects(coll, results, cpd, executor, progress)
-    out_subjects = [results[s] for s in subjects_idx]
-    direct = (
-        _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None
-    )
-    result = CollectionResult(
-        method="dynamic_tree",
-        root=root,
-        names=coll.names,
-        subjects=out_subjects,
+    direct = _direct_results(coll, sim, cpd, prealign, executor, progress, compare_direct)
+    result = _collection_result(
+        "dynamic_tree", coll, sim, [results[s] for s in subjects_idx], direct, sim_rule,
         thresholds={
-            **_similarity_report(sim_rule),
             "error": tau_err,
             "error_rule": "explicit" if error_threshold is not None
             else f"auto: max({ERROR_FACTOR} x lower quartile of layer-2 e, "
@@ -252,9 +246,6 @@ def build_dynamic_tree(
             "polish": f"layer >= {POLISH_MIN_LAYER}" if polish else "off",
         },
         options=_options_dict(cpd, prealign, max_candidates, spec),
-        direct=direct,
-        similarity_pairs=sim.computed,
-        similarity=sim.D,
     )
     return at_stored_resolution(result, full, coll, cpd, working_points, executor, progress)
 
@@ -306,12 +297,11 @@ def build_static_tree(
     """
     _check_threshold("similarity_threshold", similarity_threshold)
     del error_threshold
-    cpd = cpd if cpd is not None else CPDOptions()
-    spec = PoseSpec.resolve(pose, max_rotation)
     working_points = check_working_points(working_points)
     full = _Collection.prepare(shapes, root, names)
     start = _TreeStart.prepare(coarse_collection(full, working_points), similarity_threshold,
-                               candidates, spec, executor, progress)
+                               candidates, cpd, pose, max_rotation, executor, progress)
+    cpd, spec = start.cpd, start.pose
     coll, sim, allowed, sim_rule = start.coll, start.sim, start.allowed, start.rule
     subjects_idx, nodes, results = start.subjects, start.nodes, start.results
     # 1. the tree, from the similarity alone
@@ -345,25 +335,43 @@ def build_static_tree(
             nodes[out.subject] = node
     for s in waiting:
         results[s].reason = "not reached: no similar shape on a path from the root"
-    direct = (
-        _direct_results(coll, sim, cpd, prealign, executor, progress) if compare_direct else None
-    )
-    result = CollectionResult(
-        method="static_tree",
-        root=root,
-        names=coll.names,
-        subjects=[results[s] for s in subjects_idx],
+    direct = _direct_results(coll, sim, cpd, prealign, executor, progress, compare_direct)
+    result = _collection_result(
+        "static_tree", coll, sim, [results[s] for s in subjects_idx], direct, sim_rule,
         thresholds={
-            **_similarity_report(sim_rule),
             "error": None,
             "error_rule": "none: the static tree does not reject",
         },
         options=_options_dict(cpd, prealign, 1, spec),
+    )
+    return at_stored_resolution(result, full, coll, cpd, working_points, executor, progress)
+
+
+def _collection_result(
+    method: str,
+    coll: _Collection,
+    sim: Similarity,
+    subjects: list[SubjectResult],
+    direct: list[SubjectResult] | None,
+    rule: _SimilarityRule | None,
+    *,
+    thresholds: dict[str, Any],
+    options: dict[str, Any],
+) -> CollectionResult:
+    """A method's result: its subjects (and direct CPD's), with the collection's names, the
+    similarity it computed and its thresholds, the similarity rule's first when it had one."""
+    report = _similarity_report(rule) if rule is not None else {}
+    return CollectionResult(
+        method=method,
+        root=coll.root,
+        names=coll.names,
+        subjects=subjects,
+        thresholds={**report, **thresholds},
+        options=options,
         direct=direct,
         similarity_pairs=sim.computed,
         similarity=sim.D,
     )
-    return at_stored_resolution(result, full, coll, cpd, working_points, executor, progress)
 
 
 def _direct_results(
@@ -373,7 +381,11 @@ def _direct_results(
     prealign: bool,
     executor: Executor | None,
     progress: ProgressCallback | None,
-) -> list[SubjectResult]:
+    compare: bool = True,
+) -> list[SubjectResult] | None:
+    """Direct CPD from the root to every subject (None unless ``compare``)."""
+    if not compare:
+        return None
     r = coll.root
     subjects_idx = [k for k in range(coll.n) if k != r]
     if prealign:
@@ -453,15 +465,10 @@ def register_direct(
     coll = coarse_collection(full, working_points)
     sim = Similarity.empty(coll.normed, pose=spec)
     subjects = _direct_results(coll, sim, cpd, prealign, executor, progress)
-    result = CollectionResult(
-        method="direct",
-        root=root,
-        names=coll.names,
-        subjects=subjects,
+    assert subjects is not None
+    result = _collection_result(
+        "direct", coll, sim, subjects, None, None,
         thresholds={"similarity": None, "error": None, "error_rule": "none"},
         options=_options_dict(cpd, prealign, 1, spec),
-        direct=None,
-        similarity_pairs=sim.computed,
-        similarity=sim.D,
     )
     return at_stored_resolution(result, full, coll, cpd, working_points, executor, progress)

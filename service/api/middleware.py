@@ -12,7 +12,7 @@ from starlette.requests import Request
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api.problems import BodyTooLarge, problem_response
+from service.api.problems import BodyTooLarge, ProblemError
 from service.api.routes.docs import DOCS_PATHS
 from service.api.routes.pages import PAGE_PATHS
 from service.contract.names import ProblemType
@@ -117,14 +117,13 @@ class ApiKeyMiddleware:
             await self.app(scope, receive, send)
             return
         if not self._authorised(Headers(scope=scope)):
-            response = problem_response(
-                Request(scope),
+            response = ProblemError(
                 401,
                 "missing or wrong API key: send it as `X-API-Key: <key>` or "
                 "`Authorization: Bearer <key>`",
                 type_=ProblemType.UNAUTHORIZED,
                 headers={"WWW-Authenticate": 'Bearer realm="regtree"'},
-            )
+            ).response(Request(scope))
             await response(scope, receive, send)
             return
         await self.app(scope, receive, send)
@@ -153,14 +152,13 @@ class BodyLimitMiddleware:
             except ValueError:
                 too_large = False
             if too_large:
-                response = problem_response(
-                    Request(scope),
+                response = ProblemError(
                     413,
                     f"request body of {declared} bytes is larger than the limit of "
                     f"{self.limit} bytes",
                     type_=ProblemType.BODY_TOO_LARGE,
                     headers={"Connection": "close"},
-                )
+                ).response(Request(scope))
                 await response(scope, receive, send)
                 return
 

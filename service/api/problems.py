@@ -1,8 +1,9 @@
 """RFC 9457 problem details (``application/problem+json``) for every error the API returns.
 
 Handlers are installed for :class:`ProblemError` (raised by our own code), Starlette's
-``HTTPException`` (404 for unknown paths, 405, and FastAPI's own 400s), request validation
-errors (422) and any unexpected exception (500, without internals in the body).
+``HTTPException`` (404 for unknown paths, 405, 400 for a multipart body that cannot be parsed),
+request validation errors (422, a JSON body that cannot be read included) and any unexpected
+exception (500, without internals in the body).
 """
 
 from __future__ import annotations
@@ -66,6 +67,23 @@ class ProblemError(Exception):
         self.headers = headers
         self.extra = extra or {}
 
+    def response(self, request: Request | None) -> JSONResponse:
+        """The problem document answering ``request``."""
+        body: dict[str, Any] = {
+            "type": self.type,
+            "title": self.title,
+            "status": self.status,
+            "detail": self.detail,
+            "instance": request.url.path if request is not None else None,
+            **self.extra,
+        }
+        return JSONResponse(
+            jsonable_encoder(body),
+            status_code=self.status,
+            headers=self.headers,
+            media_type=PROBLEM_MEDIA_TYPE,
+        )
+
 
 class BodyTooLarge(StarletteHTTPException):
     """Raised while a request body is read once it passes the configured limit.
@@ -79,54 +97,43 @@ class BodyTooLarge(StarletteHTTPException):
         self.limit = limit
 
 
-def problem_response(
-    request: Request | None,
-    status: int,
-    detail: str | None = None,
-    *,
-    type_: str = "about:blank",
-    title: str | None = None,
-    headers: dict[str, str] | None = None,
-    extra: dict[str, Any] | None = None,
-) -> JSONResponse:
-    body: dict[str, Any] = {
-        "type": type_,
-        "title": title or _title(status),
-        "status": status,
-        "detail": detail,
-        "instance": request.url.path if request is not None else None,
-    }
-    if extra:
-        body.update(extra)
-    return JSONResponse(
-        jsonable_encoder(body), status_code=status, headers=headers, media_type=PROBLEM_MEDIA_TYPE
-    )
-
-
 async def _problem_error_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, ProblemError)
-    return problem_response(
-        request,
-        exc.status,
-        exc.detail,
-        type_=exc.type,
-        title=exc.title,
-        headers=exc.headers,
-        extra=exc.extra,
-    )
+    return exc.response(request)
+
+
+def _unreadable_json(exc: StarletteHTTPException) -> str | None:
+    """Why a JSON body could not be read, when FastAPI's bare 400 hides that it is JSON's fault.
+
+    FastAPI answers a body that ``json.loads`` refuses with a ``JSONDecodeError`` as a 422
+    (``json_invalid``), but bytes that are not UTF-8 (``UnicodeDecodeError``) or nesting past
+    the parser's depth (``RecursionError``) as "400 There was an error parsing the body".
+    Both are the same mistake, so both get the same 422.
+    """
+    cause = exc.__cause__
+    if exc.status_code != 400:
+        return None
+    if isinstance(cause, UnicodeDecodeError):
+        return f"not UTF-8 text ({cause.reason} at byte {cause.start})"
+    if isinstance(cause, RecursionError):
+        return "nested too deeply"
+    return None
 
 
 async def _http_exception_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
+    reason = _unreadable_json(exc)
+    if reason is not None:
+        error = {"loc": ["body"], "msg": "JSON decode error", "type": "json_invalid"}
+        return _validation_problem(request, [{**error, "ctx": {"error": reason}}])
     detail = exc.detail if isinstance(exc.detail, str) else None
     type_ = ProblemType.BODY_TOO_LARGE if exc.status_code == 413 else "about:blank"
     if exc.status_code == 404 and detail == "Not Found":
         detail = f"no route for {request.method} {request.url.path}"
     if exc.status_code == 405:
         detail = f"method {request.method} not allowed on {request.url.path}"
-    return problem_response(
-        request, exc.status_code, detail, type_=type_, headers=getattr(exc, "headers", None)
-    )
+    headers = getattr(exc, "headers", None)
+    return ProblemError(exc.status_code, detail, type_=type_, headers=headers).response(request)
 
 
 def _clean_error(error: dict[str, Any]) -> dict[str, Any]:
@@ -143,20 +150,27 @@ def _clean_error(error: dict[str, Any]) -> dict[str, Any]:
 
 async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
-    errors = [_clean_error(e) for e in exc.errors()]
+    return _validation_problem(request, [_clean_error(e) for e in exc.errors()])
+
+
+def _validation_problem(request: Request, errors: list[dict[str, Any]]) -> JSONResponse:
+    """The 422 of request validation; its detail is the first error's."""
     first = errors[0] if errors else None
     detail = "request validation failed"
-    if first is not None:
+    if first is not None and first["type"] == "json_invalid":
+        loc = first["loc"]
+        at = f" at character {loc[1]}" if len(loc) > 1 else ""
+        detail = f"the request body is not valid JSON: {first.get('ctx', {}).get('error')}{at}"
+    elif first is not None:
         where = ".".join(str(part) for part in first["loc"])
         detail = f"{where}: {first['msg']}" if where else str(first["msg"])
-    return problem_response(
-        request,
+    return ProblemError(
         422,
         detail,
         type_=ProblemType.VALIDATION_ERROR,
         title="Request validation failed",
         extra={"errors": errors},
-    )
+    ).response(request)
 
 
 async def _unexpected_handler(request: Request, exc: Exception) -> JSONResponse:
@@ -165,9 +179,9 @@ async def _unexpected_handler(request: Request, exc: Exception) -> JSONResponse:
         exc_info=exc,
         extra={"method": request.method, "path": request.url.path},
     )
-    return problem_response(
-        request, 500, "internal error; the server log has the details", type_=ProblemType.INTERNAL
-    )
+    return ProblemError(
+        500, "internal error; the server log has the details", type_=ProblemType.INTERNAL
+    ).response(request)
 
 
 def install_problem_handlers(app: FastAPI) -> None:

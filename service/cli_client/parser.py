@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import argparse
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from service.contract.names import (
     DEFAULT_COMPARE_DIRECT,
@@ -27,61 +27,55 @@ if TYPE_CHECKING:
 
 from service.cli_client._common import COMMANDS, DEFAULT_URL
 
+N = TypeVar("N", int, float)
+
 # --- argument parsing (argparse only) ----------------------------------------------------
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
+def _checked(
+    convert: Callable[[str], N], ok: Callable[[N], bool], expected: str, *, bad: str = ""
+) -> Callable[[str], N]:
+    """An argparse ``type``: ``convert`` the text, then refuse a value that is not ``ok``.
+
+    The messages are "<expected>, got '<text>'", and "<bad>, got '<text>'" for a value that
+    converts but is not ``ok`` (``expected`` when ``bad`` is not given).
+    """
+
+    def parse(text: str) -> N:
+        try:
+            value = convert(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{expected}, got {text!r}") from None
+        if not ok(value):
+            raise argparse.ArgumentTypeError(f"{bad or expected}, got {text!r}")
+        return value
+
+    return parse
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return value
+_positive_int = _checked(int, lambda v: v >= 1, "expected a positive integer")
+_positive_float = _checked(
+    float, lambda v: math.isfinite(v) and v > 0, "expected a positive number"
+)
+_job_id = _checked(
+    lambda text: int(text.strip().removeprefix("#")),
+    lambda v: v >= 1,
+    "a job id is a number",
+    bad="a job id is a positive number",
+)
+_confidence = _checked(
+    float, lambda v: 0.0 <= v <= 1.0, "expected a number from 0 to 1"  # NaN refused too
+)
 
 
 def _working_points(text: str) -> int | None:
     """A working resolution: a count of points, 0 (or "none") for the stored resolution."""
     if text.strip().lower() in ("0", "none"):
         return None
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected a number of points or 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a number of points or 0, got {text!r}")
-    return value
+    return _count_or_zero(text)
 
 
-def _job_id(text: str) -> int:
-    try:
-        value = int(text.strip().removeprefix("#"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"a job id is a number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"a job id is a positive number, got {text!r}")
-    return value
-
-
-def _confidence(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}") from None
-    if not 0.0 <= value <= 1.0:  # NaN too
-        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}")
-    return value
+_count_or_zero = _checked(int, lambda v: v >= 0, "expected a number of points or 0")
 
 
 def _subject_sort(text: str) -> str:

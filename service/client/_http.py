@@ -121,38 +121,37 @@ class HttpClient:
         while True:
             try:
                 response = self._http.request(method, path, headers=headers, **kwargs)
-            except httpx.TimeoutException as e:
-                if isinstance(e, httpx.ConnectTimeout) and attempt < self.retries:
-                    attempt += 1
-                    time.sleep(0.25 * 2**attempt)
-                    continue
-                raise RegtreeTimeout(
-                    f"{method} {path}: no answer within the timeout "
-                    f"({type(e).__name__}; raise RegtreeClient(timeout=...) for big uploads)"
-                ) from e
-            except httpx.ConnectError as e:
-                if attempt < self.retries:
-                    attempt += 1
-                    time.sleep(0.25 * 2**attempt)
-                    continue
-                raise RegtreeConnectionError(
-                    f"cannot reach the regtree service at {self.base_url}: {e}"
-                ) from e
-            except (httpx.RemoteProtocolError, httpx.ReadError) as e:
-                if retry and attempt < self.retries:
-                    attempt += 1
-                    time.sleep(0.25 * 2**attempt)
-                    continue
-                raise RegtreeConnectionError(
-                    f"{method} {path}: the connection to {self.base_url} broke: {e}"
-                ) from e
-            if response.status_code in _RETRY_STATUSES and retry and attempt < self.retries:
-                attempt += 1
-                time.sleep(0.25 * 2**attempt)
-                continue
-            if response.is_success:
-                return response
-            raise RegtreeError.from_response(response)
+            except httpx.TransportError as e:
+                failure, may_retry = self._transport_failure(method, path, e, retry)
+                if not (may_retry and attempt < self.retries):
+                    raise failure from e
+            else:
+                if response.is_success:
+                    return response
+                may_retry = retry and response.status_code in _RETRY_STATUSES
+                if not (may_retry and attempt < self.retries):
+                    raise RegtreeError.from_response(response)
+            attempt += 1
+            time.sleep(0.25 * 2**attempt)
+
+    def _transport_failure(
+        self, method: str, path: str, e: httpx.TransportError, retry: bool
+    ) -> tuple[RegtreeError, bool]:
+        """The error a transport failure raises, and whether the request may be sent again:
+        always when it never reached the server (connect failures), with ``retry`` when a
+        reply may have been processed (a broken connection); never after a read timeout."""
+        if isinstance(e, httpx.TimeoutException):
+            return RegtreeTimeout(
+                f"{method} {path}: no answer within the timeout "
+                f"({type(e).__name__}; raise RegtreeClient(timeout=...) for big uploads)"
+            ), isinstance(e, httpx.ConnectTimeout)
+        if isinstance(e, httpx.ConnectError):
+            message = f"cannot reach the regtree service at {self.base_url}: {e}"
+            return RegtreeConnectionError(message), True
+        if isinstance(e, httpx.RemoteProtocolError | httpx.ReadError):
+            message = f"{method} {path}: the connection to {self.base_url} broke: {e}"
+            return RegtreeConnectionError(message), retry
+        raise e
 
     def _get(self, path: str, **kwargs: Any) -> Any:
         return self._request("GET", path, retry=True, **kwargs).json()

@@ -10,7 +10,7 @@ from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep
 from service.api.problems import not_found, problem_responses
 from service.models import Collection, Shape
-from service.schemas import CollectionCreate, CollectionOut, DbInt, Page
+from service.schemas import CollectionCreate, CollectionOut, DbId, Page
 
 router = APIRouter(prefix="/collections", tags=["collections"])
 
@@ -60,6 +60,10 @@ def create_collection(
     db: DbDep,
     idempotency_key: IdempotencyKeyDep = None,
 ) -> CollectionOut:
+    """Creates an empty collection and answers 201 with it and its `Location`; upload shapes
+    to `/v1/collections/{id}/shapes` next. Names need not be unique. With an
+    `Idempotency-Key`, the same request sent again answers the collection it created the first
+    time; the same key with another body is a 422."""
     scope = f"POST {request.url.path}"
     request_hash = idempotency.hash_json(body.model_dump())
     with db.write() as session:
@@ -86,6 +90,8 @@ def create_collection(
 
 @router.get("", response_model=Page[CollectionOut], summary="List collections")
 def list_collections(db: DbDep, page: PaginationDep) -> Page[CollectionOut]:
+    """Every collection, oldest first, one page at a time (`limit`, `offset`; `total` counts
+    them all), each with its number of shapes."""
     with db.read() as session:
         total = session.scalar(select(func.count(Collection.id))) or 0
         collections = session.scalars(
@@ -102,7 +108,8 @@ def list_collections(db: DbDep, page: PaginationDep) -> Page[CollectionOut]:
     responses=problem_responses(404),
     summary="Read a collection",
 )
-def get_collection(collection_id: DbInt, db: DbDep) -> CollectionOut:
+def get_collection(collection_id: DbId, db: DbDep) -> CollectionOut:
+    """The collection's name, description, number of shapes and times."""
     with db.read() as session:
         collection = get_collection_or_404(session, collection_id)
         n_shapes = _shape_counts(session, [collection_id]).get(collection_id, 0)
@@ -115,7 +122,9 @@ def get_collection(collection_id: DbInt, db: DbDep) -> CollectionOut:
     responses=problem_responses(404),
     summary="Delete a collection, its shapes, jobs and results",
 )
-def delete_collection(collection_id: DbInt, db: DbDep) -> Response:
+def delete_collection(collection_id: DbId, db: DbDep) -> Response:
+    """Deletes the collection with everything in it: its shapes, and its jobs with their
+    results. 204 with no body."""
     with db.write() as session:
         collection = get_collection_or_404(session, collection_id)
         session.delete(collection)

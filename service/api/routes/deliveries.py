@@ -8,7 +8,7 @@ from sqlalchemy import select
 from service.api.deps import DbDep
 from service.api.problems import not_found, problem_responses
 from service.models import TERMINAL_STATUSES, CallbackAttempt, CallbackDelivery, Job
-from service.schemas import DbInt, DeliveriesOut, DeliveryAttemptOut
+from service.schemas import DbId, DeliveriesOut, DeliveryAttemptOut
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
@@ -27,7 +27,7 @@ router = APIRouter(prefix="/jobs", tags=["jobs"])
     "both, and refuse an old timestamp. Any 2xx is a delivery; anything else is tried again "
     "after an exponential backoff, up to the setting callback_max_attempts.",
 )
-def get_deliveries(job_id: DbInt, db: DbDep) -> DeliveriesOut:
+def get_deliveries(job_id: DbId, db: DbDep) -> DeliveriesOut:
     with db.read() as session:
         job = session.get(Job, job_id)
         if job is None:

@@ -34,7 +34,7 @@ from service.contract.names import ProblemType, subject_status
 from service.contract.result import SimilarityDocument
 from service.jobs.document import json_safe
 from service.models import Job, Result, Shape, made_from_image
-from service.schemas import DbInt
+from service.schemas import DbId
 
 router = APIRouter(prefix="/jobs", tags=["exports"])
 
@@ -118,7 +118,7 @@ def similarity_document(
     "(`/problems/no-similarity`) for a result stored before the similarity was kept.",
 )
 def get_similarity(
-    job_id: DbInt,
+    job_id: DbId,
     db: DbDep,
     k: Annotated[int, Query(ge=1, le=100, description="Nearest shapes per shape.")] = 5,
     matrix: Annotated[bool, Query(description="Include the matrix D itself.")] = True,
@@ -178,7 +178,7 @@ def subjects_csv(document: Mapping[str, Any], subjects: Sequence[Mapping[str, An
     "leaf and sort choose and order the rows as for the JSON result.",
 )
 def get_result_csv(
-    job_id: DbInt,
+    job_id: DbId,
     db: DbDep,
     min_confidence: MinConfidenceQuery = None,
     leaf: LeafQuery = None,
@@ -240,7 +240,7 @@ def _pictures(
     "`subjects/<shape_id>-<name>.png` (the model warped onto each subject; slower).",
 )
 def get_export_zip(
-    job_id: DbInt,
+    job_id: DbId,
     db: DbDep,
     subject_pictures: Annotated[
         bool, Query(description="Also draw every subject's overlay (one PNG per subject).")

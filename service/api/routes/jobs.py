@@ -22,7 +22,7 @@ from service.models import (
     made_from_image,
 )
 from service.schemas import (
-    DbInt,
+    DbId,
     JobCreate,
     JobOut,
     JobStatusName,
@@ -205,9 +205,15 @@ def create_job(
 def list_jobs(
     db: DbDep,
     page: PaginationDep,
-    collection_id: Annotated[DbInt | None, Query()] = None,
-    status_: Annotated[JobStatusName | None, Query(alias="status")] = None,
+    collection_id: Annotated[
+        DbId | None, Query(description="Only the jobs of this collection.")
+    ] = None,
+    status_: Annotated[
+        JobStatusName | None, Query(alias="status", description="Only the jobs in this status.")
+    ] = None,
 ) -> Page[JobOut]:
+    """Jobs, newest first, one page at a time, each with its status, progress and links;
+    `collection_id` and `status` narrow the list."""
     query = select(Job)
     count = select(func.count(Job.id))
     if collection_id is not None:
@@ -228,7 +234,10 @@ def list_jobs(
 @router.get(
     "/{job_id}", response_model=JobOut, responses=problem_responses(404), summary="Read a job"
 )
-def get_job(job_id: DbInt, db: DbDep) -> JobOut:
+def get_job(job_id: DbId, db: DbDep) -> JobOut:
+    """The job's status (`queued`, `running`, `succeeded`, `failed`, `cancelled`), its
+    `outcome` once ended, its progress (stage, steps done of the total), attempts, error and
+    links to its result. Poll it until the status is `succeeded`, `failed` or `cancelled`."""
     with db.read() as session:
         return job_out(session, _get_job(session, job_id))
 
@@ -245,7 +254,7 @@ def get_job(job_id: DbInt, db: DbDep) -> JobOut:
     "the registrations in progress and ends the job with status `cancelled` and outcome "
     "`aborted` (never `succeeded`). A finished job: 409.",
 )
-def cancel_job(job_id: DbInt, db: DbDep, settings: SettingsDep) -> JobOut:
+def cancel_job(job_id: DbId, db: DbDep, settings: SettingsDep) -> JobOut:
     with db.write() as session:
         outcome = JobQueue.from_settings(db, settings).cancel(job_id, session=session)
         job = _get_job(session, job_id)

@@ -26,7 +26,7 @@ from service.api.routes.results import _subject, _succeeded_job
 from service.contract.names import ProblemType
 from service.models import Job, Result, Shape, made_from_image
 from service.plots import Rendered, render_subject, render_summary, render_tree
-from service.schemas import DbInt
+from service.schemas import DbId
 
 router = APIRouter(prefix="/jobs", tags=["pictures"])
 logger = logging.getLogger("regtree.pictures")
@@ -129,7 +129,7 @@ def _tree(job_id: int, fmt: str, width: int | None, request: Request, db: DbDep)
     'group `<g id="node-<shape_id>">` (`unattached-<shape_id>` in the box), so a page can '
     "make the nodes clickable.",
 )
-def tree_svg(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
+def tree_svg(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
     return _tree(job_id, "svg", width, request, db)
 
 
@@ -139,7 +139,8 @@ def tree_svg(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = Non
     responses=_image_responses("image/png", 404, 409, 422),
     summary="The registration tree as PNG",
 )
-def tree_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
+def tree_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
+    """The same picture as `tree.svg`, as a PNG image."""
     return _tree(job_id, "png", width, request, db)
 
 
@@ -151,7 +152,7 @@ def tree_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = Non
     description="Mean (bar) and 95th percentile (whisker) of e for each layer, with direct "
     "CPD's e on the same subjects beside it when the job compared with it.",
 )
-def summary_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
+def summary_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
     with db.read() as session:
         job = _succeeded_job(session, job_id)
         etag = _etag(job, "summary", width)
@@ -174,8 +175,8 @@ def summary_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = 
     "reason. 410 when the subject's shape was deleted after the job ran.",
 )
 def subject_overlay_png(
-    job_id: DbInt,
-    shape_id: DbInt,
+    job_id: DbId,
+    shape_id: DbId,
     request: Request,
     db: DbDep,
     width: WidthQuery = None,

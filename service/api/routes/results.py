@@ -17,7 +17,7 @@ from service.api.routes.jobs import _get_job
 from service.contract.names import SUBJECT_SORTS, ProblemType, SubjectSort
 from service.contract.result import ResultDocument, SubjectDetail
 from service.models import Job, JobStatus, Result, ResultSubject, Shape
-from service.schemas import DbInt, InverseTransformOut, TransformOut, TransformRequest
+from service.schemas import DbId, InverseTransformOut, TransformOut, TransformRequest
 
 router = APIRouter(prefix="/jobs", tags=["results"])
 
@@ -167,7 +167,7 @@ def result_document(
     description=RESULT_DESCRIPTION,
 )
 def get_result(
-    job_id: DbInt,
+    job_id: DbId,
     db: DbDep,
     full: Annotated[
         bool, Query(description="Include warped points, correspondences and transforms.")
@@ -259,7 +259,7 @@ def subject_document(session: Session, job_id: int, shape_id: int) -> dict[str, 
     "`transform` (root normalisation, steps, subject normalisation). The model's own shape "
     "id answers too: layer 1, e 0, `root` true and the identity transform (no steps).",
 )
-def get_subject(job_id: DbInt, shape_id: DbInt, db: DbDep) -> dict[str, Any]:
+def get_subject(job_id: DbId, shape_id: DbId, db: DbDep) -> dict[str, Any]:
     with db.read() as session:
         return subject_document(session, job_id, shape_id)
 
@@ -311,7 +311,7 @@ def _transform_of(db: DbDep, job_id: int, shape_id: int, n_points: int, limit: i
     "in the model shape's coordinates. For the model's own shape id: the identity.",
 )
 def transform_points(
-    job_id: DbInt, shape_id: DbInt, body: TransformRequest, db: DbDep, settings: SettingsDep
+    job_id: DbId, shape_id: DbId, body: TransformRequest, db: DbDep, settings: SettingsDep
 ) -> TransformOut:
     mapped = _mapped(db, job_id, shape_id, body, settings.max_points_per_shape, inverse=False)
     if not np.isfinite(mapped).all():
@@ -335,7 +335,7 @@ def transform_points(
     "says which.",
 )
 def inverse_transform_points(
-    job_id: DbInt, shape_id: DbInt, body: TransformRequest, db: DbDep, settings: SettingsDep
+    job_id: DbId, shape_id: DbId, body: TransformRequest, db: DbDep, settings: SettingsDep
 ) -> InverseTransformOut:
     mapped = _mapped(db, job_id, shape_id, body, settings.max_points_per_shape, inverse=True)
     ok = np.isfinite(mapped).all(axis=1)

@@ -1,28 +1,8 @@
 """``/v1/collections/{id}/shapes``: upload, list, read and delete shapes.
 
-One upload endpoint takes every supported form:
-
-* ``application/json``: ``{"name": ..., "points": [[x, y], ...]}``, or a batch
-  ``{"shapes": [{"name": ..., "points": ...}, ...]}``;
-* ``multipart/form-data``: one or many files in the ``files`` field, with optional form fields
-  ``mode`` (contour|edges|skeleton, for images) and ``target_points``;
-* a raw body typed ``text/csv``, ``text/plain``, ``application/octet-stream`` (``.npy``),
-  ``image/png`` or ``image/jpeg``, named with ``?name=``.
-
-Names: a file's name without its extension (multipart), ``?name=`` (raw body) or the
-``"name"`` of a JSON shape; a shape uploaded without one is named ``shape-`` and 12 hex
-digits of the SHA-256 of its points (the same points get the same name in every format).
-
-Existing names: ``?on_conflict=`` says what happens when the collection already holds a shape
-of an uploaded name. ``refuse`` (the default: uploading a folder twice must not double the
-collection) answers 409 naming the existing shapes; ``replace`` deletes them and stores the
-new ones under new ids (409 if an unfinished job uses one); ``keep`` stores the new ones
-beside them, the name repeated. One upload naming two shapes alike is a 422 unless ``keep``.
-
-Decoding and validation are :mod:`service.ingest`'s (shapes whose points all coincide, or
-nearly, are refused); storing is :mod:`service.api.shape_store`'s. An upload is
-all-or-nothing: the first bad file answers 422 naming the file, and nothing is stored; a
-refused upload leaves the collection as it was.
+The upload's forms, names and conflict policy are described for users in ``_UPLOAD_DOC``
+(the operation's OpenAPI description). Decoding and validation are :mod:`service.ingest`'s;
+storing is :mod:`service.api.shape_store`'s.
 """
 
 from __future__ import annotations
@@ -49,7 +29,7 @@ from service.core.limits import bounds, example
 from service.models import Shape
 from service.schemas import (
     NO_NUL,
-    DbInt,
+    DbId,
     ImageMode,
     Page,
     ShapeBatchOut,
@@ -58,6 +38,31 @@ from service.schemas import (
 )
 
 router = APIRouter(prefix="/collections/{collection_id}/shapes", tags=["shapes"])
+
+#: The upload operation's description (Markdown, as /docs renders it).
+_UPLOAD_DOC = """One upload endpoint takes every supported form:
+
+* `application/json`: `{"name": ..., "points": [[x, y], ...]}`, or a batch
+  `{"shapes": [{"name": ..., "points": ...}, ...]}`;
+* `multipart/form-data`: one or many files in the `files` field, with optional form fields
+  `mode` (contour|edges|skeleton, for images) and `target_points`;
+* a raw body typed `text/csv`, `text/plain`, `application/octet-stream` (`.npy`),
+  `image/png` or `image/jpeg`, named with `?name=`.
+
+Names: a file's name without its extension (multipart), `?name=` (raw body) or the
+`"name"` of a JSON shape; a shape uploaded without one is named `shape-` and 12 hex
+digits of the SHA-256 of its points (the same points get the same name in every format).
+
+Existing names: `?on_conflict=` says what happens when the collection already holds a shape
+of an uploaded name. `refuse` (the default: uploading a folder twice must not double the
+collection) answers 409 naming the existing shapes; `replace` deletes them and stores the
+new ones under new ids (409 if an unfinished job uses one); `keep` stores the new ones
+beside them, the name repeated. One upload naming two shapes alike is a 422 unless `keep`.
+
+Shapes whose points all coincide, or nearly, are refused. An upload is all-or-nothing: the
+first bad file answers 422 naming the file, and nothing is stored; a refused upload leaves
+the collection as it was.
+"""
 
 #: The limits, as the operation's description states them (placeholders: service.core.limits).
 _LIMITS_DOC = """
@@ -334,10 +339,10 @@ async def _form(request: Request, max_batch_files: int) -> AsyncIterator[FormDat
     responses=problem_responses(401, 404, 409, 413, 415, 422),
     openapi_extra=_UPLOAD_OPENAPI,
     summary="Upload one shape or a batch",
-    description=(__doc__ or "") + _LIMITS_DOC,
+    description=_UPLOAD_DOC + _LIMITS_DOC,
 )
 async def upload_shapes(
-    collection_id: DbInt,
+    collection_id: DbId,
     request: Request,
     response: Response,
     db: DbDep,
@@ -472,7 +477,9 @@ async def upload_shapes(
     responses=problem_responses(404),
     summary="List a collection's shapes (metadata only)",
 )
-def list_shapes(collection_id: DbInt, db: DbDep, page: PaginationDep) -> Page[ShapeOut]:
+def list_shapes(collection_id: DbId, db: DbDep, page: PaginationDep) -> Page[ShapeOut]:
+    """The collection's shapes in upload order, one page at a time: id, name, source
+    format, number of points and bounding box, without the points (read a shape for those)."""
     with db.read() as session:
         get_collection_or_404(session, collection_id)
         total = shape_store.count_shapes(session, collection_id)
@@ -487,7 +494,9 @@ def list_shapes(collection_id: DbInt, db: DbDep, page: PaginationDep) -> Page[Sh
     responses=problem_responses(404),
     summary="Read a shape with its points",
 )
-def get_shape(collection_id: DbInt, shape_id: DbInt, db: DbDep) -> ShapeDetail:
+def get_shape(collection_id: DbId, shape_id: DbId, db: DbDep) -> ShapeDetail:
+    """The shape's metadata and its points as stored: (x, y) pairs in the units they were
+    uploaded in (an image's pixels, y down)."""
     with db.read() as session:
         shape = shape_store.get_shape(session, collection_id, shape_id)
         if shape is None:
@@ -502,7 +511,9 @@ def get_shape(collection_id: DbInt, shape_id: DbInt, db: DbDep) -> ShapeDetail:
     responses=problem_responses(404, 409),
     summary="Delete a shape",
 )
-def delete_shape(collection_id: DbInt, shape_id: DbInt, db: DbDep) -> Response:
+def delete_shape(collection_id: DbId, shape_id: DbId, db: DbDep) -> Response:
+    """Deletes the shape: 204 with no body. A shape that a queued or running job uses is
+    kept (409 naming the jobs); finished jobs keep their results."""
     try:
         deleted = shape_store.delete_shape(db, collection_id, shape_id)
     except shape_store.ShapesInUse as e:
