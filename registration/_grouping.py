@@ -40,7 +40,7 @@ __all__ = ["GroupingResult", "InstanceComparison", "MouldGroup", "compare_instan
 #: Automatic threshold = NOISE_FACTOR x the median nearest-instance distance, kept within
 #: [THRESHOLD_MIN, THRESHOLD_MAX] (units: the shapes' RMS radius). Measured in bench/
 #: bench_grouping.py on several settings (see bench/RESULTS.md, section 6).
-NOISE_FACTOR = 2.0
+NOISE_FACTOR = 2.5
 THRESHOLD_MIN = 0.04
 THRESHOLD_MAX = 0.15
 _CHUNK = 32
@@ -188,7 +188,7 @@ def group_instances(
         to within a few degrees unless `max_rotation` is given.
     threshold : float, optional
         Cut of the average-linkage tree, in units of the shapes' RMS radius. Default:
-        automatic, ``2 x`` the median distance of an instance to its nearest other
+        automatic, ``2.5 x`` the median distance of an instance to its nearest other
         instance, kept within [0.04, 0.15] (measured, bench/RESULTS.md section 6).
     neighbours : int
         Pairs aligned to each other (after the common alignment) per instance: its
