@@ -4,6 +4,7 @@ groups document, the pictures, and the refusals."""
 from __future__ import annotations
 
 import io
+import json
 from typing import Any
 
 import httpx
@@ -120,3 +121,31 @@ def test_a_registration_job_has_no_groups(grouped, client: httpx.Client):
     problem = assert_problem(client.get(f"/v1/jobs/{job['id']}/groups"), expected)
     assert problem["type"] in ("/problems/not-a-grouping", "/problems/result-not-ready")
     assert done["status"] in ("succeeded", "cancelled")
+
+
+def test_the_client_starts_a_grouping_and_reads_its_groups_and_pictures(grouped, service,
+                                                                       tmp_path):
+    from service.client import RegtreeClient
+
+    with RegtreeClient(service.base_url) as rt:
+        job = rt.wait(rt.start_grouping(grouped["cid"], threshold=10.0).id, timeout=240)
+        doc = rt.groups(job.id)
+        assert doc.n_groups == 1 and doc.threshold == 10.0
+        assert doc.threshold_source == "given"
+        data = rt.group_picture(job.id, "dendrogram", tmp_path / "d.png")
+        assert data[:4] == b"\x89PNG" and (tmp_path / "d.png").read_bytes() == data
+        assert rt.group_picture(job.id, grouped["ids"][1])[:4] == b"\x89PNG"
+
+
+def test_regtree_group_prints_the_groups(grouped, service, tmp_path):
+    from tests.service.test_cli_client import regtree
+
+    proc = regtree("group", str(grouped["cid"]), "--gallery", str(tmp_path / "g.png"),
+                   url=service.base_url, timeout=240)
+    assert proc.returncode == 0, proc.stderr
+    assert "2 groups of 6 shapes" in proc.stdout
+    assert "representative" in proc.stdout and "m0_0" in proc.stdout
+    assert (tmp_path / "g.png").read_bytes()[:4] == b"\x89PNG"
+    proc = regtree("group", "prints", "--json", url=service.base_url, timeout=240)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["n_groups"] == 2
