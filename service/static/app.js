@@ -311,6 +311,7 @@
     state.result = null;
     state.selected = null;
     resetTreeView();
+    if (window.regtreeGrouping) window.regtreeGrouping.hide();
     $("ui-job").hidden = true;
     $("ui-welcome").hidden = false;
   }
@@ -357,7 +358,9 @@
       if (i >= 0 && state.jobs[i].status !== job.status) { state.jobs[i] = job; renderJobs(); }
     }
     renderJobHeader(job);
-    if (job.status === "succeeded") {
+    if (job.status === "succeeded" && job.method === "grouping" && window.regtreeGrouping) {
+      window.regtreeGrouping.show(job, api, () => token === state.loadToken);
+    } else if (job.status === "succeeded") {
       if (!state.result) await loadResult(token);
     } else if (!TERMINAL.has(job.status) && !state.needKey) {
       state.jobTimer = setTimeout(() => pollJob(token), POLL_MS);

@@ -21,6 +21,7 @@ router = APIRouter(include_in_schema=False)
 #: File name -> media type of what ``/ui/<name>`` serves.
 ASSETS = {
     "app.js": "text/javascript; charset=utf-8",
+    "grouping.js": "text/javascript; charset=utf-8",
     "app.css": "text/css; charset=utf-8",
     "favicon.svg": "image/svg+xml",
 }
