@@ -149,3 +149,25 @@ def test_regtree_group_prints_the_groups(grouped, service, tmp_path):
     proc = regtree("group", "prints", "--json", url=service.base_url, timeout=240)
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["n_groups"] == 2
+
+
+def test_a_running_grouping_is_cancelled_promptly(client: httpx.Client):
+    from registration.impressions import impression_set
+    from tests.registration.test_grouping import contour_points
+
+    rng = np.random.default_rng(1)
+    moulds = [draw_strokes(rng.uniform(0.15, 0.85, size=(3, 4)), size=120, width=0.1)
+              for _ in range(8)]
+    shapes, _ = impression_set(moulds, 5, to_points=lambda im: contour_points(im, 300), seed=2)
+    cid = create_collection(client, "cancel-grouping")
+    body = {"shapes": [{"name": f"s{k}", "points": p.tolist()} for k, p in enumerate(shapes)]}
+    assert client.post(f"/v1/collections/{cid}/shapes", json=body).status_code == 201
+    job = client.post("/v1/jobs", json={"collection_id": cid, "method": "grouping"}).json()
+    wait_job(client, job["id"], timeout=120,
+             until=lambda j: j["status"] != "queued" and (j["progress"] or {}).get("done", 0) > 0)
+    response = client.post(f"/v1/jobs/{job['id']}/cancel")
+    if response.status_code == 409:  # it finished first: nothing to cancel
+        pytest.skip("the grouping finished before the cancel")
+    done = wait_job(client, job["id"], timeout=60)
+    assert done["status"] == "cancelled" and done["outcome"] == "aborted", done
+    assert_problem(client.get(f"/v1/jobs/{job['id']}/groups"), 409)

@@ -6,6 +6,7 @@ the other picture routes (strong ETag from the finished job, 304 on ``If-None-Ma
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from fastapi import APIRouter, Request, Response
@@ -26,6 +27,7 @@ from service.api.routes.results import stored_result
 from service.contract.names import GROUPING_METHOD, ProblemType
 from service.contract.result import GroupingDocument
 from service.models import Job, Shape, made_from_image
+from service.plots import Rendered
 from service.plots.grouping import render_dendrogram, render_gallery, render_instance
 from service.schemas import DbInt
 
@@ -67,6 +69,18 @@ def _y_down(session: Session, shape_ids: list[int]) -> bool:
     return bool(formats) and all(made_from_image(f) for f in formats)
 
 
+def _group_picture(job_id: int, request: Request, db: DbDep, key: tuple[object, ...],
+                   draw: Callable[[Session, dict[str, Any]], Rendered]) -> Response:
+    """A picture of a grouping: 304 when the ETag matches, else ``draw(session, doc)``."""
+    with db.read() as session:
+        job, document = grouping_of(session, job_id)
+        etag = _etag(job, *key)
+        if _matches(request, etag):
+            return _not_modified(etag)
+        rendered = draw(session, document)
+    return _picture(rendered, etag)
+
+
 @router.get(
     "/{job_id}/groups/gallery.png",
     response_class=Response,
@@ -77,16 +91,13 @@ def _y_down(session: Session, shape_ids: list[int]) -> bool:
 )
 def gallery_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = None
                 ) -> Response:
-    with db.read() as session:
-        job, document = grouping_of(session, job_id)
-        etag = _etag(job, "gallery", width)
-        if _matches(request, etag):
-            return _not_modified(etag)
+    def draw(session: Session, document: dict[str, Any]) -> Rendered:
         ids = [int(s) for s in document["shape_ids"]]
         rows = session.scalars(select(Shape).where(Shape.id.in_(ids))).all()
         points = {s.id: s.points for s in rows}
-        y_down = _y_down(session, ids)
-    return _picture(render_gallery(document, points, width=width, y_down=y_down), etag)
+        return render_gallery(document, points, width=width, y_down=_y_down(session, ids))
+
+    return _group_picture(job_id, request, db, ("gallery", width), draw)
 
 
 @router.get(
@@ -99,12 +110,8 @@ def gallery_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = 
 )
 def dendrogram_png(job_id: DbInt, request: Request, db: DbDep, width: WidthQuery = None
                    ) -> Response:
-    with db.read() as session:
-        job, document = grouping_of(session, job_id)
-        etag = _etag(job, "dendrogram", width)
-        if _matches(request, etag):
-            return _not_modified(etag)
-    return _picture(render_dendrogram(document, width=width), etag)
+    return _group_picture(job_id, request, db, ("dendrogram", width),
+                          lambda _session, document: render_dendrogram(document, width=width))
 
 
 @router.get(
