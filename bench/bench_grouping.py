@@ -11,7 +11,10 @@ scan encoded as PNG and turned into points by the service's image ingestion,
 - ``strokes``: a second character drawn procedurally (``draw_strokes``), 40 "carvers"
   that place its strokes differently (ends moved by up to 4 % of the size), x 5;
 - ``mpeg7``: 40 MPEG-7 silhouettes (``../shared/data/mpeg7``) as moulds, x 5;
-- ``time``: 200 instances (40 x 5 of ``yong``), wall time of ``group_instances``.
+- ``time``: 200 instances (40 x 5 of ``yong``), wall time of ``group_instances``;
+- ``service``: the ``yong`` scans as PNG files through the service end to end: uploaded
+  to a local ``regtree serve`` (image ingestion there), grouped by a ``grouping`` job
+  (not in the default list: it starts a server).
 
 For every setting: same-mould and different-mould distance quantiles (the data for the
 automatic threshold), the threshold chosen, ARI against the true moulds.
@@ -129,7 +132,7 @@ SETTINGS: dict[str, Callable[[int, int], list[np.ndarray]]] = {
     "yong": yong_moulds, "yong-recut": recut_moulds, "strokes": stroke_moulds,
     "mpeg7": mpeg7_moulds,
 }
-NEEDS_DATA = {"yong", "yong-recut", "mpeg7", "time"}
+NEEDS_DATA = {"yong", "yong-recut", "mpeg7", "time", "service"}
 
 
 def distance_quantiles(D: np.ndarray, truth: np.ndarray) -> str:
@@ -177,6 +180,42 @@ def _cpu() -> float:
     return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
+def run_service(moulds: int, n: int, seed: int) -> dict[str, float]:
+    """The ``yong`` scans (the same images) written as PNG files, uploaded to a local
+    ``regtree serve`` (one worker) with ``regtree``'s client, grouped by a grouping job."""
+    import tempfile
+
+    from bench_service import local_service
+
+    from registration.impressions import simulate_impressions
+    from service.client import RegtreeClient
+
+    ms = yong_moulds(moulds, seed)
+    rng = np.random.default_rng(seed)  # as impression_set draws them: the same scans
+    with tempfile.TemporaryDirectory() as tmp:
+        files, truth = [], []
+        for k, m in enumerate(ms):
+            for j, img in enumerate(simulate_impressions(m, n, seed=rng)):
+                path = Path(tmp) / f"m{k:02d}_{j}.png"
+                Image.fromarray(img).save(path)
+                files.append(path)
+                truth.append(k)
+        with local_service(1, Path(tmp)) as url, RegtreeClient(url) as rt:
+            cid = rt.create_collection("bench-grouping").id
+            t0 = time.perf_counter()
+            shapes = rt.upload_files(cid, files, mode="contour", target_points=TARGET_POINTS)
+            t1 = time.perf_counter()
+            job = rt.wait(rt.start_grouping(cid).id, timeout=3600)
+            t2 = time.perf_counter()
+            doc = rt.groups(job.id)
+    labels = np.array([doc.labels[str(s.id)] for s in shapes])
+    ari = adjusted_rand_index(labels, np.asarray(truth))
+    print(f"  {len(files)} PNGs uploaded in {t1 - t0:.1f} s; grouping job {t2 - t1:.1f} s "
+          f"(queue to succeeded); {doc.n_groups} groups for {len(ms)} moulds, threshold "
+          f"{doc.threshold:.4f}, ARI {ari:.3f}")
+    return {"ari": ari, "seconds": t2 - t1}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--settings", default="yong,yong-recut,strokes,mpeg7,time")
@@ -185,14 +224,17 @@ def main() -> None:
     ap.add_argument("--impressions", type=int, default=5)
     args = ap.parse_args()
     for name in args.settings.split(","):
-        if name not in SETTINGS and name != "time":
+        if name not in SETTINGS and name not in ("time", "service"):
             raise SystemExit(f"unknown setting {name!r}")
         print(f"== {name}")
         if name in NEEDS_DATA and not DATA.is_dir():
             print(f"  SKIPPED: {DATA} is missing (the shared data folder sits beside the "
                   "project; see its README.md)")
             continue
-        run(name, args.moulds, args.impressions, args.seed)
+        if name == "service":
+            run_service(args.moulds, args.impressions, args.seed)
+        else:
+            run(name, args.moulds, args.impressions, args.seed)
 
 
 if __name__ == "__main__":
