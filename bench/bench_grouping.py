@@ -20,7 +20,7 @@ For every setting: same-mould and different-mould distance quantiles (the data f
 automatic threshold), the threshold chosen, ARI against the true moulds.
 
     .venv/bin/python bench/bench_grouping.py [--settings yong,yong-recut,...] [--seed 0]
-        [--moulds 40] [--impressions 5]
+        [--moulds 40] [--impressions 5] [--cache DIR]
 """
 
 from __future__ import annotations
@@ -149,10 +149,32 @@ def distance_quantiles(D: np.ndarray, truth: np.ndarray) -> str:
             f"different n={len(d)} min {q(d, 0)} p5 {q(d, .05)} median {q(d, .5)}")
 
 
-def run(name: str, moulds: int, n: int, seed: int) -> dict[str, float]:
+def scans(name: str, moulds: int, n: int, seed: int, cache: Path | None
+          ) -> tuple[list[np.ndarray], np.ndarray]:
+    """The setting's scans as points; with `cache`, kept in (and read back from) a pickle
+    named after the setting and its arguments."""
+    import pickle
+
+    base = "yong" if name == "time" else name
+    path = None if cache is None else cache / f"{base}-{moulds}x{n}-seed{seed}.pkl"
+    if path is not None and path.is_file():
+        with path.open("rb") as f:
+            shapes, truth = pickle.load(f)
+        print(f"  scans read from {path}")
+        return shapes, truth
+    shapes, truth = impression_set(SETTINGS[base](moulds, seed), n, to_points=to_points,
+                                   seed=seed)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("wb") as f:
+            pickle.dump((shapes, truth), f)
+    return shapes, truth
+
+
+def run(name: str, moulds: int, n: int, seed: int, cache: Path | None = None
+        ) -> dict[str, float]:
     t0 = time.perf_counter()
-    ms = SETTINGS["yong" if name == "time" else name](moulds, seed)
-    shapes, truth = impression_set(ms, n, to_points=to_points, seed=seed)
+    shapes, truth = scans(name, moulds, n, seed, cache)
     t1 = time.perf_counter()
     c1 = _cpu()
     res = group_instances(shapes)
@@ -222,6 +244,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--moulds", type=int, default=40)
     ap.add_argument("--impressions", type=int, default=5)
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="keep the simulated, ingested scans in this folder and reuse them")
     args = ap.parse_args()
     for name in args.settings.split(","):
         if name not in SETTINGS and name not in ("time", "service"):
@@ -234,7 +258,7 @@ def main() -> None:
         if name == "service":
             run_service(args.moulds, args.impressions, args.seed)
         else:
-            run(name, args.moulds, args.impressions, args.seed)
+            run(name, args.moulds, args.impressions, args.seed, args.cache)
 
 
 if __name__ == "__main__":
