@@ -222,14 +222,22 @@ def run_service(moulds: int, n: int, seed: int) -> dict[str, float]:
                 Image.fromarray(img).save(path)
                 files.append(path)
                 truth.append(k)
-        with local_service(1, Path(tmp)) as url, RegtreeClient(url) as rt:
-            cid = rt.create_collection("bench-grouping").id
-            t0 = time.perf_counter()
-            shapes = rt.upload_files(cid, files, mode="contour", target_points=TARGET_POINTS)
-            t1 = time.perf_counter()
-            job = rt.wait(rt.start_grouping(cid).id, timeout=3600)
-            t2 = time.perf_counter()
-            doc = rt.groups(job.id)
+        for attempt in range(3):  # a loaded machine may start the server slowly
+            try:
+                with local_service(1, Path(tmp)) as url, RegtreeClient(url) as rt:
+                    cid = rt.create_collection("bench-grouping").id
+                    t0 = time.perf_counter()
+                    shapes = rt.upload_files(cid, files, mode="contour",
+                                             target_points=TARGET_POINTS)
+                    t1 = time.perf_counter()
+                    job = rt.wait(rt.start_grouping(cid).id, timeout=3600)
+                    t2 = time.perf_counter()
+                    doc = rt.groups(job.id)
+                break
+            except RuntimeError as e:
+                if attempt == 2 or "did not start" not in str(e):
+                    raise
+                print(f"  {e}: trying again")
     labels = np.array([doc.labels[str(s.id)] for s in shapes])
     ari = adjusted_rand_index(labels, np.asarray(truth))
     print(f"  {len(files)} PNGs uploaded in {t1 - t0:.1f} s; grouping job {t2 - t1:.1f} s "
