@@ -331,6 +331,15 @@ def compare_instances(instance: ArrayLike, reference: ArrayLike) -> InstanceComp
     """Align `instance` onto `reference` as :func:`group_instances` does and say where their
     outlines differ (for a picture of why two instances are, or are not, one mould).
 
+    Parameters
+    ----------
+    instance, reference : array_like, shape (n_i, 2)
+        The two instances' points (outlines, as for :func:`group_instances`).
+
+    Returns
+    -------
+    InstanceComparison
+
     Raises
     ------
     ValueError
