@@ -11,25 +11,30 @@ scan encoded as PNG and turned into points by the service's image ingestion,
 - ``strokes``: a second character drawn procedurally (``draw_strokes``), 40 "carvers"
   that place its strokes differently (ends moved by up to 4 % of the size), x 5;
 - ``mpeg7``: 40 MPEG-7 silhouettes (``../shared/data/mpeg7``) as moulds, x 5;
-- ``time``: 200 instances (40 x 5 of ``yong``), wall time of ``group_instances``.
+- ``time``: 200 instances (40 x 5 of ``yong``), wall time of ``group_instances``;
+- ``service``: the ``yong`` scans as PNG files through the service end to end: uploaded
+  to a local ``regtree serve`` (image ingestion there), grouped by a ``grouping`` job
+  (not in the default list: it starts a server).
 
 For every setting: same-mould and different-mould distance quantiles (the data for the
 automatic threshold), the threshold chosen, ARI against the true moulds.
 
     .venv/bin/python bench/bench_grouping.py [--settings yong,yong-recut,...] [--seed 0]
-        [--moulds 40] [--impressions 5]
+        [--moulds 40] [--impressions 5] [--cache DIR]
 """
 
 from __future__ import annotations
 
 import argparse
 import io
+import resource
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
+from scipy.cluster.hierarchy import fcluster
 
 from registration import group_instances
 from registration.impressions import (
@@ -47,6 +52,9 @@ DATA = next((p / "shared" / "data" for p in Path(__file__).resolve().parents[1:]
 GLYPHS = DATA / "glyphs_yong" / "png"
 MPEG7 = DATA / "mpeg7"
 TARGET_POINTS = 3000
+#: Cuts of the average-linkage tree shown beside the default one (the automatic threshold
+#: is NOISE_FACTOR x the noise level, within bounds).
+CUT_FACTORS = (1.5, 2.0, 2.5, 3.0, 3.5)
 
 
 def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
@@ -124,7 +132,7 @@ SETTINGS: dict[str, Callable[[int, int], list[np.ndarray]]] = {
     "yong": yong_moulds, "yong-recut": recut_moulds, "strokes": stroke_moulds,
     "mpeg7": mpeg7_moulds,
 }
-NEEDS_DATA = {"yong", "yong-recut", "mpeg7", "time"}
+NEEDS_DATA = {"yong", "yong-recut", "mpeg7", "time", "service"}
 
 
 def distance_quantiles(D: np.ndarray, truth: np.ndarray) -> str:
@@ -141,21 +149,101 @@ def distance_quantiles(D: np.ndarray, truth: np.ndarray) -> str:
             f"different n={len(d)} min {q(d, 0)} p5 {q(d, .05)} median {q(d, .5)}")
 
 
-def run(name: str, moulds: int, n: int, seed: int) -> dict[str, float]:
+def scans(name: str, moulds: int, n: int, seed: int, cache: Path | None
+          ) -> tuple[list[np.ndarray], np.ndarray]:
+    """The setting's scans as points; with `cache`, kept in (and read back from) a pickle
+    named after the setting and its arguments."""
+    import pickle
+
+    base = "yong" if name == "time" else name
+    path = None if cache is None else cache / f"{base}-{moulds}x{n}-seed{seed}.pkl"
+    if path is not None and path.is_file():
+        with path.open("rb") as f:
+            shapes, truth = pickle.load(f)
+        print(f"  scans read from {path}")
+        return shapes, truth
+    shapes, truth = impression_set(SETTINGS[base](moulds, seed), n, to_points=to_points,
+                                   seed=seed)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("wb") as f:
+            pickle.dump((shapes, truth), f)
+    return shapes, truth
+
+
+def run(name: str, moulds: int, n: int, seed: int, cache: Path | None = None
+        ) -> dict[str, float]:
     t0 = time.perf_counter()
-    ms = SETTINGS["yong" if name == "time" else name](moulds, seed)
-    shapes, truth = impression_set(ms, n, to_points=to_points, seed=seed)
+    shapes, truth = scans(name, moulds, n, seed, cache)
     t1 = time.perf_counter()
+    c1 = _cpu()
     res = group_instances(shapes)
     t2 = time.perf_counter()
+    cpu = _cpu() - c1
     ari = adjusted_rand_index(res.labels, truth)
     print(f"  {len(shapes)} instances ({np.mean([len(s) for s in shapes]):.0f} points), "
           f"simulated + ingested in {t1 - t0:.1f} s")
     print(f"  {distance_quantiles(res.distances, truth)}")
     print(f"  noise level {res.noise_level:.4f}, threshold {res.threshold:.4f} "
           f"({res.threshold_source}), {res.n_groups} groups for {len(set(truth))} moulds, "
-          f"{res.pairs_computed} pairs, ARI {ari:.3f}, group_instances {t2 - t1:.1f} s")
-    return {"ari": ari, "seconds": t2 - t1, "threshold": res.threshold}
+          f"{res.pairs_computed} pairs, ARI {ari:.3f}, group_instances {t2 - t1:.1f} s "
+          f"wall, {cpu:.1f} s CPU (this process and its pool)")
+    sweep = {f: adjusted_rand_index(fcluster(res.linkage, f * res.noise_level, "distance"),
+                                    truth) for f in CUT_FACTORS}
+    print("  ARI by cut (x noise level): "
+          + ", ".join(f"{f:g}x {a:.3f}" for f, a in sweep.items()))
+    return {"ari": ari, "seconds": t2 - t1, "cpu": cpu, "threshold": res.threshold}
+
+
+def _cpu() -> float:
+    """CPU seconds of this process and its finished children (the process pool)."""
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def run_service(moulds: int, n: int, seed: int) -> dict[str, float]:
+    """The ``yong`` scans (the same images) written as PNG files, uploaded to a local
+    ``regtree serve`` (one worker) with ``regtree``'s client, grouped by a grouping job."""
+    import tempfile
+
+    from bench_service import local_service
+
+    from registration.impressions import simulate_impressions
+    from service.client import RegtreeClient
+
+    ms = yong_moulds(moulds, seed)
+    rng = np.random.default_rng(seed)  # as impression_set draws them: the same scans
+    with tempfile.TemporaryDirectory() as tmp:
+        files, truth = [], []
+        for k, m in enumerate(ms):
+            for j, img in enumerate(simulate_impressions(m, n, seed=rng)):
+                path = Path(tmp) / f"m{k:02d}_{j}.png"
+                Image.fromarray(img).save(path)
+                files.append(path)
+                truth.append(k)
+        for attempt in range(3):  # a loaded machine may start the server slowly
+            try:
+                with local_service(1, Path(tmp)) as url, RegtreeClient(url) as rt:
+                    cid = rt.create_collection("bench-grouping").id
+                    t0 = time.perf_counter()
+                    shapes = rt.upload_files(cid, files, mode="contour",
+                                             target_points=TARGET_POINTS)
+                    t1 = time.perf_counter()
+                    job = rt.wait(rt.start_grouping(cid).id, timeout=3600)
+                    t2 = time.perf_counter()
+                    doc = rt.groups(job.id)
+                break
+            except RuntimeError as e:
+                if attempt == 2 or "did not start" not in str(e):
+                    raise
+                print(f"  {e}: trying again")
+    labels = np.array([doc.labels[str(s.id)] for s in shapes])
+    ari = adjusted_rand_index(labels, np.asarray(truth))
+    print(f"  {len(files)} PNGs uploaded in {t1 - t0:.1f} s; grouping job {t2 - t1:.1f} s "
+          f"(queue to succeeded); {doc.n_groups} groups for {len(ms)} moulds, threshold "
+          f"{doc.threshold:.4f}, ARI {ari:.3f}")
+    return {"ari": ari, "seconds": t2 - t1}
 
 
 def main() -> None:
@@ -164,16 +252,21 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--moulds", type=int, default=40)
     ap.add_argument("--impressions", type=int, default=5)
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="keep the simulated, ingested scans in this folder and reuse them")
     args = ap.parse_args()
     for name in args.settings.split(","):
-        if name not in SETTINGS and name != "time":
+        if name not in SETTINGS and name not in ("time", "service"):
             raise SystemExit(f"unknown setting {name!r}")
         print(f"== {name}")
         if name in NEEDS_DATA and not DATA.is_dir():
             print(f"  SKIPPED: {DATA} is missing (the shared data folder sits beside the "
                   "project; see its README.md)")
             continue
-        run(name, args.moulds, args.impressions, args.seed)
+        if name == "service":
+            run_service(args.moulds, args.impressions, args.seed)
+        else:
+            run(name, args.moulds, args.impressions, args.seed, args.cache)
 
 
 if __name__ == "__main__":

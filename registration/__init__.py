@@ -23,7 +23,13 @@ from ._executor import (
     WorkerProcessDied,
     default_executor,
 )
-from ._grouping import GroupingResult, MouldGroup, group_instances
+from ._grouping import (
+    GroupingResult,
+    InstanceComparison,
+    MouldGroup,
+    compare_instances,
+    group_instances,
+)
 from ._icp import AffineICPResult, affine_icp, bidirectional_distance, fit_affine
 from ._points import Normalization, as_points, normalise, resample
 from ._result import Attempt, CollectionResult, SubjectResult, error_statistics
@@ -41,6 +47,7 @@ __all__ = [
     "CollectionResult",
     "Executor",
     "GroupingResult",
+    "InstanceComparison",
     "LocalProcessExecutor",
     "MouldGroup",
     "NonrigidTransform",
@@ -55,6 +62,7 @@ __all__ = [
     "bidirectional_distance",
     "build_dynamic_tree",
     "build_static_tree",
+    "compare_instances",
     "cpd_nonrigid",
     "default_executor",
     "error_statistics",

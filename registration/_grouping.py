@@ -1,8 +1,9 @@
 """Which impressions came from the same mould: grouping glyph instances (issue 11).
 
-:func:`group_instances` computes the mould distance of :mod:`._mould_distance` for the pairs
-that can matter, cuts a single-linkage tree at a threshold, and checks every group against
-its representative so that a chain of near pairs never pulls two moulds together.
+:func:`group_instances` computes the outline-field distance of :mod:`._outline_field`
+(every instance aligned to the collection's median field, near pairs once more to each
+other) and cuts an average-linkage tree at a threshold: average linkage, unlike single
+linkage, does not let a chain of near pairs pull two moulds together.
 """
 
 from __future__ import annotations
@@ -15,23 +16,34 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.spatial.distance import squareform
 
-from ._executor import Executor
-from ._mould_distance import Impression, impression_descriptor, local_discrepancy
+from ._executor import Executor, owned_executor
 from ._mould_distance import prepare_impression as _prepare
-from ._points import normalise
-from ._similarity import ProgressCallback, similarity_matrix
+from ._outline_field import (
+    INK_WEIGHT,
+    align_fields,
+    common_frame,
+    field_distance,
+    grid_centres,
+    local_difference,
+    outline_field,
+    pair_distances,
+    screen,
+    warp,
+)
+from ._similarity import ProgressCallback
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["GroupingResult", "MouldGroup", "group_instances"]
+__all__ = ["GroupingResult", "InstanceComparison", "MouldGroup", "compare_instances",
+           "group_instances"]
 
 #: Automatic threshold = NOISE_FACTOR x the median nearest-instance distance, kept within
 #: [THRESHOLD_MIN, THRESHOLD_MAX] (units: the shapes' RMS radius). Measured in bench/
 #: bench_grouping.py on several settings (see bench/RESULTS.md, section 6).
-NOISE_FACTOR = 2.0
-THRESHOLD_MIN = 0.06
-THRESHOLD_MAX = 0.12
-_MAX_ROUNDS = 8
+NOISE_FACTOR = 2.5
+THRESHOLD_MIN = 0.04
+THRESHOLD_MAX = 0.15
+_CHUNK = 32
 
 
 @dataclass(frozen=True)
@@ -45,7 +57,7 @@ class MouldGroup:
     members : list of int
         Input positions, ascending.
     representative : int
-        The medoid: the member with the smallest largest distance to the others.
+        The medoid: the member with the smallest mean distance to the others.
     spread : float
         Largest distance of a member to the representative.
     """
@@ -72,25 +84,23 @@ class GroupingResult:
     groups : list of MouldGroup
         ``groups[g].label == g``.
     confidence : ndarray, shape (n,)
-        Silhouette of each instance in [0, 1]: ``(b - a) / max(a, b)`` with ``a`` its
-        distance to its group's representative (for the representative, the median
-        distance to its members) and ``b`` its distance to the nearest instance of
-        another group; 0 for an instance alone in its group (nothing supports it) and
-        when ``b <= a``.
+        Silhouette of each instance in [0, 1]: ``(b - a) / b`` with ``a`` its mean
+        distance to the other members of its group and ``b`` the smallest mean distance
+        to the members of another group; 0 for an instance alone in its group (nothing
+        supports it) and when ``b <= a``.
     distances : ndarray, shape (n, n)
-        Symmetric mould distances (units: RMS radius of the shapes); NaN where a pair was
-        not computed (pruned by the descriptor, or never needed).
+        Symmetric mould distances (units: RMS radius of the shapes); pairs that were not
+        aligned to each other (far by the screen) hold the screen's estimate.
     threshold : float
-        The cut: instances farther apart than this are never in one group.
+        The cut of the average-linkage tree: two groups whose members are farther apart
+        than this on average are not merged.
     threshold_source : {"given", "automatic"}
     noise_level : float
         Median over instances of the distance to the nearest other instance.
     linkage : ndarray, shape (n - 1, 4)
-        Single-linkage tree (scipy's format) over the computed distances, for a
-        dendrogram; pairs not computed count as ``uncomputed_distance``.
-    uncomputed_distance : float
+        Average-linkage tree (scipy's format) over `distances`, for a dendrogram.
     pairs_computed : int
-        Registrations run.
+        Pairs aligned to each other.
     dropped_points : list of int
         Points removed from each shape as ink specks.
     """
@@ -103,7 +113,6 @@ class GroupingResult:
     threshold_source: str
     noise_level: float
     linkage: FloatArray
-    uncomputed_distance: float
     pairs_computed: int
     dropped_points: list[int] = field(default_factory=list)
 
@@ -118,58 +127,19 @@ class GroupingResult:
                 f"({self.threshold_source}))")
 
     def to_dict(self) -> dict[str, object]:
-        """A JSON-serialisable summary (NaN distances as None)."""
+        """A JSON-serialisable summary."""
         return {
             "labels": [int(v) for v in self.labels],
             "groups": [g.to_dict() for g in self.groups],
             "confidence": [float(v) for v in self.confidence],
-            "distances": [[None if np.isnan(v) else float(v) for v in row]
-                          for row in self.distances],
+            "distances": [[float(v) for v in row] for row in self.distances],
             "threshold": self.threshold,
             "threshold_source": self.threshold_source,
             "noise_level": self.noise_level,
             "linkage": [[float(v) for v in row] for row in self.linkage],
-            "uncomputed_distance": self.uncomputed_distance,
             "pairs_computed": self.pairs_computed,
             "dropped_points": list(self.dropped_points),
         }
-
-
-class _Distances:
-    """The mould distance, computed lazily and symmetrically for the pairs asked for."""
-
-    def __init__(self, imps: list[Impression], pose: str, max_rotation: float | None,
-                 executor: Executor | None, progress: ProgressCallback | None) -> None:
-        self.imps = imps
-        n = len(imps)
-        self.D = np.full((n, n), np.nan)
-        np.fill_diagonal(self.D, 0.0)
-        self.pose, self.max_rotation = pose, max_rotation
-        self.executor, self.progress = executor, progress
-        self.computed = 0
-        # ICP runs on the coarse subsets, normalised again by similarity_matrix: keep the
-        # maps between those frames and the full shapes' frames.
-        self.frames = [normalise(imp.coarse)[1] for imp in imps]
-
-    def ensure(self, pairs: Sequence[tuple[int, int]], stage: str) -> None:
-        todo = sorted({(min(i, j), max(i, j)) for i, j in pairs
-                       if i != j and np.isnan(self.D[i, j])})
-        if not todo:
-            return
-        sim = similarity_matrix(
-            [imp.coarse for imp in self.imps], pairs=todo, pose=self.pose,
-            max_rotation=self.max_rotation, executor=self.executor,
-            progress=(None if self.progress is None
-                      else lambda _s, d, t: self.progress(stage, d, t)),  # type: ignore[misc]
-        )
-        for i, j in todo:
-            fi, fj = self.frames[i], self.frames[j]
-            # y = s_j (A (x - c_i) / s_i + t) + c_j  on the full normalised shapes
-            A = sim.A[i, j] * (fj.scale / fi.scale)
-            t = fj.scale * sim.t[i, j] + np.asarray(fj.center) - A @ np.asarray(fi.center)
-            d = local_discrepancy(self.imps[i], self.imps[j], A, t)
-            self.D[i, j] = self.D[j, i] = d
-        self.computed += len(todo)
 
 
 def _check_options(shapes: Sequence[ArrayLike], threshold: float | None, neighbours: int,
@@ -188,42 +158,50 @@ def _check_options(shapes: Sequence[ArrayLike], threshold: float | None, neighbo
         raise ValueError(f"max_rotation must be in (0, 180] degrees; got {max_rotation!r}")
 
 
+def _refine_chunk(chunk: list[tuple[FloatArray, FloatArray]]) -> list[float]:
+    return [float(d) for d in pair_distances([f for ab in chunk for f in ab],
+                                             [(2 * k, 2 * k + 1) for k in range(len(chunk))])]
+
+
 def group_instances(
     shapes: Sequence[ArrayLike],
     *,
     threshold: float | None = None,
-    neighbours: int = 6,
+    neighbours: int = 10,
     max_rotation: float | None = None,
     executor: Executor | None = None,
     progress: ProgressCallback | None = None,
 ) -> GroupingResult:
     """Group instances of one character by the mould (type, block) that printed them.
 
-    Two instances are from one mould when, after an affine map, no stretch of either
-    outline sits farther than `threshold` from the other (see
-    :mod:`registration._mould_distance`): printing noise moves outlines a little
-    everywhere, another mould moves them a lot somewhere.
+    Two instances are from one mould when their outlines, aligned by an affine map and
+    with a uniform ink spread or starvation discounted, differ nowhere by much (see
+    :mod:`registration._outline_field`): printing noise moves outlines a little
+    everywhere, another mould moves them a lot somewhere. Groups: average-linkage
+    hierarchical clustering cut at `threshold`.
 
     Parameters
     ----------
     shapes : sequence of array_like, shape (n_i, 2)
-        The instances' points (contours, edges or skeletons, all of one kind), in any
-        coordinates; y may point down. Instances must be upright to within a few degrees
-        unless `max_rotation` is given.
+        The instances' points (outlines from scans, preferably: the inside of the ink is
+        found from them), in any coordinates; y may point down. Instances must be upright
+        to within a few degrees unless `max_rotation` is given.
     threshold : float, optional
-        Largest mould distance within a group, in units of the shapes' RMS radius.
-        Default: automatic, ``2 x`` the median distance of an instance to its nearest
-        other instance, kept within [0.06, 0.12] (measured, bench/RESULTS.md).
+        Cut of the average-linkage tree, in units of the shapes' RMS radius. Default:
+        automatic, ``2.5 x`` the median distance of an instance to its nearest other
+        instance, kept within [0.04, 0.15] (measured, bench/RESULTS.md section 6).
     neighbours : int
-        Registrations per instance before the group checks: its nearest instances by a
-        cheap density descriptor. Every group is then checked in full against its
-        representative, so this bounds cost, not group size.
+        Pairs aligned to each other (after the common alignment) per instance: its
+        nearest by a cheap field difference; the distances of farther pairs are
+        estimated from that difference. Bounds cost, not group size.
     max_rotation : float, optional
-        Also try rotations up to this many degrees (the affine ICP's "upright" pose);
-        default: the pose as given only.
+        Also try starting rotations up to this many degrees (10 degree steps) when
+        aligning every instance to the collection's median; default: as given only.
     executor : Executor, optional
-        Where the affine ICP runs (see :func:`similarity_matrix`).
+        Where the pairwise alignments run (default: serial for few pairs, else a local
+        process pool closed afterwards).
     progress : callable(stage, done, total), optional
+        Stages ``"fields"``, ``"alignment"``, ``"pairs"``.
 
     Returns
     -------
@@ -237,125 +215,147 @@ def group_instances(
     _check_options(shapes, threshold, neighbours, max_rotation)
     imps = [_prepare(s, name=f"shapes[{k}]") for k, s in enumerate(shapes)]
     n = len(imps)
-    pose = "as_given" if max_rotation is None else "upright"
-    dist = _Distances(imps, pose, max_rotation, executor, progress)
+    report = progress or (lambda _s, _d, _t: None)
+    fields = []
+    for k, imp in enumerate(imps):
+        fields.append(outline_field(imp.points).field)
+        report("fields", k + 1, n)
+    dropped = [imp.dropped for imp in imps]
     if n == 1:
-        return _result(dist, np.zeros(1, dtype=np.intp), threshold or THRESHOLD_MIN,
-                       "given" if threshold else "automatic", 0.0)
-    desc = np.stack([impression_descriptor(imp) for imp in imps])
-    dd = ((desc[:, None, :] - desc[None, :, :]) ** 2).sum(axis=2)
-    np.fill_diagonal(dd, np.inf)
+        return _result(np.zeros((1, 1)), np.zeros(1, dtype=np.intp),
+                       threshold or THRESHOLD_MIN, "given" if threshold else "automatic",
+                       0.0, 0, dropped)
+    aligned = common_frame(fields, max_rotation=max_rotation,
+                           progress=lambda d, t: report("alignment", d, t))
+    S = screen(aligned)
+    np.fill_diagonal(S, np.inf)
     k = min(neighbours, n - 1)
-    near = np.argsort(dd, axis=1, kind="stable")[:, :k]
-    dist.ensure([(i, int(j)) for i in range(n) for j in near[i]], "candidates")
-    nearest = np.nanmin(np.where(np.eye(n, dtype=bool), np.nan, dist.D), axis=1)
-    noise = float(np.median(nearest))
+    near = np.argsort(S, axis=1, kind="stable")[:, :k]
+    pairs = sorted({(min(i, int(j)), max(i, int(j))) for i in range(n) for j in near[i]})
+    D = np.full((n, n), np.nan)
+    np.fill_diagonal(D, 0.0)
+    chunks = [pairs[c:c + _CHUNK] for c in range(0, len(pairs), _CHUNK)]
+    done = 0
+    with owned_executor(executor, len(pairs) // _CHUNK * 4) as ex:
+        for c, ds in ex.map_unordered(
+                _refine_chunk, [[(aligned[i], aligned[j]) for i, j in ch] for ch in chunks]):
+            for (i, j), d in zip(chunks[c], ds, strict=True):
+                D[i, j] = D[j, i] = min(d, field_distance(aligned[i], aligned[j]))
+            done += len(chunks[c])
+            report("pairs", done, len(pairs))
+    known = ~np.isnan(D) & ~np.eye(n, dtype=bool)
+    # farther pairs: the screen scaled as the measured pairs scale it (they are far)
+    ratio = float(np.median(D[known] / np.maximum(S[known], 1e-12)))
+    D = np.where(np.isnan(D), ratio * S, D)
+    np.fill_diagonal(D, 0.0)
+    D = (D + D.T) / 2
+    noise = float(np.median(np.where(np.eye(n, dtype=bool), np.inf, D).min(axis=1)))
     if threshold is None:
         thr = float(np.clip(NOISE_FACTOR * noise, THRESHOLD_MIN, THRESHOLD_MAX))
         source = "automatic"
     else:
         thr, source = float(threshold), "given"
-    labels = _cut(dist, thr)
-    # Confidence needs each instance's nearest instance outside its group.
-    for _ in range(_MAX_ROUNDS):
-        ask = []
-        for i in range(n):
-            outside = np.flatnonzero(labels != labels[i])
-            if len(outside) and np.isnan(dist.D[i, outside]).all():
-                ask.append((i, int(outside[np.argmin(dd[i, outside])])))
-        if not ask:
-            break
-        dist.ensure(ask, "separation")
-        new = _cut(dist, thr)
-        if np.array_equal(new, labels):
-            break
-        labels = new
-    return _result(dist, labels, thr, source, noise)
-
-
-def _single_linkage(D: FloatArray) -> tuple[FloatArray, float]:
-    known = D[~np.isnan(D)]
-    far = float(2.0 * max(float(known.max()) if known.size else 1.0, 1.0))
-    W = np.where(np.isnan(D), far, D)
-    np.fill_diagonal(W, 0.0)
-    return linkage(squareform(W, checks=False), method="single"), far
-
-
-def _cut(dist: _Distances, thr: float) -> NDArray[np.intp]:
-    """Single-linkage groups at `thr`, each checked in full against its medoid: members
-    farther than `thr` from it are grouped again among themselves."""
-    n = len(dist.imps)
-    labels = np.full(n, -1, dtype=np.intp)
-    pending = [np.arange(n)]
-    next_label = 0
-    for _ in range(4 * n):
-        if not pending:
-            break
-        idx = pending.pop()
-        if len(idx) == 1:
-            labels[idx] = next_label
-            next_label += 1
-            continue
-        sub = dist.D[np.ix_(idx, idx)]
-        Z, _ = _single_linkage(sub)
-        for c in np.unique(fcluster(Z, thr, criterion="distance")):
-            members = idx[fcluster(Z, thr, criterion="distance") == c]
-            if len(members) == 1:
-                labels[members] = next_label
-                next_label += 1
-                continue
-            med = _medoid(dist.D, members)
-            dist.ensure([(med, int(j)) for j in members], "group check")
-            close = dist.D[med, members] <= thr
-            labels[members[close]] = next_label
-            next_label += 1
-            if (~close).any():
-                pending.append(members[~close])
-    return labels
+    Z = linkage(squareform(D, checks=False), method="average")
+    labels = np.asarray(fcluster(Z, thr, criterion="distance") - 1, dtype=np.intp)
+    return _result(D, labels, thr, source, noise, len(pairs), dropped, Z)
 
 
 def _medoid(D: FloatArray, members: NDArray[np.intp]) -> int:
-    sub = D[np.ix_(members, members)]
-    worst = np.where(np.isnan(sub), np.inf, sub).max(axis=1)
-    typical = np.nanmedian(np.where(np.eye(len(members), dtype=bool), np.nan, sub), axis=1)
-    # fully measured members first, then the smallest largest distance, then median
-    order = np.lexsort((members, np.nan_to_num(typical, nan=np.inf), worst))
-    return int(members[order[0]])
+    """The member with the smallest mean distance to the others (then the first)."""
+    mean = D[np.ix_(members, members)].mean(axis=1)
+    return int(members[int(np.argmin(mean))])
 
 
-def _result(dist: _Distances, raw: NDArray[np.intp], thr: float, source: str,
-            noise: float) -> GroupingResult:
-    n = len(raw)
-    D = dist.D
-    blocks = [np.flatnonzero(raw == c) for c in np.unique(raw)]
+def _result(D: FloatArray, labels_raw: NDArray[np.intp], thr: float, source: str,
+            noise: float, pairs: int, dropped: list[int],
+            Z: FloatArray | None = None) -> GroupingResult:
+    n = len(labels_raw)
+    blocks = [np.flatnonzero(labels_raw == c) for c in np.unique(labels_raw)]
     blocks.sort(key=lambda m: (-len(m), int(m[0])))
     labels = np.empty(n, dtype=np.intp)
     groups: list[MouldGroup] = []
-    conf = np.zeros(n)
     for g, members in enumerate(blocks):
         labels[members] = g
         rep = _medoid(D, members) if len(members) > 1 else int(members[0])
-        spread = float(np.nanmax(D[rep, members])) if len(members) > 1 else 0.0
+        spread = float(np.max(D[rep, members])) if len(members) > 1 else 0.0
         groups.append(MouldGroup(label=g, members=[int(m) for m in members],
                                  representative=rep, spread=spread))
+    conf = np.zeros(n)
     for grp in groups:
         members = np.asarray(grp.members)
         if len(members) == 1:
             continue
-        others = np.setdiff1d(np.arange(n), members)
         for i in members:
-            own = D[grp.representative, members[members != i]] if i == grp.representative \
-                else D[i, [grp.representative]]
-            a = float(np.nanmedian(own))
-            b = float(np.nanmin(D[i, others])) if len(others) and \
-                not np.isnan(D[i, others]).all() else np.inf
+            a = float(D[i, members[members != i]].mean())
+            b = min((float(D[i, o.members].mean()) for o in groups if o.label != grp.label),
+                    default=np.inf)
             conf[i] = 0.0 if b <= a else (1.0 if not np.isfinite(b) else (b - a) / b)
-    if n > 1:
-        Z, far = _single_linkage(D)
-    else:
-        Z, far = np.zeros((0, 4)), 0.0
     return GroupingResult(
         labels=labels, groups=groups, confidence=conf, distances=D.copy(), threshold=thr,
-        threshold_source=source, noise_level=noise, linkage=np.asarray(Z, dtype=np.float64),
-        uncomputed_distance=far, pairs_computed=dist.computed,
-        dropped_points=[imp.dropped for imp in dist.imps])
+        threshold_source=source, noise_level=noise,
+        linkage=np.zeros((0, 4)) if Z is None else np.asarray(Z, dtype=np.float64),
+        pairs_computed=pairs, dropped_points=dropped)
+
+
+@dataclass(frozen=True)
+class InstanceComparison:
+    """Where an instance differs from another (its group's representative, say).
+
+    Attributes
+    ----------
+    instance, reference : ndarray, shape (n, 2)
+        Both point sets normalised (centroid 0, unit RMS radius), the instance mapped onto
+        the reference by the fitted affine map.
+    difference : ndarray, shape (g, g)
+        Local ink-discounted outline difference on a grid (rows = y), in the reference's
+        normalised frame; ``grid`` holds the cell centres along either axis.
+    grid : ndarray, shape (g,)
+    distance : float
+        The mould distance of the pair, as :func:`group_instances` measures it.
+    ink_offset : float
+        The uniform outline shift discounted (positive: the reference's ink is heavier).
+    worst : tuple of float
+        (x, y) of the largest local difference.
+    """
+
+    instance: FloatArray
+    reference: FloatArray
+    difference: FloatArray
+    grid: FloatArray
+    distance: float
+    ink_offset: float
+    worst: tuple[float, float]
+
+
+def compare_instances(instance: ArrayLike, reference: ArrayLike) -> InstanceComparison:
+    """Align `instance` onto `reference` as :func:`group_instances` does and say where their
+    outlines differ (for a picture of why two instances are, or are not, one mould).
+
+    Parameters
+    ----------
+    instance, reference : array_like, shape (n_i, 2)
+        The two instances' points (outlines, as for :func:`group_instances`).
+
+    Returns
+    -------
+    InstanceComparison
+
+    Raises
+    ------
+    ValueError
+        On an invalid shape (named ``instance`` or ``reference``).
+    """
+    a = _prepare(instance, name="instance")
+    b = _prepare(reference, name="reference")
+    fa, fb = outline_field(a.points).field, outline_field(b.points).field
+    p = align_fields(fa, fb)
+    local, c = local_difference(warp(fa, p), fb)
+    A, t = p[:4].reshape(2, 2), p[4:]
+    # a(A x + t) ~ b(x): a's point y sits at x = A^-1 (y - t) in b's frame
+    moved = np.asarray(np.linalg.solve(A, (a.points - t).T).T, dtype=np.float64)
+    g = grid_centres()
+    iy, ix = np.unravel_index(int(np.argmax(local)), local.shape)
+    return InstanceComparison(
+        instance=moved, reference=b.points, difference=local, grid=g,
+        distance=float(local.max() + abs(c) / INK_WEIGHT), ink_offset=c,
+        worst=(float(g[ix]), float(g[iy])))

@@ -12,7 +12,7 @@ import sys
 from collections.abc import Sequence
 
 from service import cli_client
-from service.contract.names import DEFAULT_METHOD, METHODS
+from service.contract.names import DEFAULT_METHOD, REGISTRATION_METHODS
 
 
 def _single_threaded_blas() -> None:
@@ -56,7 +56,7 @@ def _parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="register the bundled demo collection end to end")
     demo.add_argument("--workers", type=int, default=1)
-    demo.add_argument("--method", default=DEFAULT_METHOD, choices=METHODS)
+    demo.add_argument("--method", default=DEFAULT_METHOD, choices=REGISTRATION_METHODS)
 
     cli_client.add_commands(sub)
     return parser

@@ -28,6 +28,7 @@ from service.api.routes import (
     collections,
     deliveries,
     exports,
+    grouping,
     jobs,
     pages,
     pictures,
@@ -107,6 +108,7 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
     v1.include_router(exports.router)
     v1.include_router(deliveries.router)
     v1.include_router(pictures.router)
+    v1.include_router(grouping.router)
     app.include_router(v1)
     app.include_router(pages.router)  # the results page at /ui
     install_docs(app)  # /docs and /redoc

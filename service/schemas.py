@@ -20,6 +20,7 @@ from service.contract.names import (
     DEFAULT_COMPARE_DIRECT,
     DEFAULT_METHOD,
     DEFAULT_WORKING_POINTS,
+    GROUPING_METHOD,
     JobOutcomeName,
     JobStatusName,
     Method,
@@ -284,8 +285,23 @@ class JobCreate(BaseModel):
     )
 
     collection_id: DbId
-    model_shape_id: DbId = Field(description="The model shape; it must be in the collection.")
-    method: Method = DEFAULT_METHOD
+    model_shape_id: DbId | None = Field(
+        default=None,
+        description="The model shape; it must be in the collection. Required by the "
+        "registration methods; a grouping has no model (null: the collection's first shape "
+        "is recorded).",
+    )
+    method: Method = Field(
+        default=DEFAULT_METHOD,
+        description="dynamic_tree, static_tree or direct register the model onto the "
+        "collection; grouping groups the collection's shapes by the mould that printed them "
+        "(result: GET /v1/jobs/{job_id}/groups).",
+    )
+    group_threshold: float | None = Field(
+        default=None,
+        description="Grouping only: the cut of the average-linkage tree (units: the shapes' "
+        "RMS radius); null = automatic (2.5x the median nearest-instance distance).",
+    )
     similarity_threshold: float | None = Field(
         default=None, description="Largest similarity distance D for a tree edge; null = auto."
     )
@@ -328,6 +344,19 @@ class JobCreate(BaseModel):
 
     _check_similarity = field_validator("similarity_threshold")(_finite_positive)
     _check_error = field_validator("error_threshold")(_finite_positive)
+    _check_group = field_validator("group_threshold")(_finite_positive)
+
+    @model_validator(mode="after")
+    def _check_method(self) -> JobCreate:
+        if self.method == GROUPING_METHOD:
+            if self.pose not in (None, "upright"):
+                raise ValueError("a grouping takes no pose other than upright (max_rotation)")
+        else:
+            if self.model_shape_id is None:
+                raise ValueError(f"model_shape_id is required by method {self.method}")
+            if self.group_threshold is not None:
+                raise ValueError("group_threshold is for method grouping only")
+        return self
 
     @field_validator("working_points", mode="before")
     @classmethod

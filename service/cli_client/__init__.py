@@ -50,6 +50,7 @@ from service.cli_client._common import (
     _fail,
     describe_error,
 )
+from service.cli_client.group import cmd_group
 from service.cli_client.parser import (
     add_commands,
     add_connection_options,
@@ -107,6 +108,7 @@ HANDLERS: dict[str, Callable[[argparse.Namespace, RegtreeClient], int]] = {
     "cancel": cmd_cancel,
     "export": cmd_export,
     "similarity": cmd_similarity,
+    "group": cmd_group,
 }
 
 

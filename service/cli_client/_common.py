@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 if TYPE_CHECKING:
     from service.client import Collection, RegtreeClient, RegtreeError, Shape
 
-COMMANDS = ("upload", "run", "watch", "results", "cancel", "export", "similarity")
+COMMANDS = ("upload", "run", "watch", "results", "cancel", "export", "similarity", "group")
 
 EXIT_OK = 0
 EXIT_FAILED = 1

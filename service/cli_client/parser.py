@@ -381,6 +381,10 @@ def add_commands(sub: Any) -> None:
         "--k", type=_positive_int, default=3, metavar="K", help="nearest shapes (default 3)"
     )
 
+    from service.cli_client.group import add_group_command
+
+    add_group_command(command, _positive_float, _watch_options)
+
 
 def _watch_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(

@@ -31,6 +31,7 @@ plumbing, and the methods for collections and shapes, and for jobs and results.
 
 from __future__ import annotations
 
+from service.client._grouping import Grouping, GroupPicture
 from service.client._http import HttpClient
 from service.client._jobs import JobsAndResults, Pose
 from service.client._shapes import CollectionsAndShapes
@@ -64,6 +65,7 @@ __all__ = [
     "UPLOAD_SUFFIXES",
     "Collection",
     "Conflict",
+    "GroupPicture",
     "ImageMode",
     "JobFailed",
     "JobResult",
@@ -87,5 +89,5 @@ __all__ = [
 ]
 
 
-class RegtreeClient(JobsAndResults, CollectionsAndShapes, HttpClient):
+class RegtreeClient(JobsAndResults, Grouping, CollectionsAndShapes, HttpClient):
     __doc__ = HttpClient.__doc__

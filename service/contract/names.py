@@ -17,12 +17,14 @@ __all__ = [
     "DEFAULT_METHOD",
     "DEFAULT_ON_CONFLICT",
     "DEFAULT_WORKING_POINTS",
+    "GROUPING_METHOD",
     "IMAGE_MODES",
     "JOB_STATUSES",
     "METHODS",
     "METHOD_FUNCTIONS",
     "ON_CONFLICT_POLICIES",
     "POSES",
+    "REGISTRATION_METHODS",
     "SUBJECT_SORTS",
     "SUBJECT_STATUSES",
     "TERMINAL_STATUSES",
@@ -39,9 +41,13 @@ __all__ = [
     "subject_status",
 ]
 
-#: Registration methods of a job (the library's function for each: :data:`METHOD_FUNCTIONS`).
-Method = Literal["dynamic_tree", "static_tree", "direct"]
+#: Methods of a job (the library's function for each: :data:`METHOD_FUNCTIONS`): three
+#: registrations, and ``grouping`` (which instances came from one mould, issue 11; no model).
+Method = Literal["dynamic_tree", "static_tree", "direct", "grouping"]
 METHODS: tuple[str, ...] = get_args(Method)
+GROUPING_METHOD: Method = "grouping"
+#: The methods that register a model onto the collection (a result with subjects and a tree).
+REGISTRATION_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m != GROUPING_METHOD)
 DEFAULT_METHOD: Method = "dynamic_tree"
 #: Whether a job also registers every subject directly from the model, for comparison: off
 #: on every surface (library, HTTP, client, CLI), since it doubles the registrations and the
@@ -58,6 +64,7 @@ METHOD_FUNCTIONS: dict[str, str] = {
     "dynamic_tree": "build_dynamic_tree",
     "static_tree": "build_static_tree",
     "direct": "register_direct",
+    "grouping": "group_instances",
 }
 
 #: How an uploaded image becomes points: its outer contours, its edges, or the centre lines
@@ -110,6 +117,8 @@ class ProblemType(StrEnum):
     NAME_CONFLICT = "/problems/name-conflict"
     NO_SIMILARITY = "/problems/no-similarity"
     NO_TRANSFORM = "/problems/no-transform"
+    NOT_A_GROUPING = "/problems/not-a-grouping"
+    NOT_A_REGISTRATION = "/problems/not-a-registration"
     NOT_FOUND = "/problems/not-found"
     RESULT_NOT_READY = "/problems/result-not-ready"
     SHAPE_DELETED = "/problems/shape-deleted"

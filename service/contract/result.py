@@ -23,6 +23,9 @@ __all__ = [
     "ChainTransformDoc",
     "DirectSummary",
     "ErrorStats",
+    "GroupedInstance",
+    "GroupingDocument",
+    "MouldGroupDoc",
     "NearShape",
     "NonrigidStep",
     "NormalizationDoc",
@@ -309,4 +312,54 @@ class SimilarityDocument(_Open):
     )
     nearest: list[ShapeNeighbours] = Field(
         description="For each shape, the k other shapes with the smallest D onto it."
+    )
+
+
+# --- a grouping job's result (method grouping, issue 11) ---------------------------------------
+
+
+class GroupedInstance(_Open):
+    """One shape of a grouping: its group and how sure that is."""
+
+    position: int = Field(description="Position in the job's input (shape_ids order).")
+    shape_id: int
+    name: str = ""
+    label: int = Field(description="Its group (groups are numbered by decreasing size).")
+    confidence: float = Field(
+        description="Silhouette in [0, 1]: (b - a) / b with a its mean distance to its "
+        "group and b the smallest mean distance to another group; 0 when alone."
+    )
+    representative_shape_id: int
+    distance_to_representative: float
+    dropped_points: int = Field(0, description="Points dropped as ink specks.")
+
+
+class MouldGroupDoc(_Open):
+    label: int
+    size: int
+    shape_ids: list[int]
+    representative_shape_id: int = Field(description="The member nearest the others.")
+    spread: float = Field(description="Largest distance of a member to the representative.")
+
+
+class GroupingDocument(_Open):
+    """``GET /v1/jobs/{job_id}/groups``: which shapes came from one mould."""
+
+    kind: Literal["grouping"] = "grouping"
+    job_id: int
+    shape_ids: list[int]
+    names: list[str] = Field(default_factory=list)
+    n_groups: int
+    threshold: float = Field(description="Cut of the average-linkage tree (RMS radius units).")
+    threshold_source: str
+    noise_level: float = Field(description="Median distance of a shape to its nearest other.")
+    pairs_computed: int = 0
+    labels: dict[str, int] = Field(description="Group label by shape id.")
+    instances: list[GroupedInstance]
+    groups: list[MouldGroupDoc]
+    distances: list[list[float]] = Field(
+        description="Mould distances in shape_ids order (units: the shapes' RMS radius)."
+    )
+    linkage: list[list[float]] = Field(
+        default_factory=list, description="Average-linkage tree, scipy's format."
     )

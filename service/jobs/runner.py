@@ -32,9 +32,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from sqlalchemy import select
 
-from service.contract.names import METHOD_FUNCTIONS, METHODS
+from service.contract.names import GROUPING_METHOD, METHOD_FUNCTIONS, METHODS
 from service.core.config import Settings
 from service.jobs.document import json_safe, similarity_npy, to_api_document
+from service.jobs.grouping import run_grouping
 from service.jobs.queue import Claim, JobQueue, Outcome, is_transient
 from service.models import Job, Shape
 
@@ -207,7 +208,7 @@ def run_library(
     """Call the library for one job and return its result."""
     import registration
 
-    if job_method not in METHOD_FUNCTIONS:
+    if job_method not in METHOD_FUNCTIONS or job_method == GROUPING_METHOD:
         raise ValueError(f"unknown method {job_method!r}; expected one of {', '.join(METHODS)}")
     build = getattr(registration, METHOD_FUNCTIONS[job_method])
     result = build(
@@ -306,7 +307,8 @@ def run_claimed(
     except Exception as exc:
         return _failed(queue, claim, exc, log)
 
-    if model_id not in shape_ids:
+    grouping = method == GROUPING_METHOD
+    if model_id not in shape_ids and not grouping:  # a grouping's model is recorded only
         return queue.fail(claim, f"model shape {model_id} was deleted before the job ran")
     if len(shape_ids) < 2:
         return queue.fail(claim, "fewer than 2 shapes are left in the collection")
@@ -318,6 +320,14 @@ def run_claimed(
         try:
             control.check()
             executor = _executor(settings, control)
+            if grouping:
+                document = run_grouping(claim.job_id, shapes, names, shape_ids, params,
+                                        executor=executor, progress=control.progress)
+                completed = True
+                control.check()
+                outcome = queue.complete(claim, json_safe(document), [],
+                                         progress=control.latest)
+                return _finished(outcome, log, started)
             doc = run_registration(
                 method,
                 shapes,
@@ -353,6 +363,10 @@ def run_claimed(
                 executor.close()
             else:  # interrupted or failed: its tasks are not wanted, kill them
                 _stop(executor)
+    return _finished(outcome, log, started)
+
+
+def _finished(outcome: Outcome, log: dict[str, Any], started: float) -> Outcome:
     logger.info(
         "job finished",
         extra={**log, "outcome": outcome, "seconds": round(time.monotonic() - started, 3)},

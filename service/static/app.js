@@ -11,6 +11,7 @@
 // An ES module (no build step): core.js, tree.js, search.js and subjects.js hold the parts.
 
 import { $, LIST_POLL_MS, POLL_MS, TERMINAL, api, el, fmtDuration, fmtNum, fmtTime, methodLabel, nameOf, notice, progressText, setupKeyForm, showBlob, state, statusBadge, stopTimers } from "./core.js";
+import * as grouping from "./grouping.js";
 import { download, loadOverlay, renderTable, selectSubject, setupTable } from "./subjects.js";
 import { loadTree, resetTreeView, setupTreeView } from "./tree.js";
 
@@ -156,6 +157,7 @@ function closeJob() {
   state.result = null;
   state.selected = null;
   resetTreeView();
+  grouping.hide();
   $("ui-job").hidden = true;
   $("ui-welcome").hidden = false;
 }
@@ -210,7 +212,9 @@ async function pollJob(token) {
     if (i >= 0 && state.jobs[i].status !== job.status) { state.jobs[i] = job; renderJobs(); }
   }
   renderJobHeader(job);
-  if (job.status === "succeeded") {
+  if (job.status === "succeeded" && job.method === "grouping") {
+    grouping.show(job, api, () => token === state.loadToken);
+  } else if (job.status === "succeeded") {
     if (!state.result) await loadResult(token);
   } else if (!TERMINAL.has(job.status) && !state.needKey) {
     state.jobTimer = setTimeout(() => pollJob(token), POLL_MS);

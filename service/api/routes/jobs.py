@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session
 from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
 from service.api.problems import ProblemError, not_found, problem_responses
-from service.contract.names import ProblemType
+from service.contract.names import GROUPING_METHOD, ProblemType
 from service.jobs import callbacks
 from service.jobs.queue import JobQueue, JobRefused, JobSpec, Outcome
 from service.models import (
@@ -125,6 +125,35 @@ def resolve_pose(body: JobCreate, source_formats: list[str]) -> dict[str, Any]:
     return {**spec.to_dict(), "pose_source": source}
 
 
+def _params(body: JobCreate, formats: list[str]) -> dict[str, Any]:
+    """The job's params: the registration options and pose, or a grouping's threshold and
+    max_rotation."""
+    if body.method == GROUPING_METHOD:
+        return {"group_threshold": body.group_threshold, "max_rotation": body.max_rotation}
+    return {
+        **body.model_dump(
+            mode="json",
+            include={"similarity_threshold", "error_threshold", "compare_direct", "cpd",
+                     "working_points"},
+        ),
+        **resolve_pose(body, formats),
+    }
+
+
+def _model_shape_id(session: Session, body: JobCreate) -> int:
+    """The model asked for, or for a grouping without one the collection's first shape
+    (recorded only: a grouping has no model)."""
+    if body.model_shape_id is not None:
+        return body.model_shape_id
+    first = session.scalar(
+        select(func.min(Shape.id)).where(Shape.collection_id == body.collection_id)
+    )
+    if first is None:
+        raise _unprocessable(f"collection {body.collection_id} does not exist or holds no "
+                             "shapes to group")
+    return int(first)
+
+
 def _unprocessable(detail: str, type_: str = ProblemType.INVALID_JOB) -> ProblemError:
     return ProblemError(422, detail, type_=type_)
 
@@ -155,7 +184,8 @@ def create_job(
     scope = f"POST {request.url.path}"
     # A body without pose (or callback_url) hashes as before they existed: a retry across
     # the upgrade matches.
-    unset = {key for key in ("pose", "callback_url") if getattr(body, key) is None}
+    unset = {key for key in ("pose", "callback_url", "group_threshold")
+             if getattr(body, key) is None}
     if "working_points" not in body.model_fields_set:
         unset.add("working_points")
     request_hash = idempotency.hash_json(body.model_dump(mode="json", exclude=unset or None))
@@ -164,21 +194,14 @@ def create_job(
             callbacks.check_url(body.callback_url, settings)
         except ValueError as e:
             raise _unprocessable(str(e), ProblemType.CALLBACK_REFUSED) from None
-    spec = JobSpec(
-        collection_id=body.collection_id,
-        model_shape_id=body.model_shape_id,
-        method=body.method,
-        params_for=lambda formats: {
-            **body.model_dump(
-                mode="json",
-                include={"similarity_threshold", "error_threshold", "compare_direct", "cpd",
-                         "working_points"},
-            ),
-            **resolve_pose(body, formats),
-        },
-        callback_url=body.callback_url,
-    )
     with db.write() as session:
+        spec = JobSpec(
+            collection_id=body.collection_id,
+            model_shape_id=_model_shape_id(session, body),
+            method=body.method,
+            params_for=lambda formats: _params(body, formats),
+            callback_url=body.callback_url,
+        )
         entry = idempotency.lookup(session, scope, idempotency_key, request_hash)
         if entry is not None:
             job = _get_job(session, entry.resource_ids[0])

@@ -20,7 +20,7 @@ router = APIRouter(include_in_schema=False)
 
 #: The page's JavaScript: ES modules, ``app.js`` the entry (routing, lists, the job), the
 #: others one part each (no build step; the browser resolves their imports).
-SCRIPTS = ("app.js", "core.js", "tree.js", "search.js", "subjects.js")
+SCRIPTS = ("app.js", "core.js", "tree.js", "search.js", "subjects.js", "grouping.js")
 #: File name -> media type of what ``/ui/<name>`` serves.
 ASSETS = {
     **{name: "text/javascript; charset=utf-8" for name in SCRIPTS},

@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 from service.api.deps import DbDep, SettingsDep
 from service.api.problems import ProblemError, not_found, problem_responses
 from service.api.routes.jobs import _get_job
-from service.contract.names import SUBJECT_SORTS, ProblemType, SubjectSort
+from service.contract.names import GROUPING_METHOD, SUBJECT_SORTS, ProblemType, SubjectSort
 from service.contract.result import ResultDocument, SubjectDetail
 from service.models import Job, JobStatus, Result, ResultSubject, Shape
 from service.schemas import DbId, InverseTransformOut, TransformOut, TransformRequest
@@ -150,6 +150,12 @@ def result_document(
 ) -> dict[str, Any]:
     """The result document a request asks for: subjects chosen, ordered, full or light."""
     document = dict(stored_result(session, job_id).document)
+    if document.get("kind") == GROUPING_METHOD:
+        raise ProblemError(
+            409,
+            f"job {job_id} is a grouping: its result is at /v1/jobs/{job_id}/groups",
+            type_=ProblemType.NOT_A_REGISTRATION,
+        )
     if full:
         document["subjects"] = full_subjects(session, job_id)
     document["subjects"] = select_subjects(
