@@ -137,6 +137,7 @@ function renderJobs(total) {
 // "collection · model shape": what a job registered, by name (ids when a name is gone)
 function jobNames(job) {
   const collection = job.collection_name ?? `collection #${job.collection_id}`;
+  if (job.method === "grouping") return `${collection} · grouping by mould`;
   const model = job.model_name ?? `#${job.model_shape_id}`;
   return `${collection} · model ${model}`;
 }
@@ -250,7 +251,9 @@ function renderFacts() {
   const r = state.result;
   const items = [
     fact("collection", c ? `${c.name} (#${c.id})` : `#${job.collection_id}`),
-    fact("model shape", r ? `${nameOf(r.root_shape_id)} (#${job.model_shape_id})` : `#${job.model_shape_id}`),
+    // a grouping has no model (the job records the collection's first shape)
+    job.method === "grouping" ? null
+      : fact("model shape", `${job.model_name ?? nameOf(job.model_shape_id)} (#${job.model_shape_id})`),
     fact("shapes", String(job.n_shapes)),
     fact("created", fmtTime(job.created_at)),
     TERMINAL.has(job.status)
@@ -273,7 +276,7 @@ function renderFacts() {
     if (th.similarity !== undefined) items.push(fact("D threshold", fmtNum(th.similarity), th.similarity_rule));
     if (th.error !== undefined) items.push(fact("e threshold", fmtNum(th.error), th.error_rule));
   }
-  $("ui-job-facts").replaceChildren(...items);
+  $("ui-job-facts").replaceChildren(...items.filter((x) => x !== null));
 }
 
 async function loadResult(token) {

@@ -3,7 +3,7 @@
 export const KEY_STORAGE = "regtree.apiKey";
 export const POLL_MS = 1000;
 export const LIST_POLL_MS = 3000;
-export const METHOD_LABELS = { dynamic_tree: "dynamic tree", static_tree: "static tree", direct: "direct CPD" };
+export const METHOD_LABELS = { dynamic_tree: "dynamic tree", static_tree: "static tree", direct: "direct CPD", grouping: "grouping by mould" };
 export const TERMINAL = new Set(["succeeded", "failed", "cancelled"]);
 
 export const $ = (id) => document.getElementById(id);

@@ -3,25 +3,15 @@
 // "grouping" (api: its fetch helper; current(): whether that job is still the open one), and
 // hide() when the job is closed.
 
+import { el, fmtNum } from "./core.js";
+
 const urls = [];
 
-function el(tag, attrs = {}, ...children) {
-  const node = document.createElement(tag);
-  for (const [k, v] of Object.entries(attrs)) {
-    if (v === null || v === undefined) continue;
-    if (k === "text") node.textContent = v;
-    else if (k === "class") node.className = v;
-    else if (k.startsWith("on")) node.addEventListener(k.slice(2), v);
-    else node.setAttribute(k, v);
-  }
-  node.append(...children);
-  return node;
-}
 
 function section() {
   let s = document.getElementById("ui-grouping");
   if (!s) {
-    s = el("section", { id: "ui-grouping", class: "grouping", hidden: "" });
+    s = el("section", { id: "ui-grouping", class: "grouping", hidden: true });
     document.getElementById("ui-job").append(s);
   }
   return s;
@@ -65,14 +55,14 @@ async function show(job, api, current) {
     const img = await picture(api, `/v1/jobs/${job.id}/groups/instances/${sid}.png`, `shape ${sid} beside its representative`);
     if (!current()) return;
     compare.replaceChildren(el("figcaption", {
-      text: `${i.name || "#" + sid}: group ${i.label}, confidence ${i.confidence.toFixed(2)}, distance to the representative ${i.distance_to_representative.toFixed(3)}`,
+      text: `${i.name || "#" + sid}: group ${i.label}, confidence ${i.confidence.toFixed(2)}, distance to the representative ${fmtNum(i.distance_to_representative)}`,
     }), img);
   };
   const rows = doc.groups.map((g) => el("tr", {},
     el("td", { class: "num", text: String(g.label) }),
     el("td", { class: "num", text: String(g.size) }),
     el("td", { text: byId.get(g.representative_shape_id).name || `#${g.representative_shape_id}` }),
-    el("td", { class: "num", text: g.spread.toFixed(3) }),
+    el("td", { class: "num", text: fmtNum(g.spread) }),
     el("td", {}, ...g.shape_ids.map((sid) => el("button", {
       type: "button", class: "chip", title: `confidence ${byId.get(sid).confidence.toFixed(2)}`,
       text: byId.get(sid).name || `#${sid}`, onclick: () => showInstance(sid),

@@ -11,6 +11,7 @@ import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.service.conftest import Service, create_collection, submit_job, upload_family, wait_job
@@ -126,3 +127,52 @@ def test_page_states_readable_tree_names_and_numbers(
     expect(page.locator("#ui-welcome")).to_be_visible()
     # the one error allowed: the browser's own line for the 404 it was answered
     assert [e for e in browser.errors if "404" not in e] == []
+
+
+def test_page_shows_a_grouping_job(browser: Browser, make_service: Callable[..., Service]) -> None:
+    """A grouping job's view (service/static/grouping.js): its groups as a table, a click on
+    a member shows it beside its representative, the gallery and the dendrogram load."""
+    from playwright.sync_api import expect
+
+    from registration.impressions import draw_strokes, simulate_impressions
+    from tests.service.test_grouping_api import MOULDS, png
+
+    page = browser.page
+    svc = make_service(workers=1).start()
+    rng = np.random.default_rng(5)
+    files = []
+    for k, strokes in enumerate(MOULDS):
+        mould = draw_strokes(strokes, size=140, width=0.09)
+        for j, img in enumerate(simulate_impressions(mould, 3, seed=rng)):
+            files.append(("files", (f"m{k}_{j}.png", png(img), "image/png")))
+    with svc.client() as client:
+        cid = create_collection(client, "prints")
+        r = client.post(f"/v1/collections/{cid}/shapes", files=files,
+                        data={"mode": "contour", "target_points": "300"})  # fmt: skip
+        assert r.status_code == 201, r.text
+        response = client.post("/v1/jobs", json={"collection_id": cid, "method": "grouping"})
+        assert response.status_code == 202, response.text
+        job_id = response.json()["id"]
+        assert wait_job(client, job_id, timeout=300)["status"] == "succeeded"
+        doc = client.get(f"/v1/jobs/{job_id}/groups").json()
+
+    page.goto(f"{svc.base_url}/ui#/jobs/{job_id}")
+    view = page.locator("#ui-grouping")
+    expect(view).to_be_visible(timeout=60_000)
+    expect(view.locator("table tbody tr")).to_have_count(len(doc["groups"]))
+    expect(view.locator("figure img")).to_have_count(2, timeout=60_000)  # gallery, dendrogram
+    member = doc["instances"][-1]
+    view.locator("button.chip", has_text=member["name"]).click()
+    compare = view.locator("figure").first
+    expect(compare).to_contain_text(f"group {member['label']}")
+    expect(compare.locator("img")).to_have_count(1, timeout=60_000)
+    assert compare.locator("img").evaluate("img => img.src").startswith("blob:")
+    expect(page.locator("#ui-result")).to_be_hidden()
+    expect(page.locator("#ui-job-facts")).not_to_contain_text("model shape")
+    expect(page.locator(f"#ui-jobs a[data-job-id='{job_id}'] [data-field=names]")).to_have_text(
+        "prints · grouping by mould"
+    )
+    # leaving the job hides the view
+    page.goto(f"{svc.base_url}/ui#/")
+    expect(view).to_be_hidden()
+    assert browser.errors == []
