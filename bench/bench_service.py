@@ -230,7 +230,10 @@ def run(
         times = StageTimes()
         t_submit = time.monotonic()
         job = client.start_job(
-            collection.id, by_name[model_name], method=args.method, compare_direct=True
+            collection.id,
+            by_name[model_name],
+            method=args.method,
+            compare_direct=args.compare_direct,
         )
         final = client.wait(
             job.id,
@@ -309,6 +312,12 @@ def main(argv: list[str] | None = None) -> int:
         "--allow-generated",
         action="store_true",
         help="run on a generated chained family when the glyph set is missing",
+    )
+    parser.add_argument(
+        "--compare-direct",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also run direct CPD from the model, as issue 9's first target (default on)",
     )
     parser.add_argument("--poll", type=float, default=0.2, help="seconds between polls")
     parser.add_argument(
