@@ -56,8 +56,8 @@ def shape_descriptor(normalised: FloatArray) -> FloatArray:
     frac = pos - lo
     weights = np.zeros((len(p), RADIAL_BINS))
     rows = np.arange(len(p))
-    np.add.at(weights, (rows, lo), 1.0 - frac)
-    np.add.at(weights, (rows, hi), frac)
+    weights[rows, lo] = 1.0 - frac
+    weights[rows, hi] += frac  # each row once per statement: no repeated index
     phase = np.exp(1j * np.outer(theta, np.arange(HARMONICS + 1)))  # (n, H + 1)
     coeff = weights.T @ phase  # (bands, H + 1)
     return np.asarray(np.abs(coeff).ravel() / max(len(p), 1))
