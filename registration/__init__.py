@@ -15,6 +15,7 @@ Typical use::
 """
 
 from ._cpd import CPDOptions, CPDResult, NonrigidTransform, cpd_nonrigid
+from ._dask import DaskClusterError, DaskExecutor
 from ._error import registration_error
 from ._executor import (
     Executor,
@@ -45,6 +46,8 @@ __all__ = [
     "CPDResult",
     "ChainTransform",
     "CollectionResult",
+    "DaskClusterError",
+    "DaskExecutor",
     "Executor",
     "GroupingResult",
     "InstanceComparison",

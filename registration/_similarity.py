@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ._candidates import candidate_pairs, shape_descriptor
 from ._executor import Executor, owned_executor
 from ._icp import PairPose, pairwise_affine_icp, prepare_shape
 from ._points import normalise
@@ -16,7 +17,13 @@ from ._pose import PoseSpec
 FloatArray = NDArray[np.float64]
 ProgressCallback = Callable[[str, int, int], None]
 
-__all__ = ["ProgressCallback", "Similarity", "shape_descriptor", "similarity_matrix"]
+__all__ = [
+    "ProgressCallback",
+    "Similarity",
+    "candidate_pairs",
+    "shape_descriptor",
+    "similarity_matrix",
+]
 
 _PAIRS_PER_TASK = 64
 _TILE = 8
@@ -136,35 +143,6 @@ def _icp_task(task: _PairTask) -> list[PairPose]:
     """Affine ICP for a chunk of pairs, vectorised across the chunk."""
     prepared = {k: prepare_shape(v) for k, v in task.shapes.items()}
     return pairwise_affine_icp(prepared, task.pairs, tol=_SIMILARITY_TOL, pose=task.pose)
-
-
-def shape_descriptor(normalised: FloatArray, *, bins: int = 16) -> FloatArray:
-    """A cheap pose-invariant descriptor: the histogram of distances to the centroid
-    (after whitening, so it is affine-invariant up to sampling) on a size-normalised shape.
-    Used to choose candidate pairs before running ICP on large collections.
-    """
-    c = normalised - normalised.mean(axis=0)
-    cov = c.T @ c / len(c)
-    evals, evecs = np.linalg.eigh(cov)
-    w = c @ evecs / np.sqrt(np.maximum(evals, 1e-12))
-    r = np.sqrt((w**2).sum(axis=1))
-    hist, _ = np.histogram(r, bins=bins, range=(0.0, 3.0))
-    return hist / max(len(r), 1)
-
-
-def candidate_pairs(normalised: Sequence[FloatArray], k: int) -> list[tuple[int, int]]:
-    """Both directions of the pairs joining each shape to its `k` nearest by descriptor."""
-    desc = np.stack([shape_descriptor(p) for p in normalised])
-    d2 = ((desc[:, None, :] - desc[None, :, :]) ** 2).sum(axis=2)
-    np.fill_diagonal(d2, np.inf)
-    kk = min(k, len(normalised) - 1)
-    near = np.argsort(d2, axis=1, kind="stable")[:, :kk]
-    pairs = set()
-    for i, row in enumerate(near):
-        for j in row:
-            pairs.add((i, int(j)))
-            pairs.add((int(j), i))
-    return sorted(pairs)
 
 
 def similarity_matrix(

@@ -3,18 +3,19 @@ nodes, and the similarity store each method starts from."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._candidates import candidate_pairs
 from .._cpd import CPDOptions
 from .._executor import Executor
 from .._points import Normalization, normalise
 from .._pose import PoseSpec
 from .._result import SubjectResult
-from .._similarity import ProgressCallback, Similarity, candidate_pairs
+from .._similarity import ProgressCallback, Similarity
 from .._transform import ChainTransform
 from ._rules import _SimilarityRule, _spacing2
 from ._tasks import _RegOutcome
@@ -142,9 +143,14 @@ def _ensure_frontier(
 ) -> None:
     """Compute D from the newest members to the waiting subjects (lazily: only the pairs
     that can give a subject its next candidate)."""
-    pairs = [(m, s) for m in frontier for s in sorted(waiting)]
-    if allowed is not None:
-        pairs = [p for p in pairs if p in allowed]
+    if allowed is not None and len(frontier) * len(waiting) > len(allowed):
+        # a large collection: its allowed pairs (O(n k)) are fewer than frontier x waiting
+        members = set(frontier)
+        pairs = sorted(p for p in allowed if p[0] in members and p[1] in waiting)
+    else:
+        pairs = [(m, s) for m in frontier for s in sorted(waiting)]
+        if allowed is not None:
+            pairs = [p for p in pairs if p in allowed]
     sim.ensure(pairs, executor=executor, progress=progress, stage=f"similarity layer {layer}")
 
 
@@ -164,6 +170,14 @@ class _TreeStart:
     subjects: list[int]
     nodes: dict[int, _Node]
     results: dict[int, SubjectResult]
+    sources: dict[int, list[int]] | None = None  # subject -> the members allowed for it
+
+    def members_for(self, subject: int) -> Iterable[int]:
+        """The tree's members whose D to `subject` may be known: all of them, or for a
+        large collection only its allowed candidates (O(k) instead of O(n) a subject)."""
+        if self.sources is None:
+            return self.nodes
+        return [m for m in self.sources.get(subject, ()) if m in self.nodes]
 
     @classmethod
     def prepare(
@@ -183,8 +197,13 @@ class _TreeStart:
             coll, similarity_threshold, candidates, executor, progress, spec
         )
         subjects = [k for k in range(coll.n) if k != root]
+        sources: dict[int, list[int]] | None = None
+        if allowed is not None:
+            sources = {}
+            for m, s in sorted(allowed):
+                sources.setdefault(s, []).append(m)
         return cls(
-            cpd=cpd if cpd is not None else CPDOptions(), pose=spec,
+            cpd=cpd if cpd is not None else CPDOptions(), pose=spec, sources=sources,
             coll=coll, sim=sim, allowed=allowed,
             rule=_SimilarityRule.build(sim, similarity_threshold), subjects=subjects,
             nodes={root: coll.root_node()},

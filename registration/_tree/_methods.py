@@ -176,7 +176,7 @@ def build_dynamic_tree(
         for s in sorted(waiting):
             cands = sorted(
                 (float(sim.D[m, s]), m)
-                for m in nodes
+                for m in start.members_for(s)
                 if (m, s) not in tried and sim_rule.similar(sim, m, s)
             )[:max_candidates]
             for d, m in cands:

@@ -118,8 +118,24 @@ class Settings(BaseSettings):
 
     # --- workers ---------------------------------------------------------------------------
     embedded_workers: int = Field(default=1, ge=0)
-    executor: Literal["serial", "process"] = "process"
+    executor: Literal["serial", "process", "dask"] = Field(
+        default="process",
+        description="Where a job's heavy stages (ICP, CPD) run: `process`, a local process "
+        "pool; `serial`, the worker's own thread; `dask`, the Dask distributed cluster at "
+        "dask_scheduler (needs the `dask` extra).",
+    )
     executor_processes: int | None = Field(default=None, ge=1)
+    dask_scheduler: str | None = Field(
+        default=None,
+        description="Address of the Dask scheduler (e.g. tcp://scheduler:8786) for "
+        "executor=dask.",
+    )
+    dask_no_worker_seconds: float = Field(
+        default=60.0,
+        gt=0,
+        description="With executor=dask, a job fails when the cluster has had no worker for "
+        "this long while its tasks wait.",
+    )
 
     # --- logging ---------------------------------------------------------------------------
     log_level: str = "INFO"
@@ -148,6 +164,11 @@ class Settings(BaseSettings):
             raise ValueError(
                 f"min_points ({self.min_points}) must not exceed max_points_per_shape "
                 f"({self.max_points_per_shape})"
+            )
+        if self.executor == "dask" and not self.dask_scheduler:
+            raise ValueError(
+                "executor=dask needs dask_scheduler (REGTREE_DASK_SCHEDULER), the address of "
+                "the Dask scheduler, e.g. tcp://scheduler:8786"
             )
         return self
 

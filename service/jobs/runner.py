@@ -7,9 +7,11 @@ stay at a bounded rate) and in between looks for a cancel request every
 ``cancel_poll_seconds``. ``check`` runs in the library's progress callback (after each
 completed task) and, with the process executor, every 0.1 s while the pool works (the
 library's ``LocalProcessExecutor(check=...)``), whose processes are then killed; with the
-serial executor, at every CPD iteration (``SerialExecutor(check=...)``). Either way a cancel
-stops the job within about ``cancel_poll_seconds``, registrations in progress included, and
-frees the worker for its next job.
+serial executor, at every CPD iteration (``SerialExecutor(check=...)``); with the Dask
+executor, every 0.1 s while the cluster works (``DaskExecutor(check=...)``), whose queued
+tasks are then cancelled (a task running on a Dask worker ends on its own, its result
+dropped). Either way a cancel stops the job within about ``cancel_poll_seconds``,
+registrations in progress included, and frees the worker for its next job.
 
 A cancel accepted while the job runs always ends it ``cancelled``: whatever the run raises
 once a cancel was seen is taken as the cancel, and :meth:`JobQueue.complete` turns a late
@@ -170,10 +172,17 @@ class JobControl:
 def _executor(settings: Settings, control: JobControl) -> Executor:
     """The job's executor; its ``check`` is the job's, so a cancel stops the registrations
     in progress: at every CPD iteration (serial) or within 0.1 s (the pool is killed)."""
-    from registration import LocalProcessExecutor, SerialExecutor
+    from registration import DaskExecutor, LocalProcessExecutor, SerialExecutor
 
     if settings.executor == "serial":
         return SerialExecutor(check=control.check)
+    if settings.executor == "dask":
+        # A cancel cancels the job's tasks on the cluster; a lost Dask worker's tasks are
+        # reassigned by the scheduler; a cluster that cannot run them fails the job.
+        return DaskExecutor(
+            settings.dask_scheduler, check=control.check, poll_seconds=0.1,
+            no_worker_seconds=settings.dask_no_worker_seconds,
+        )
     # The pool starts its processes inside JobControl, whose heartbeat thread runs: beside
     # threads it uses a fork server with the library preloaded, never a plain fork.
     return LocalProcessExecutor(
@@ -265,6 +274,14 @@ def _interrupted(queue: JobQueue, claim: Claim, interruption: JobInterrupted) ->
     return Outcome.lost
 
 
+def _cluster_failure(exc: Exception) -> bool:
+    """A Dask cluster that could not run the job's tasks (workers died, none left, the
+    scheduler unreachable): worth another attempt after a backoff, like a busy database."""
+    from registration import DaskClusterError
+
+    return isinstance(exc, DaskClusterError)
+
+
 def _failed(
     queue: JobQueue,
     claim: Claim,
@@ -276,7 +293,7 @@ def _failed(
     """Settle a job whose run raised: another attempt if transient, else failed at once.
     With the job's ``shape_ids`` and ``names``, the message names a shape by id and name
     where the library gave its position."""
-    transient = is_transient(exc)
+    transient = is_transient(exc) or _cluster_failure(exc)
     logger.error("job failed", exc_info=exc, extra={**log, "transient": transient})
     message = f"{type(exc).__name__}: {exc}"
     if shape_ids is not None and names is not None:
