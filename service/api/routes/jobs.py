@@ -41,10 +41,10 @@ def job_outs(session: Session, jobs: Sequence[Job]) -> list[JobOut]:
     shapes: dict[int, str] = {}
     if collection_ids:
         query = select(Collection.id, Collection.name).where(Collection.id.in_(collection_ids))
-        collections = {i: name for i, name in session.execute(query).tuples()}
+        collections = {i: name for i, name in session.execute(query).all()}
     if shape_ids:
         query = select(Shape.id, Shape.name).where(Shape.id.in_(shape_ids))
-        shapes = {i: name for i, name in session.execute(query).tuples()}
+        shapes = {i: name for i, name in session.execute(query).all()}
     return [
         _job_out(j, collections.get(j.collection_id), shapes.get(j.model_shape_id)) for j in jobs
     ]
