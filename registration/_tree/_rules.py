@@ -3,13 +3,16 @@ its sampling floor, and the one acceptance rule for a registration."""
 
 from __future__ import annotations
 
+import heapq
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import breadth_first_order
 from scipy.spatial import cKDTree
 
 from .._similarity import Similarity
@@ -50,15 +53,24 @@ class _SimilarityRule:
     - every shape, the root included, has a few similar shapes whatever the scale of D in
       the collection (D grows with genuine shape variety and shrinks with denser
       sampling), so a far subject waits for one of its nearest shapes to join the tree
-      and is registered from it, which is the point of the tree.
+      and is registered from it, which is the point of the tree;
+    - every subject can be reached from the root through similar pairs: a collection of
+      tight groups (an archive with several impressions of each design) has a k-nearest
+      graph that falls apart into its groups, and the tree would never leave the root's.
+      A subject the rule's graph does not reach from the root has its ``into`` limit
+      raised to its bottleneck distance from the root (:func:`_bridge_limits`): the
+      smallest value that gives it a path of similar pairs, so the nearest pairs between
+      groups count as similar and nothing else changes. A collection whose graph is
+      already connected keeps its rule exactly.
     """
 
     explicit: float | None
-    into: dict[int, float]  # subject -> D from its k-th nearest shape
+    into: dict[int, float]  # subject -> D from its k-th nearest shape, or its bridge limit
     out_of: dict[int, float]  # member -> D to its k-th nearest shape
+    bridged: dict[int, float] = field(default_factory=dict)  # subject -> its raised limit
 
     @classmethod
-    def build(cls, sim: Similarity, explicit: float | None) -> _SimilarityRule:
+    def build(cls, sim: Similarity, explicit: float | None, root: int = 0) -> _SimilarityRule:
         if explicit is not None:
             return cls(explicit=explicit, into={}, out_of={})
         n = sim.D.shape[0]
@@ -68,10 +80,16 @@ class _SimilarityRule:
             v = np.sort(values[np.isfinite(values)])
             return float(v[min(SIMILAR_NEIGHBOURS, v.size) - 1]) if v.size else 0.0
 
+        into = np.array([kth(sim.D[:, s][off[:, s]]) for s in range(n)])
+        out_of = np.array([kth(sim.D[m, :][off[m, :]]) for m in range(n)])
+        bridged = _bridge_limits(sim.D, into, out_of, root)
+        for s, b in bridged.items():
+            into[s] = b
         return cls(
             explicit=None,
-            into={s: kth(sim.D[:, s][off[:, s]]) for s in range(n)},
-            out_of={m: kth(sim.D[m, :][off[m, :]]) for m in range(n)},
+            into={s: float(into[s]) for s in range(n)},
+            out_of={m: float(out_of[m]) for m in range(n)},
+            bridged=bridged,
         )
 
     def limit(self, member: int, subject: int) -> float:
@@ -86,14 +104,60 @@ class _SimilarityRule:
 
 def _similarity_report(rule: _SimilarityRule) -> dict[str, Any]:
     values = list(rule.into.values())
-    return {
+    report: dict[str, Any] = {
         "similarity": rule.explicit if rule.explicit is not None
         else max(CAPTURE_D, float(np.median(values))) if values else None,
         "similarity_rule": "explicit" if rule.explicit is not None
         else f"auto, per pair: max({CAPTURE_D}, D from the subject's {SIMILAR_NEIGHBOURS}th "
-        f"nearest shape, D to the member's {SIMILAR_NEIGHBOURS}th nearest shape); "
-        "'similarity' is the median over subjects",
+        f"nearest shape, D to the member's {SIMILAR_NEIGHBOURS}th nearest shape); a subject "
+        "no path of such pairs reaches from the root takes instead its bottleneck D from "
+        "the root ('bridged'); 'similarity' is the median over subjects",
     }
+    if rule.explicit is None:
+        report["bridged"] = len(rule.bridged)
+    return report
+
+
+def _bridge_limits(
+    D: FloatArray, into: FloatArray, out_of: FloatArray, root: int
+) -> dict[int, float]:
+    """The raised ``into`` limit of each subject the k-nearest rule leaves unreachable.
+
+    Edges are the computed pairs ``member -> subject`` (``D[member, subject]`` finite, in
+    the direction the tree uses them); a pair the rule already counts similar costs 0,
+    any other costs its D. A subject's bridge limit is its bottleneck (minimax) distance
+    from the root over these edges: the smallest largest-D along a path from the root.
+    Raising the limit of every unreachable subject to it makes every subject with a
+    finite path reachable (on the minimax path each subject's predecessor edge costs at
+    most its limit), and leaves a collection whose rule graph is connected unchanged.
+    """
+    n = D.shape[0]
+    finite = np.isfinite(D)
+    np.fill_diagonal(finite, False)
+    limit = np.maximum(CAPTURE_D, np.maximum(into[None, :], out_of[:, None]))
+    similar = finite & (np.where(finite, D, np.inf) <= limit)
+    reached = np.zeros(n, dtype=bool)
+    reached[breadth_first_order(csr_matrix(similar), root, directed=True,
+                                return_predecessors=False)] = True
+    if reached.all():
+        return {}
+    cost = np.where(similar, 0.0, np.where(finite, D, np.inf))
+    best = np.full(n, np.inf)
+    best[root] = 0.0
+    done = np.zeros(n, dtype=bool)
+    heap = [(0.0, root)]
+    while heap:
+        b, m = heapq.heappop(heap)
+        if done[m]:
+            continue
+        done[m] = True
+        via = np.maximum(b, cost[m])
+        better = np.flatnonzero((via < best) & ~done)
+        best[better] = via[better]
+        for s in better:
+            heapq.heappush(heap, (float(via[s]), int(s)))
+    raise_to = np.maximum(into, best)  # never below the k-nearest limit
+    return {int(s): float(raise_to[s]) for s in np.flatnonzero(~reached & np.isfinite(best))}
 
 
 def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:
