@@ -83,7 +83,11 @@ def build_dynamic_tree(
         A subject is similar to a member when ``D[member, subject]`` (eq. 9, normalised
         shapes) is at most this. Default: automatic, per pair: the largest of CPD's
         measured capture range (D = 0.01), the D from the subject's 4th nearest shape and
-        the D to the member's 4th nearest shape (see `_SimilarityRule`).
+        the D to the member's 4th nearest shape (see `_SimilarityRule`); a subject no
+        path of such pairs reaches from the root (a collection of tight groups, e.g.
+        several impressions of each design) takes instead its bottleneck D from the
+        root, so the nearest pairs between groups count as similar
+        (``thresholds["bridged"]``: how many subjects).
     error_threshold : float, optional
         A registration is accepted when e (eq. 10, normalised shapes) is below this.
         Default: automatic, ``3 x`` the lower quartile of the second layer's e, and never
@@ -275,7 +279,8 @@ def build_static_tree(
     most similar member of the previous layer. Then CPD runs along its edges, each edge
     starting from the root model as warped onto the parent. `error_threshold` is accepted
     for a uniform interface and ignored: no registration is rejected. Subjects the
-    similarity graph does not reach from the root are reported unattached.
+    similarity graph does not reach from the root are reported unattached (with the
+    automatic rule, only those without any computed path from the root).
 
     Parameters
     ----------
