@@ -177,21 +177,24 @@ def build_dynamic_tree(
         layer += 1
         _ensure_frontier(sim, frontier, waiting, allowed, executor, progress, layer)
         tasks: list[_RegTask] = []
-        for s in sorted(waiting):
-            cands = sorted(
-                (float(sim.D[m, s]), m)
-                for m in start.members_for(s)
-                if (m, s) not in tried and sim_rule.similar(sim, m, s)
-            )[:max_candidates]
-            for d, m in cands:
-                tried.add((m, s))
-                tasks.append(
-                    _RegTask(
-                        subject=s, member=m, layer=layer, similarity=d, q=nodes[m].q,
-                        y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
-                        prealign=prealign, pose=spec, spacing2=coll.spacing2[s],
+        for _ in range(2):  # once more after new bridges when nothing is left to try
+            for s in sorted(waiting):
+                cands = sorted(
+                    (float(sim.D[m, s]), m)
+                    for m in start.members_for(s)
+                    if (m, s) not in tried and sim_rule.similar(sim, m, s)
+                )[:max_candidates]
+                for d, m in cands:
+                    tried.add((m, s))
+                    tasks.append(
+                        _RegTask(
+                            subject=s, member=m, layer=layer, similarity=d, q=nodes[m].q,
+                            y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
+                            prealign=prealign, pose=spec, spacing2=coll.spacing2[s],
+                        )
                     )
-                )
+            if tasks or not sim_rule.bridge(sim, nodes, waiting, tried):
+                break
         if not tasks:
             break
         outcomes = _run_tasks(tasks, executor, progress, f"layer {layer}")
@@ -225,6 +228,8 @@ def build_dynamic_tree(
             nodes[s] = node
             waiting.discard(s)
             new_frontier.append(s)
+        if not new_frontier and waiting and sim_rule.bridge(sim, nodes, waiting, tried):
+            new_frontier = list(nodes)  # stalled: the next nearest bridges, from any member
         frontier = new_frontier
     # leaves first: they may reuse registrations made while the tree grew, which start
     # from their member's warped model as it was then; refinement then moves no member

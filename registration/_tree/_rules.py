@@ -5,14 +5,12 @@ from __future__ import annotations
 
 import heapq
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import breadth_first_order
 from scipy.spatial import cKDTree
 
 from .._similarity import Similarity
@@ -82,7 +80,7 @@ class _SimilarityRule:
 
         into = np.array([kth(sim.D[:, s][off[:, s]]) for s in range(n)])
         out_of = np.array([kth(sim.D[m, :][off[m, :]]) for m in range(n)])
-        bridged = _bridge_limits(sim.D, into, out_of, root)
+        bridged = _bridge_limits(sim.D, into, out_of, [root])
         for s, b in bridged.items():
             into[s] = b
         return cls(
@@ -91,6 +89,25 @@ class _SimilarityRule:
             out_of={m: float(out_of[m]) for m in range(n)},
             bridged=bridged,
         )
+
+    def bridge(self, sim: Similarity, members: Iterable[int], waiting: Iterable[int],
+               tried: Iterable[tuple[int, int]]) -> int:
+        """When the dynamic tree stalls (its bridge registrations rejected): raise the
+        limit of the waiting subjects to their bottleneck D from the tree's members over
+        the pairs not yet tried, so the next nearest pairs into them count as similar.
+        Returns how many limits were raised (0: nothing left to try, or explicit)."""
+        if self.explicit is not None:
+            return 0
+        n = sim.D.shape[0]
+        into = np.array([self.into[k] for k in range(n)])
+        out_of = np.array([self.out_of[k] for k in range(n)])
+        raised = _bridge_limits(sim.D, into, out_of, list(members), tried)
+        count = 0
+        for s in waiting:
+            if s in raised and raised[s] > self.into[s]:
+                self.into[s] = self.bridged[s] = raised[s]
+                count += 1
+        return count
 
     def limit(self, member: int, subject: int) -> float:
         if self.explicit is not None:
@@ -119,33 +136,31 @@ def _similarity_report(rule: _SimilarityRule) -> dict[str, Any]:
 
 
 def _bridge_limits(
-    D: FloatArray, into: FloatArray, out_of: FloatArray, root: int
+    D: FloatArray, into: FloatArray, out_of: FloatArray, sources: Sequence[int],
+    tried: Iterable[tuple[int, int]] = (),
 ) -> dict[int, float]:
-    """The raised ``into`` limit of each subject the k-nearest rule leaves unreachable.
+    """The raised ``into`` limit of each shape the rule leaves unreachable from `sources`.
 
     Edges are the computed pairs ``member -> subject`` (``D[member, subject]`` finite, in
-    the direction the tree uses them); a pair the rule already counts similar costs 0,
-    any other costs its D. A subject's bridge limit is its bottleneck (minimax) distance
-    from the root over these edges: the smallest largest-D along a path from the root.
-    Raising the limit of every unreachable subject to it makes every subject with a
-    finite path reachable (on the minimax path each subject's predecessor edge costs at
-    most its limit), and leaves a collection whose rule graph is connected unchanged.
+    the direction the tree uses them) not in `tried`; a pair the rule already counts
+    similar costs 0, any other its D. A shape's bridge limit is its bottleneck (minimax)
+    distance from the sources over these edges: the smallest largest-cost along a path.
+    Raising the limit of every unreachable shape to it makes every shape with a finite
+    path reachable (on the minimax path each shape's predecessor edge costs at most its
+    limit), and changes nothing where the rule's graph already reaches everything.
     """
     n = D.shape[0]
     finite = np.isfinite(D)
     np.fill_diagonal(finite, False)
+    for m, s in tried:
+        finite[m, s] = False
     limit = np.maximum(CAPTURE_D, np.maximum(into[None, :], out_of[:, None]))
-    similar = finite & (np.where(finite, D, np.inf) <= limit)
-    reached = np.zeros(n, dtype=bool)
-    reached[breadth_first_order(csr_matrix(similar), root, directed=True,
-                                return_predecessors=False)] = True
-    if reached.all():
-        return {}
-    cost = np.where(similar, 0.0, np.where(finite, D, np.inf))
+    d = np.where(finite, D, np.inf)
+    cost = np.where(d <= limit, 0.0, d)
     best = np.full(n, np.inf)
-    best[root] = 0.0
     done = np.zeros(n, dtype=bool)
-    heap = [(0.0, root)]
+    best[list(sources)] = 0.0
+    heap = [(0.0, int(k)) for k in sources]
     while heap:
         b, m = heapq.heappop(heap)
         if done[m]:
@@ -154,10 +169,10 @@ def _bridge_limits(
         via = np.maximum(b, cost[m])
         better = np.flatnonzero((via < best) & ~done)
         best[better] = via[better]
-        for s in better:
-            heapq.heappush(heap, (float(via[s]), int(s)))
+        for k in better:
+            heapq.heappush(heap, (float(via[k]), int(k)))
     raise_to = np.maximum(into, best)  # never below the k-nearest limit
-    return {int(s): float(raise_to[s]) for s in np.flatnonzero(~reached & np.isfinite(best))}
+    return {int(k): float(raise_to[k]) for k in np.flatnonzero((best > 0) & np.isfinite(best))}
 
 
 def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:

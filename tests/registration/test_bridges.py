@@ -120,3 +120,29 @@ def test_an_explicit_threshold_is_never_bridged():
     start = _TreeStart.prepare(coll, 1e-6, None, FAST_CPD, None, None, SerialExecutor(), None)
     assert start.rule.bridged == {}
     assert "bridged" not in rules._similarity_report(start.rule)
+
+
+def test_a_stalled_tree_opens_the_next_nearest_bridges():
+    # the pairs into the other designs were tried and rejected: the rule opens the
+    # nearest untried pairs from the tree's members, until none are left
+    shapes = clustered(groups=3, copies=5, n_points=30, seed=1)
+    start = _start(shapes)
+    rule, sim = start.rule, start.sim
+    members, waiting = set(range(5)), set(range(5, 15))
+    tried: set[tuple[int, int]] = set()
+    raised = 0
+    while True:
+        opened = {(m, s) for m in members for s in waiting
+                  if (m, s) not in tried and rule.similar(sim, m, s)}
+        if opened:
+            untried = [sim.D[m, s] for m in members for s in waiting
+                       if (m, s) not in tried and (m, s) not in opened]
+            # the nearest untried pair is among those opened
+            assert not untried or min(sim.D[p] for p in opened) <= min(untried)
+            tried |= opened
+        elif rule.bridge(sim, members, waiting, tried):
+            raised += 1
+        else:
+            break
+    assert raised >= 1
+    assert tried == {(m, s) for m in members for s in waiting}
