@@ -59,7 +59,9 @@ class _SimilarityRule:
       raised to its bottleneck distance from the root (:func:`_bridge_limits`): the
       smallest value that gives it a path of similar pairs, so the nearest pairs between
       groups count as similar and nothing else changes. A collection whose graph is
-      already connected keeps its rule exactly.
+      already connected keeps its rule exactly. When the dynamic tree stalls with
+      subjects waiting (its bridges rejected), :meth:`bridge` opens the next nearest
+      untried pairs the same way, from the tree's members.
     """
 
     explicit: float | None
