@@ -130,7 +130,8 @@ def _similarity_report(rule: _SimilarityRule) -> dict[str, Any]:
         else f"auto, per pair: max({CAPTURE_D}, D from the subject's {SIMILAR_NEIGHBOURS}th "
         f"nearest shape, D to the member's {SIMILAR_NEIGHBOURS}th nearest shape); a subject "
         "no path of such pairs reaches from the root takes instead its bottleneck D from "
-        "the root ('bridged'); 'similarity' is the median over subjects",
+        "the root, and when the tree stalls from its members over the pairs not yet tried "
+        "('bridged': how many subjects); 'similarity' is the median over subjects",
     }
     if rule.explicit is None:
         report["bridged"] = len(rule.bridged)
