@@ -205,7 +205,7 @@ class _TreeStart:
         return cls(
             cpd=cpd if cpd is not None else CPDOptions(), pose=spec, sources=sources,
             coll=coll, sim=sim, allowed=allowed,
-            rule=_SimilarityRule.build(sim, similarity_threshold), subjects=subjects,
+            rule=_SimilarityRule.build(sim, similarity_threshold, root), subjects=subjects,
             nodes={root: coll.root_node()},
             results={s: SubjectResult(index=s, name=coll.names[s]) for s in subjects},
         )

@@ -83,7 +83,11 @@ def build_dynamic_tree(
         A subject is similar to a member when ``D[member, subject]`` (eq. 9, normalised
         shapes) is at most this. Default: automatic, per pair: the largest of CPD's
         measured capture range (D = 0.01), the D from the subject's 4th nearest shape and
-        the D to the member's 4th nearest shape (see `_SimilarityRule`).
+        the D to the member's 4th nearest shape (see `_SimilarityRule`); a subject no
+        path of such pairs reaches from the root (a collection of tight groups, e.g.
+        several impressions of each design) takes instead its bottleneck D from the
+        root, so the nearest pairs between groups count as similar
+        (``thresholds["bridged"]``: how many subjects).
     error_threshold : float, optional
         A registration is accepted when e (eq. 10, normalised shapes) is below this.
         Default: automatic, ``3 x`` the lower quartile of the second layer's e, and never
@@ -173,21 +177,24 @@ def build_dynamic_tree(
         layer += 1
         _ensure_frontier(sim, frontier, waiting, allowed, executor, progress, layer)
         tasks: list[_RegTask] = []
-        for s in sorted(waiting):
-            cands = sorted(
-                (float(sim.D[m, s]), m)
-                for m in start.members_for(s)
-                if (m, s) not in tried and sim_rule.similar(sim, m, s)
-            )[:max_candidates]
-            for d, m in cands:
-                tried.add((m, s))
-                tasks.append(
-                    _RegTask(
-                        subject=s, member=m, layer=layer, similarity=d, q=nodes[m].q,
-                        y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
-                        prealign=prealign, pose=spec, spacing2=coll.spacing2[s],
+        for _ in range(2):  # once more after new bridges when nothing is left to try
+            for s in sorted(waiting):
+                cands = sorted(
+                    (float(sim.D[m, s]), m)
+                    for m in start.members_for(s)
+                    if (m, s) not in tried and sim_rule.similar(sim, m, s)
+                )[:max_candidates]
+                for d, m in cands:
+                    tried.add((m, s))
+                    tasks.append(
+                        _RegTask(
+                            subject=s, member=m, layer=layer, similarity=d, q=nodes[m].q,
+                            y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
+                            prealign=prealign, pose=spec, spacing2=coll.spacing2[s],
+                        )
                     )
-                )
+            if tasks or not sim_rule.bridge(sim, nodes, waiting, tried):
+                break
         if not tasks:
             break
         outcomes = _run_tasks(tasks, executor, progress, f"layer {layer}")
@@ -221,6 +228,8 @@ def build_dynamic_tree(
             nodes[s] = node
             waiting.discard(s)
             new_frontier.append(s)
+        if not new_frontier and waiting and sim_rule.bridge(sim, nodes, waiting, tried):
+            new_frontier = list(nodes)  # stalled: the next nearest bridges, from any member
         frontier = new_frontier
     # leaves first: they may reuse registrations made while the tree grew, which start
     # from their member's warped model as it was then; refinement then moves no member
@@ -275,7 +284,8 @@ def build_static_tree(
     most similar member of the previous layer. Then CPD runs along its edges, each edge
     starting from the root model as warped onto the parent. `error_threshold` is accepted
     for a uniform interface and ignored: no registration is rejected. Subjects the
-    similarity graph does not reach from the root are reported unattached.
+    similarity graph does not reach from the root are reported unattached (with the
+    automatic rule, only those without any computed path from the root).
 
     Parameters
     ----------

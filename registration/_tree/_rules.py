@@ -3,9 +3,10 @@ its sampling floor, and the one acceptance rule for a registration."""
 
 from __future__ import annotations
 
+import heapq
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -50,15 +51,26 @@ class _SimilarityRule:
     - every shape, the root included, has a few similar shapes whatever the scale of D in
       the collection (D grows with genuine shape variety and shrinks with denser
       sampling), so a far subject waits for one of its nearest shapes to join the tree
-      and is registered from it, which is the point of the tree.
+      and is registered from it, which is the point of the tree;
+    - every subject can be reached from the root through similar pairs: a collection of
+      tight groups (an archive with several impressions of each design) has a k-nearest
+      graph that falls apart into its groups, and the tree would never leave the root's.
+      A subject the rule's graph does not reach from the root has its ``into`` limit
+      raised to its bottleneck distance from the root (:func:`_bridge_limits`): the
+      smallest value that gives it a path of similar pairs, so the nearest pairs between
+      groups count as similar and nothing else changes. A collection whose graph is
+      already connected keeps its rule exactly. When the dynamic tree stalls with
+      subjects waiting (its bridges rejected), :meth:`bridge` opens the next nearest
+      untried pairs the same way, from the tree's members.
     """
 
     explicit: float | None
-    into: dict[int, float]  # subject -> D from its k-th nearest shape
+    into: dict[int, float]  # subject -> D from its k-th nearest shape, or its bridge limit
     out_of: dict[int, float]  # member -> D to its k-th nearest shape
+    bridged: dict[int, float] = field(default_factory=dict)  # subject -> its raised limit
 
     @classmethod
-    def build(cls, sim: Similarity, explicit: float | None) -> _SimilarityRule:
+    def build(cls, sim: Similarity, explicit: float | None, root: int = 0) -> _SimilarityRule:
         if explicit is not None:
             return cls(explicit=explicit, into={}, out_of={})
         n = sim.D.shape[0]
@@ -68,11 +80,36 @@ class _SimilarityRule:
             v = np.sort(values[np.isfinite(values)])
             return float(v[min(SIMILAR_NEIGHBOURS, v.size) - 1]) if v.size else 0.0
 
+        into = np.array([kth(sim.D[:, s][off[:, s]]) for s in range(n)])
+        out_of = np.array([kth(sim.D[m, :][off[m, :]]) for m in range(n)])
+        bridged = _bridge_limits(sim.D, into, out_of, [root])
+        for s, b in bridged.items():
+            into[s] = b
         return cls(
             explicit=None,
-            into={s: kth(sim.D[:, s][off[:, s]]) for s in range(n)},
-            out_of={m: kth(sim.D[m, :][off[m, :]]) for m in range(n)},
+            into={s: float(into[s]) for s in range(n)},
+            out_of={m: float(out_of[m]) for m in range(n)},
+            bridged=bridged,
         )
+
+    def bridge(self, sim: Similarity, members: Iterable[int], waiting: Iterable[int],
+               tried: Iterable[tuple[int, int]]) -> int:
+        """When the dynamic tree stalls (its bridge registrations rejected): raise the
+        limit of the waiting subjects to their bottleneck D from the tree's members over
+        the pairs not yet tried, so the next nearest pairs into them count as similar.
+        Returns how many limits were raised (0: nothing left to try, or explicit)."""
+        if self.explicit is not None:
+            return 0
+        n = sim.D.shape[0]
+        into = np.array([self.into[k] for k in range(n)])
+        out_of = np.array([self.out_of[k] for k in range(n)])
+        raised = _bridge_limits(sim.D, into, out_of, list(members), tried)
+        count = 0
+        for s in waiting:
+            if s in raised and raised[s] > self.into[s]:
+                self.into[s] = self.bridged[s] = raised[s]
+                count += 1
+        return count
 
     def limit(self, member: int, subject: int) -> float:
         if self.explicit is not None:
@@ -86,14 +123,59 @@ class _SimilarityRule:
 
 def _similarity_report(rule: _SimilarityRule) -> dict[str, Any]:
     values = list(rule.into.values())
-    return {
+    report: dict[str, Any] = {
         "similarity": rule.explicit if rule.explicit is not None
         else max(CAPTURE_D, float(np.median(values))) if values else None,
         "similarity_rule": "explicit" if rule.explicit is not None
         else f"auto, per pair: max({CAPTURE_D}, D from the subject's {SIMILAR_NEIGHBOURS}th "
-        f"nearest shape, D to the member's {SIMILAR_NEIGHBOURS}th nearest shape); "
-        "'similarity' is the median over subjects",
+        f"nearest shape, D to the member's {SIMILAR_NEIGHBOURS}th nearest shape); a subject "
+        "no path of such pairs reaches from the root takes instead its bottleneck D from "
+        "the root, and when the tree stalls from its members over the pairs not yet tried "
+        "('bridged': how many subjects); 'similarity' is the median over subjects",
     }
+    if rule.explicit is None:
+        report["bridged"] = len(rule.bridged)
+    return report
+
+
+def _bridge_limits(
+    D: FloatArray, into: FloatArray, out_of: FloatArray, sources: Sequence[int],
+    tried: Iterable[tuple[int, int]] = (),
+) -> dict[int, float]:
+    """The raised ``into`` limit of each shape the rule leaves unreachable from `sources`.
+
+    Edges are the computed pairs ``member -> subject`` (``D[member, subject]`` finite, in
+    the direction the tree uses them) not in `tried`; a pair the rule already counts
+    similar costs 0, any other its D. A shape's bridge limit is its bottleneck (minimax)
+    distance from the sources over these edges: the smallest largest-cost along a path.
+    Raising the limit of every unreachable shape to it makes every shape with a finite
+    path reachable (on the minimax path each shape's predecessor edge costs at most its
+    limit), and changes nothing where the rule's graph already reaches everything.
+    """
+    n = D.shape[0]
+    finite = np.isfinite(D)
+    np.fill_diagonal(finite, False)
+    for m, s in tried:
+        finite[m, s] = False
+    limit = np.maximum(CAPTURE_D, np.maximum(into[None, :], out_of[:, None]))
+    d = np.where(finite, D, np.inf)
+    cost = np.where(d <= limit, 0.0, d)
+    best = np.full(n, np.inf)
+    done = np.zeros(n, dtype=bool)
+    best[list(sources)] = 0.0
+    heap = [(0.0, int(k)) for k in sources]
+    while heap:
+        b, m = heapq.heappop(heap)
+        if done[m]:
+            continue
+        done[m] = True
+        via = np.maximum(b, cost[m])
+        better = np.flatnonzero((via < best) & ~done)
+        best[better] = via[better]
+        for k in better:
+            heapq.heappush(heap, (float(via[k]), int(k)))
+    raise_to = np.maximum(into, best)  # never below the k-nearest limit
+    return {int(k): float(raise_to[k]) for k in np.flatnonzero((best > 0) & np.isfinite(best))}
 
 
 def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:

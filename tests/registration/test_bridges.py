@@ -1,0 +1,148 @@
+"""The automatic similarity rule reaches every subject from the root (issue 9 item 3).
+
+A collection of tight groups (an archive with several impressions of each design) has a
+4-nearest graph that falls apart into its groups; the rule then bridges the groups with
+the subjects' bottleneck D from the root, and leaves a connected collection unchanged.
+"""
+
+import numpy as np
+import pytest
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import breadth_first_order
+
+import registration._tree._rules as rules
+from registration import CPDOptions, SerialExecutor, build_dynamic_tree, build_static_tree
+from registration._tree._collection import _Collection, _TreeStart
+from registration.synthetic import chained_family
+
+FAST_CPD = CPDOptions(max_iter=60)
+
+
+def clustered(groups: int, copies: int, n_points: int, seed: int) -> list[np.ndarray]:
+    """`groups` designs one deformation step apart along a chain, each printed `copies`
+    times: near-identical copies (jitter 0.3% of the size, a slight turn), so every
+    shape's 4 nearest are copies of its own design. Design-major order: shape 0 is a
+    copy of the first design."""
+    fam = chained_family(n_chains=1, chain_length=groups - 1, n_points=n_points, step=0.3,
+                         pose=False, seed=seed)
+    rng = np.random.default_rng(seed)
+    out = []
+    for centre in fam.shapes:
+        size = float(np.sqrt(np.mean((centre - centre.mean(0)) ** 2)))
+        for _ in range(copies):
+            a = np.deg2rad(rng.uniform(-3.0, 3.0))
+            rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+            out.append(centre @ rot.T + 0.003 * size * rng.normal(size=centre.shape))
+    return out
+
+
+@pytest.fixture
+def no_bridges(monkeypatch):
+    """The rule as it was before the bridges."""
+    monkeypatch.setattr(rules, "_bridge_limits", lambda *a, **k: {})
+
+
+def _reached(start: _TreeStart) -> set[int]:
+    n = start.coll.n
+    adj = np.zeros((n, n), dtype=bool)
+    for s in range(n):
+        # the pairs the tree may use: all, or the allowed candidates (root's row included)
+        members = range(n) if start.sources is None else start.sources.get(s, [])
+        for m in members:
+            if m != s and start.rule.similar(start.sim, m, s):
+                adj[m, s] = True
+    order = breadth_first_order(csr_matrix(adj), start.coll.root, directed=True,
+                                return_predecessors=False)
+    return {int(k) for k in order}
+
+
+def _start(shapes):
+    coll = _Collection.prepare(shapes, 0, None)
+    return _TreeStart.prepare(coll, None, None, FAST_CPD, None, None, SerialExecutor(), None)
+
+
+def test_tight_groups_are_bridged_and_attached_in_the_tree():
+    shapes = clustered(groups=5, copies=6, n_points=40, seed=3)
+    kw = dict(cpd=FAST_CPD, executor=SerialExecutor(), refine=False, polish=False)
+    after = build_dynamic_tree(shapes, 0, **kw)
+    in_tree = [s for s in after.subjects if s.parent is not None and not s.leaf]
+    assert after.thresholds["bridged"] > 0
+    assert "bridged" in after.thresholds["similarity_rule"]
+    assert len(in_tree) == len(shapes) - 1
+    # the bridges open the nearest pairs between designs, not everything: most edges
+    # still join two copies of the same design
+    same = sum(1 for s in in_tree if s.parent // 6 == s.index // 6)
+    assert same >= len(in_tree) // 2
+    static = build_static_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+    assert all(s.parent is not None for s in static.subjects)
+
+
+def test_without_bridges_the_same_groups_stay_outside_the_tree(no_bridges):
+    shapes = clustered(groups=5, copies=6, n_points=40, seed=3)
+    start = _start(shapes)
+    assert start.rule.bridged == {}
+    assert len(_reached(start)) <= 6  # the root's own design
+    before = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor(),
+                                refine=False, polish=False)
+    in_tree = [s for s in before.subjects if s.parent is not None and not s.leaf]
+    assert len(in_tree) <= 5
+    assert before.thresholds["bridged"] == 0
+
+
+def test_every_subject_is_reachable_with_pruned_candidates():
+    # > 64 shapes: D is only computed for the descriptor's candidate pairs (and the root's
+    # row); the bridges use those pairs alone
+    shapes = clustered(groups=14, copies=5, n_points=30, seed=5)
+    start = _start(shapes)
+    assert start.allowed is not None
+    assert start.rule.bridged
+    assert _reached(start) == set(range(len(shapes)))
+    for s, limit in start.rule.bridged.items():
+        assert start.rule.into[s] == limit
+        assert np.isfinite(limit) and limit > 0
+
+
+def test_a_connected_family_gets_exactly_the_result_it_had(monkeypatch):
+    fam = chained_family(n_chains=2, chain_length=4, n_points=60, step=0.3, seed=2)
+    kw = dict(names=fam.names, cpd=FAST_CPD, executor=SerialExecutor())
+    after = build_dynamic_tree(fam.shapes, 0, **kw)
+    assert after.thresholds["bridged"] == 0
+    monkeypatch.setattr(rules, "_bridge_limits", lambda *a, **k: {})
+    before = build_dynamic_tree(fam.shapes, 0, **kw)
+    a, b = after.to_dict(), before.to_dict()
+    a["thresholds"].pop("similarity_rule"), b["thresholds"].pop("similarity_rule")
+    assert a == b
+
+
+def test_an_explicit_threshold_is_never_bridged():
+    shapes = clustered(groups=3, copies=5, n_points=30, seed=1)
+    coll = _Collection.prepare(shapes, 0, None)
+    start = _TreeStart.prepare(coll, 1e-6, None, FAST_CPD, None, None, SerialExecutor(), None)
+    assert start.rule.bridged == {}
+    assert "bridged" not in rules._similarity_report(start.rule)
+
+
+def test_a_stalled_tree_opens_the_next_nearest_bridges():
+    # the pairs into the other designs were tried and rejected: the rule opens the
+    # nearest untried pairs from the tree's members, until none are left
+    shapes = clustered(groups=3, copies=5, n_points=30, seed=1)
+    start = _start(shapes)
+    rule, sim = start.rule, start.sim
+    members, waiting = set(range(5)), set(range(5, 15))
+    tried: set[tuple[int, int]] = set()
+    raised = 0
+    while True:
+        opened = {(m, s) for m in members for s in waiting
+                  if (m, s) not in tried and rule.similar(sim, m, s)}
+        if opened:
+            untried = [sim.D[m, s] for m in members for s in waiting
+                       if (m, s) not in tried and (m, s) not in opened]
+            # the nearest untried pair is among those opened
+            assert not untried or min(sim.D[p] for p in opened) <= min(untried)
+            tried |= opened
+        elif rule.bridge(sim, members, waiting, tried):
+            raised += 1
+        else:
+            break
+    assert raised >= 1
+    assert tried == {(m, s) for m in members for s in waiting}
