@@ -28,6 +28,7 @@ from ._resolution import (
     coarse_collection,
 )
 from ._rules import (
+    BRIDGE_TASKS_PER_SUBJECT,
     ERROR_FACTOR,
     SPACING_FACTOR,
     _auto_error_threshold,
@@ -173,6 +174,13 @@ def build_dynamic_tree(
     rejected: dict[int, list[_RegOutcome]] = {}
     frontier = [root]
     layer = 1
+    runs = 0  # registrations so far; bridging stops at a budget (BRIDGE_TASKS_PER_SUBJECT)
+
+    def bridge() -> bool:
+        if runs >= BRIDGE_TASKS_PER_SUBJECT * len(subjects_idx):
+            return False
+        return bool(sim_rule.bridge(sim, nodes, waiting, tried))
+
     while waiting and frontier:
         layer += 1
         _ensure_frontier(sim, frontier, waiting, allowed, executor, progress, layer)
@@ -193,10 +201,11 @@ def build_dynamic_tree(
                             prealign=prealign, pose=spec, spacing2=coll.spacing2[s],
                         )
                     )
-            if tasks or not sim_rule.bridge(sim, nodes, waiting, tried):
+            if tasks or not bridge():
                 break
         if not tasks:
             break
+        runs += len(tasks)
         outcomes = _run_tasks(tasks, executor, progress, f"layer {layer}")
         if tau_err is None:
             tau_err = _auto_error_threshold(outcomes)
@@ -228,7 +237,7 @@ def build_dynamic_tree(
             nodes[s] = node
             waiting.discard(s)
             new_frontier.append(s)
-        if not new_frontier and waiting and sim_rule.bridge(sim, nodes, waiting, tried):
+        if not new_frontier and waiting and bridge():
             new_frontier = list(nodes)  # stalled: the next nearest bridges, from any member
         frontier = new_frontier
     # leaves first: they may reuse registrations made while the tree grew, which start

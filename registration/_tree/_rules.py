@@ -23,6 +23,11 @@ CAPTURE_D = 0.01
 SIMILAR_NEIGHBOURS = 4
 ERROR_FACTOR = 3.0
 SPACING_FACTOR = 0.5
+# A stalled tree opens bridges (`_SimilarityRule.bridge`) only while it has run fewer than
+# this many registrations per subject in all: a tree as the paper builds it runs about 2
+# (163 for the 72 subjects of the 永 edge glyphs), and shapes no member registers well
+# (a blot from a bad scan) must not cost a CPD from every member each.
+BRIDGE_TASKS_PER_SUBJECT = 8
 
 
 # A registration is accepted into the tree only with at least this confidence (the

@@ -146,3 +146,35 @@ def test_a_stalled_tree_opens_the_next_nearest_bridges():
             break
     assert raised >= 1
     assert tried == {(m, s) for m in members for s in waiting}
+
+
+def test_bridging_stops_at_its_budget(monkeypatch):
+    # the copies of the root's design attach; every registration into another design is
+    # refused (an error threshold between the two): the stalled tree bridges again and
+    # again, but only while it has run fewer than the budget's registrations
+    import registration._tree._methods as methods
+
+    shapes = clustered(groups=3, copies=5, n_points=30, seed=2)
+    counted: list[int] = []
+    run_tasks = methods._run_tasks
+
+    def counting(tasks, *args, **kwargs):
+        counted.append(len(tasks))
+        return run_tasks(tasks, *args, **kwargs)
+
+    monkeypatch.setattr(methods, "_run_tasks", counting)
+
+    def runs(budget: int) -> int:
+        monkeypatch.setattr(methods, "BRIDGE_TASKS_PER_SUBJECT", budget)
+        counted.clear()
+        res = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, error_threshold=1e-4,
+                                 polish=False, refine=False, executor=SerialExecutor())
+        in_tree = {s.index for s in res.subjects if s.layer is not None and not s.leaf}
+        assert in_tree == {1, 2, 3, 4}, in_tree  # the root's own design only
+        return sum(counted)
+
+    subjects = len(shapes) - 1
+    small, large = runs(1), runs(100)
+    assert small < large  # measured 14 vs 54 (every pair into the other designs tried)
+    # the budget is checked between layers: one layer's registrations may overrun it
+    assert small <= 1 * subjects + subjects * 3
