@@ -34,6 +34,11 @@ class AffineTransform:
         p = np.asarray(points, dtype=np.float64)
         return p @ self.A.T + self.t
 
+    def apply_with_jacobian(self, points: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """The mapped points and the Jacobian matrices there (all ``A``): (K, 2, 2)."""
+        p = self.apply(points)
+        return p, np.broadcast_to(np.asarray(self.A, dtype=np.float64), (len(p), 2, 2)).copy()
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "type": "affine",
@@ -141,6 +146,17 @@ class ChainTransform:
         out[~(miss <= tol * self.target.scale)] = np.nan
         return out
 
+    def apply_with_jacobian(self, points: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """:meth:`apply` and the map's Jacobian matrices at `points` (K, 2, 2): exact
+        (chain rule over the steps) when every step gives its own, else central
+        differences."""
+        p = np.asarray(points, dtype=np.float64)
+        both = composed_with_jacobian(self.steps, self.source.apply(p))
+        if both is None:
+            return self.apply(p), _central_differences(self, p)
+        z, jac = both
+        return self.target.invert(z), jac * (self.target.scale / self.source.scale)
+
     @classmethod
     def identity(cls, normalization: Normalization, node: int) -> ChainTransform:
         """The root model's own transform: no steps, from and to its normalisation."""
@@ -205,10 +221,35 @@ def jacobian_determinants(
     return J[:, 0, 0] * J[:, 1, 1] - J[:, 1, 0] * J[:, 0, 1]
 
 
+def composed_with_jacobian(steps: tuple[PointTransform, ...], points: ArrayLike
+                           ) -> tuple[FloatArray, FloatArray] | None:
+    """`steps` applied one after the other, and the Jacobians of the whole map (chain
+    rule), when every step gives its own (``apply_with_jacobian``); else None."""
+    if not all(hasattr(s, "apply_with_jacobian") for s in steps):
+        return None
+    p = np.asarray(points, dtype=np.float64)
+    jac = np.broadcast_to(np.eye(2), (len(p), 2, 2)).copy()
+    for step in steps:
+        p, j = step.apply_with_jacobian(p)  # type: ignore[attr-defined]
+        jac = j @ jac
+    return p, jac
+
+
 def jacobian_matrices(transform: PointTransform, points: FloatArray, *, h: float = 1e-4
                       ) -> FloatArray:
-    """Jacobian matrices, shape (n, 2, 2), of `transform` at (n, 2) `points` by central
-    differences: ``J[k, a, b] = d out_a / d x_b`` (no input checks: internal)."""
+    """Jacobian matrices, shape (n, 2, 2), of `transform` at (n, 2) `points`:
+    ``J[k, a, b] = d out_a / d x_b`` (no input checks: internal). Exact when the transform
+    gives its own (``apply_with_jacobian``: the library's affine, CPD and composed maps),
+    else by central differences of step `h`."""
+    exact = getattr(transform, "apply_with_jacobian", None)
+    if exact is not None:
+        out: FloatArray = exact(points)[1]
+        return out
+    return _central_differences(transform, points, h)
+
+
+def _central_differences(transform: PointTransform, points: FloatArray, h: float = 1e-4
+                         ) -> FloatArray:
     ex = np.array([h, 0.0])
     ey = np.array([0.0, h])
     out = transform.apply(np.concatenate([points + ex, points - ex, points + ey, points - ey]))

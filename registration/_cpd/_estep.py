@@ -299,13 +299,21 @@ def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float
     den = np.bincount(j, weights=e, minlength=n) + _outlier_const(sigma2, w, m, n)
     np.maximum(den, _DEN_FLOOR, out=den)
     p = e / den[j]
-    order = np.lexsort((-p, i))
-    first = order[np.r_[True, i[order][1:] != i[order][:-1]]] if len(order) else order
     best = np.zeros(m)
     arg = np.zeros(m, dtype=np.intp)
-    best[i[first]] = p[first]
-    arg[i[first]] = j[first]
-    lone = np.setdiff1d(np.arange(m), i[first])
+    rows = np.zeros(0, dtype=np.intp)
+    if len(p):
+        # pairs come sorted by centroid: a segmented max, then the first pair that attains
+        # it in each segment (the same tie-break as a stable sort), in O(pairs)
+        starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+        rows = i[starts]
+        top = np.maximum.reduceat(p, starts)
+        seg = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(p)]))
+        hit = np.flatnonzero(p == top[seg])
+        _, first = np.unique(seg[hit], return_index=True)
+        best[rows] = top
+        arg[rows] = j[hit[first]]
+    lone = np.setdiff1d(np.arange(m), rows)
     if len(lone):
         rows = _gauss_kernel(t[lone], x, math.sqrt(sigma2)) / den
         arg[lone] = np.argmax(rows, axis=1)

@@ -101,21 +101,51 @@ class NonrigidTransform:
         ndarray, shape (K, 2)
             Warped points in the subject's (caller's) coordinates.
         """
+        return self._warp(points, jacobian=False)[0]
+
+    __call__ = apply
+
+    def apply_with_jacobian(self, points: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """The warped points and the warp's Jacobian matrices there, shape (K, 2, 2)
+        (``J[k, a, b] = d out_a / d p_b``), exactly, from one kernel evaluation::
+
+            J = s (I + (G (W (x) C) - (G W) z^T) / beta^2),  s = subject_scale / model_scale
+
+        (the derivative of ``exp(-|z - c|^2 / (2 beta^2))`` is the kernel times
+        ``(c - z) / beta^2``)."""
+        out, jac = self._warp(points, jacobian=True)
+        assert jac is not None
+        return out, jac
+
+    def _warp(self, points: ArrayLike, jacobian: bool) -> tuple[FloatArray, FloatArray | None]:
         p = np.asarray(points, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 2:
             raise ValueError(f"points must have shape (k, 2); got {p.shape}")
         z = (p - self.model_shift) / self.model_scale
         out = z.copy()
-        m = max(1, len(self.control_points))
+        cp, w = self.control_points, self.coefficients
+        # [W | W_a C_b]: the kernel product gives the displacement and, for the Jacobian,
+        # sum_k g_k W_ka C_kb in one pass
+        rhs = np.concatenate([w, (w[:, :, None] * cp[:, None, :]).reshape(-1, 4)], axis=1) \
+            if jacobian else w
+        jac = np.empty((len(z), 2, 2)) if jacobian else None
+        m = max(1, len(cp))
         step = max(1, _BLOCK_ELEMS // m)
         for a in range(0, len(z), step):
-            g = _gauss_kernel(z[a:a + step], self.control_points, self.beta)
-            out[a:a + step] += g @ self.coefficients
+            g = _gauss_kernel(z[a:a + step], cp, self.beta)
+            prod = g @ rhs
+            out[a:a + step] += prod[:, :2]
+            if jac is not None:
+                gw = prod[:, :2]
+                jac[a:a + step] = (prod[:, 2:].reshape(-1, 2, 2)
+                                   - gw[:, :, None] * z[a:a + step, None, :]) / self.beta**2
         out *= self.subject_scale
         out += self.subject_shift
-        return out
-
-    __call__ = apply
+        if jac is not None:
+            jac[:, 0, 0] += 1.0
+            jac[:, 1, 1] += 1.0
+            jac *= self.subject_scale / self.model_scale
+        return out, jac
 
     def __repr__(self) -> str:  # short: the arrays are not printed
         from .._repr import nonrigid_repr
