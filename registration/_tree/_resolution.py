@@ -8,8 +8,9 @@ subsample, in the shapes' own normalisation, so that every transform fitted on t
 shapes applies unchanged to the stored points). Then :func:`at_stored_resolution`
 registers each edge of the result once at the stored resolution, parents before
 children: the root model at full resolution, as already warped onto the parent, is moved
-by the coarse edge (its affine pre-alignment and its CPD warp) and a short CPD at full
-resolution warm-started there (:func:`_refine_edge`) puts it onto the full subject. The
+by the coarse edge (its affine pre-alignment and its CPD warp, then a polished subject's
+polish step) and a short CPD at full resolution warm-started there (:func:`_refine_edge`)
+puts it onto the full subject: one CPD per subject. The
 result's warped points, correspondences, transforms and e are then those of the stored
 shapes; the attempts, thresholds, similarity, confidence and quality checks keep the
 working resolution's figures the decisions were taken on (``quality`` adds
@@ -39,7 +40,13 @@ from .._error import registration_error
 from .._executor import Executor
 from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
-from .._transform import ChainTransform, PointTransform, jacobian_determinants
+from .._transform import (
+    AffineTransform,
+    ChainTransform,
+    PointTransform,
+    composed_with_jacobian,
+    jacobian_determinants,
+)
 from ._collection import _Collection
 from ._rules import _spacing2
 from ._tasks import _map_tasks
@@ -57,9 +64,13 @@ MIN_WORKING_POINTS = 20
 #: EM iterations of the warm-started CPD at the stored resolution (at most; it stops
 #: earlier on CPD's own tolerance).
 FINE_MAX_ITER = 20
-#: Initial sigma^2 of the warm start, times half the e (eq. 10) of the warm-started model:
-#: e is a mean squared 2-D distance, sigma^2 a per-coordinate variance.
-FINE_SIGMA2_FACTOR = 1.0
+#: Initial sigma^2 of the warm start, times half the e (eq. 10) of the warm-started model
+#: (e is a mean squared 2-D distance, sigma^2 a per-coordinate variance). Started at 1x,
+#: CPD's sigma grew back over its first iterations to 1.7-2.5x that (sigma^2 3-6x) on the
+#: 永 glyphs, where its soft correspondences settle, rebuilding the truncated E-step's
+#: neighbour list on the way; 3x starts near there (ground truth within 1 % either way on
+#: six 永 families, bench/RESULTS.md section 8.1).
+FINE_SIGMA2_FACTOR = 3.0
 
 
 def check_working_points(value: Any) -> int | None:
@@ -126,6 +137,11 @@ class _Composed:
             p = step.apply(p)
         return p
 
+    def apply_with_jacobian(self, points: Any) -> tuple[FloatArray, FloatArray]:
+        both = composed_with_jacobian(self.steps, points)
+        assert both is not None, "every step of a tree edge gives its Jacobian"
+        return both
+
     def to_dict(self) -> dict[str, Any]:
         return {"type": "composed", "steps": [s.to_dict() for s in self.steps]}
 
@@ -160,18 +176,23 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
 
     The warm-started CPD runs in the subject's normalised frame (``normalize=False``: both
     sets stay where the coarse edge put them) from a variance of half the remaining e, so
-    it corrects locally instead of registering again from scratch.
+    it corrects locally instead of registering again from scratch. The fold check covers
+    the edge's non-rigid steps and the fine one, on the stored points as the edge's affine
+    pre-alignment leaves them.
     """
+    lead = 0
+    while lead < len(task.steps) - 1 and isinstance(task.steps[lead], AffineTransform):
+        lead += 1
     pre = task.q
-    for step in task.steps[:-1]:
+    for step in task.steps[:lead]:
         pre = step.apply(pre)
-    start = task.steps[-1].apply(pre)
+    start = _Composed(task.steps[lead:]).apply(pre)
     o = task.cpd
     res = cpd_nonrigid(start, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, tol=o.tol,
                        max_iter=min(o.max_iter, FINE_MAX_ITER), dtype=o.dtype,
                        sigma2=warm_start_sigma2(start, task.y), normalize=False)
     warped = np.asarray(res.warped, dtype=np.float64)
-    det = jacobian_determinants(_Composed((task.steps[-1], res.transform)), pre)
+    det = jacobian_determinants(_Composed((*task.steps[lead:], res.transform)), pre)
     return _FineOutcome(subject=task.subject, warped=warped,
                         error=registration_error(warped, task.y),
                         correspondence=np.asarray(res.correspondence, dtype=np.intp),
@@ -213,10 +234,17 @@ def _refined_subjects(
     stage: str,
 ) -> list[SubjectResult]:
     """`subjects` (decided at the working resolution) with every registration redone at
-    the stored resolution, a layer at a time from the root.
+    the stored resolution, a layer at a time from the root: one short CPD per subject,
+    started from its parent's final stored-resolution result moved by the subject's coarse
+    edge (and, for a polished subject, its coarse polish step: see :mod:`._polish`).
 
-    A polished subject is redone twice: its edge as built (what its children start from),
-    then its polish step from there (what it reports)."""
+    The edge is a map of the plane fitted between the parent's shape and the subject's,
+    so it carries the parent's refined correspondences over as well as the ones it was
+    fitted from. On six 永 ground-truth families (bench/RESULTS.md section 8.1) this gave
+    the same correspondence error (0.99x on average, 0.95-1.04x per family) as redoing a
+    polished subject's edge as built and then its polish (two CPDs, and a barrier between
+    them), in 0.3-0.6 of the time; one CPD per subject from its whole coarse chain was
+    worse (1.04x: the chain's accumulated error is left to a single correction)."""
     root = full.root
     fine = {root: _FineNode(q=full.normed[root], chain=full.root_chain())}
     coarse_chain = {root: full.root_chain()}
@@ -226,45 +254,28 @@ def _refined_subjects(
     by_depth: dict[int, list[SubjectResult]] = {}
     for s in pending:
         by_depth.setdefault(len(s.path), []).append(s)
-    polished = [s for s in pending if _as_built(s) is not s.transform]
-    total, done = len(pending) + len(polished), 0
+    total, done = len(pending), 0
     fine_outcome: dict[int, _FineOutcome] = {}
     for depth in sorted(by_depth):
         group = by_depth[depth]
-        tasks = []
+        tasks, steps = [], {}
         for s in group:
             assert s.parent is not None and s.transform is not None
-            tasks.append(_FineTask(
-                subject=s.index, q=fine[s.parent].q,
-                steps=_edge_steps(_as_built(s), coarse_chain[s.parent]),
-                y=full.normed[s.index], cpd=cpd))
+            built = _as_built(s)
+            coarse_chain[s.index] = built
+            steps[s.index] = (*_edge_steps(built, coarse_chain[s.parent]),
+                              *s.transform.steps[len(built.steps):])
+            tasks.append(_FineTask(subject=s.index, q=fine[s.parent].q, steps=steps[s.index],
+                                   y=full.normed[s.index], cpd=cpd))
         counted = _counting(progress, stage, done, total)
         for res in _map_tasks(_refine_edge, tasks, executor, counted, stage):
             s = out[res.subject]
             assert s.parent is not None
-            built = _as_built(s)
-            edge = _edge_steps(built, coarse_chain[s.parent])
-            chain = fine[s.parent].chain.extended((*edge, res.step), full.norms[s.index],
-                                                  s.index)
-            coarse_chain[s.index] = built
+            chain = fine[s.parent].chain.extended((*steps[s.index], res.step),
+                                                  full.norms[s.index], s.index)
             fine[s.index] = _FineNode(q=res.warped, chain=chain)
             fine_outcome[s.index] = res
         done += len(group)
-    # the polish steps, from the stored-resolution chains their subjects were built on
-    tasks = []
-    for s in polished:
-        assert s.transform is not None
-        tasks.append(_FineTask(subject=s.index, q=fine[s.index].q,
-                               steps=(s.transform.steps[-1],), y=full.normed[s.index],
-                               cpd=cpd))
-    counted = _counting(progress, stage, done, total)
-    for res in _map_tasks(_refine_edge, tasks, executor, counted, stage):
-        node = fine[res.subject]
-        step = out[res.subject].transform.steps[-1]  # type: ignore[union-attr]
-        chain = ChainTransform(source=node.chain.source, target=node.chain.target,
-                               steps=(*node.chain.steps, step, res.step), path=node.chain.path)
-        fine[res.subject] = _FineNode(q=res.warped, chain=chain)
-        fine_outcome[res.subject] = res
     for index, res in fine_outcome.items():
         s = out[index]
         s.quality = {**(s.quality or {}), "working_error": s.error,

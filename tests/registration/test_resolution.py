@@ -72,16 +72,17 @@ def test_results_are_at_the_stored_resolution(runs, family):
     res = runs["c2f"]
     assert res.options["working_points"] == WORKING
     _check_stored_resolution(res, family)
-    # polished subjects too (their polish step redone at the stored resolution, after the
-    # edge their children were built on)
+    # one stored-resolution CPD per subject, after its parent's whole chain: the edge (its
+    # coarse steps), a polished subject's coarse polish step, then the stored resolution's
+    n_root = len(family.shapes[0])
     polished = [s for s in res.subjects if (s.quality or {}).get("polish")]
     assert polished, "nothing polished: the family is too shallow to test the polish here"
-    for s in polished:
-        parent_steps = 0 if s.parent == 0 else len(res.subject(s.parent).transform.steps)
-        parent_polished = s.parent != 0 and (res.subject(s.parent).quality or {}).get("polish")
-        # the edge (its steps, then the stored resolution's), then the polish and its own
-        # stored-resolution step; a polished parent's last two are not in the child's chain
-        assert len(s.transform.steps) >= parent_steps - (2 if parent_polished else 0) + 4
+    for s in res.subjects:
+        parent = () if s.parent == 0 else res.subject(s.parent).transform.steps
+        steps = s.transform.steps
+        assert steps[:len(parent)] == parent  # the parent's chain, as it reports it
+        assert len(steps[-1].control_points) == n_root  # the stored-resolution step
+        assert len(steps) >= len(parent) + (3 if s in polished else 2)
     json.dumps(res.to_dict())
 
 
