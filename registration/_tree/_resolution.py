@@ -28,7 +28,7 @@ nothing here runs and the methods behave exactly as without a coarse stage.
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -204,6 +204,30 @@ def _as_built(res: SubjectResult) -> ChainTransform:
                           path=chain.path)
 
 
+@dataclass(frozen=True)
+class _FineSubjectTask:
+    """One subject at the stored resolution: its edge as built, then (a polished subject)
+    its polish step from there."""
+
+    edge: _FineTask
+    polish: PointTransform | None  # the polish CPD step decided at the working resolution
+
+
+@dataclass(frozen=True)
+class _FineSubject:
+    subject: int
+    built: _FineOutcome  # the edge as built: what the subject's children start from
+    polished: _FineOutcome | None
+
+
+def _refine_subject(task: _FineSubjectTask) -> _FineSubject:
+    built = _refine_edge(task.edge)
+    polished = None
+    if task.polish is not None:
+        polished = _refine_edge(replace(task.edge, q=built.warped, steps=(task.polish,)))
+    return _FineSubject(subject=task.edge.subject, built=built, polished=polished)
+
+
 def _refined_subjects(
     full: _Collection,
     subjects: list[SubjectResult],
@@ -215,10 +239,13 @@ def _refined_subjects(
     """`subjects` (decided at the working resolution) with every registration redone at
     the stored resolution, a layer at a time from the root.
 
-    A polished subject is redone twice: its edge as built (what its children start from),
-    then its polish step from there (what it reports)."""
+    A polished subject is redone twice in one task: its edge as built (what its children
+    start from), then its polish step from there (what it reports). The stage's count is
+    the attached subjects: each is done once its registration at the stored resolution
+    is final."""
     root = full.root
     fine = {root: _FineNode(q=full.normed[root], chain=full.root_chain())}
+    final: dict[int, _FineNode] = {}
     coarse_chain = {root: full.root_chain()}
     out = {s.index: s for s in subjects}
     pending = sorted((s for s in subjects if s.attached and s.parent is not None),
@@ -226,45 +253,37 @@ def _refined_subjects(
     by_depth: dict[int, list[SubjectResult]] = {}
     for s in pending:
         by_depth.setdefault(len(s.path), []).append(s)
-    polished = [s for s in pending if _as_built(s) is not s.transform]
-    total, done = len(pending) + len(polished), 0
+    total, done = len(pending), 0
     fine_outcome: dict[int, _FineOutcome] = {}
     for depth in sorted(by_depth):
         group = by_depth[depth]
         tasks = []
         for s in group:
             assert s.parent is not None and s.transform is not None
-            tasks.append(_FineTask(
-                subject=s.index, q=fine[s.parent].q,
-                steps=_edge_steps(_as_built(s), coarse_chain[s.parent]),
-                y=full.normed[s.index], cpd=cpd))
+            built = _as_built(s)
+            tasks.append(_FineSubjectTask(
+                edge=_FineTask(subject=s.index, q=fine[s.parent].q,
+                               steps=_edge_steps(built, coarse_chain[s.parent]),
+                               y=full.normed[s.index], cpd=cpd),
+                polish=None if built is s.transform else s.transform.steps[-1]))
         counted = _counting(progress, stage, done, total)
-        for res in _map_tasks(_refine_edge, tasks, executor, counted, stage):
+        for res in _map_tasks(_refine_subject, tasks, executor, counted, stage):
             s = out[res.subject]
-            assert s.parent is not None
+            assert s.parent is not None and s.transform is not None
             built = _as_built(s)
             edge = _edge_steps(built, coarse_chain[s.parent])
-            chain = fine[s.parent].chain.extended((*edge, res.step), full.norms[s.index],
-                                                  s.index)
+            chain = fine[s.parent].chain.extended((*edge, res.built.step),
+                                                  full.norms[s.index], s.index)
             coarse_chain[s.index] = built
-            fine[s.index] = _FineNode(q=res.warped, chain=chain)
-            fine_outcome[s.index] = res
+            fine[s.index] = final[s.index] = _FineNode(q=res.built.warped, chain=chain)
+            fine_outcome[s.index] = res.built
+            if res.polished is not None:  # the polish step, from the chain built on
+                step = s.transform.steps[-1]
+                final[s.index] = _FineNode(q=res.polished.warped, chain=ChainTransform(
+                    source=chain.source, target=chain.target,
+                    steps=(*chain.steps, step, res.polished.step), path=chain.path))
+                fine_outcome[s.index] = res.polished
         done += len(group)
-    # the polish steps, from the stored-resolution chains their subjects were built on
-    tasks = []
-    for s in polished:
-        assert s.transform is not None
-        tasks.append(_FineTask(subject=s.index, q=fine[s.index].q,
-                               steps=(s.transform.steps[-1],), y=full.normed[s.index],
-                               cpd=cpd))
-    counted = _counting(progress, stage, done, total)
-    for res in _map_tasks(_refine_edge, tasks, executor, counted, stage):
-        node = fine[res.subject]
-        step = out[res.subject].transform.steps[-1]  # type: ignore[union-attr]
-        chain = ChainTransform(source=node.chain.source, target=node.chain.target,
-                               steps=(*node.chain.steps, step, res.step), path=node.chain.path)
-        fine[res.subject] = _FineNode(q=res.warped, chain=chain)
-        fine_outcome[res.subject] = res
     for index, res in fine_outcome.items():
         s = out[index]
         s.quality = {**(s.quality or {}), "working_error": s.error,
@@ -273,7 +292,7 @@ def _refined_subjects(
         s.warped = full.norms[index].invert(res.warped)
         s.correspondence = res.correspondence
         s.probability = res.probability
-        s.transform = fine[index].chain
+        s.transform = final[index].chain
     return [out[s.index] for s in subjects]
 
 
