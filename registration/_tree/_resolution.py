@@ -284,14 +284,14 @@ def _refined_subjects(
                     steps=(*chain.steps, step, res.polished.step), path=chain.path))
                 fine_outcome[s.index] = res.polished
         done += len(group)
-    for index, res in fine_outcome.items():
+    for index, outcome in fine_outcome.items():
         s = out[index]
         s.quality = {**(s.quality or {}), "working_error": s.error,
-                     "stored_min_jacobian": res.min_jacobian}
-        s.error = res.error
-        s.warped = full.norms[index].invert(res.warped)
-        s.correspondence = res.correspondence
-        s.probability = res.probability
+                     "stored_min_jacobian": outcome.min_jacobian}
+        s.error = outcome.error
+        s.warped = full.norms[index].invert(outcome.warped)
+        s.correspondence = outcome.correspondence
+        s.probability = outcome.probability
         s.transform = final[index].chain
     return [out[s.index] for s in subjects]
 
