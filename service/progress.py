@@ -12,7 +12,7 @@ full resolution``, which count subjects. Stages with nothing to do are not repor
 
 The overall percentage places the stage within the whole run with the share of time each
 phase took in measured runs (:data:`PHASE_WEIGHTS`, bench/bench_progress.py, bench/RESULTS.md
-section 10.1), counting only the phases the job runs. How many layers a tree has is not
+section 5.2), counting only the phases the job runs. How many layers a tree has is not
 known in advance: the layers phase advances with the registrations done in all layers so
 far, against :data:`TREE_REGISTRATIONS_PER_SUBJECT` per subject, slowing down as it nears
 its end rather than stopping (:func:`_saturating`). The percentage never goes back. The
@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 if TYPE_CHECKING:
     from service.client import JobStatus
 
-#: Time per phase, measured (bench/bench_progress.py; bench/RESULTS.md section 10.1). The
+#: Time per phase, measured (bench/bench_progress.py; bench/RESULTS.md section 5.2). The
 #: decisions (similarity to direct) as shares of their sum, the mean over the demo
 #: collection, 20 generated shapes of 800 points and 40 永 edge glyphs (no set left
 #: subjects waiting for leaves: their 0.03 is a layer's, not measured). The
