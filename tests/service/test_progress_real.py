@@ -93,6 +93,7 @@ def test_progress_events_of_a_real_job(monkeypatch: pytest.MonkeyPatch,
                             working_points=working)
     last_phase = list(weights)[-1]
     fractions: list[float] = []
+    remaining: list[float] = []
     for k in range(len(events)):
         now[0] += 1.0
         state = _job("running", events, k, params, len(shapes))
@@ -101,6 +102,12 @@ def test_progress_events_of_a_real_job(monkeypatch: pytest.MonkeyPatch,
         fractions.append(estimate.fraction)
         if estimate.fraction >= MIN_FRACTION_FOR_ETA:
             assert estimate.remaining is not None and left(estimate.remaining) != "0:00"
+            if remaining:
+                # the time left rises only by what the clock explains (1 s at the pace so
+                # far), never by a leap: the estimate of what is done never drops
+                pace = (1 - fractions[-2]) / fractions[-2]
+                assert estimate.remaining <= remaining[-1] + pace + 1e-9, (events[k], remaining)
+            remaining.append(estimate.remaining)
         if phase_of(events[k][0]) != last_phase:
             assert estimate.fraction < 0.99, events[k]
     assert fractions == sorted(fractions)
