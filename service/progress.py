@@ -100,10 +100,13 @@ def stage_unit(stage: str | None) -> str:
     return "subjects" if (stage or "").endswith("full resolution") else "registrations"
 
 
-def phase_of(stage: str) -> str | None:
-    """The phase a stage belongs to (see :data:`PHASE_WEIGHTS`); None for one not known."""
+def phase_of(stage: str, method: str = "dynamic_tree") -> str | None:
+    """The phase a stage of a job of `method` belongs to (see :data:`PHASE_WEIGHTS`); None
+    for one not known."""
     if _LAYER.fullmatch(stage) or stage.startswith("similarity layer "):
         return "layers"
+    if method == "direct" and stage == "full resolution":
+        return "direct full resolution"  # register_direct's subjects are direct's
     return _PHASE_OF_STAGE.get(stage)
 
 
@@ -176,9 +179,7 @@ def overall_fraction(
     (``layer N`` stages before this one)."""
     if not stage:
         return 0.0
-    phase = phase_of(stage)
-    if method == "direct" and stage == "full resolution":
-        phase = "direct full resolution"  # register_direct's subjects are direct's
+    phase = phase_of(stage, method)
     weights = phase_weights(method, compare_direct=compare_direct and method != "direct",
                             coarse_to_fine=coarse_to_fine, max_points=max_points,
                             working_points=working_points)

@@ -34,7 +34,7 @@ def _job(status: str, events: list[tuple[str, int, int]], k: int | None,
          params: dict[str, Any], n_shapes: int) -> JobStatus:  # fmt: skip
     stage, done, total = events[k] if k is not None else (None, 0, 0)
     return JobStatus.from_json({
-        "id": 1, "collection_id": 1, "model_shape_id": 1, "method": "dynamic_tree",
+        "id": 1, "collection_id": 1, "model_shape_id": 1, "method": params["method"],
         "status": status, "n_shapes": n_shapes, "params": params,
         "progress": {"stage": stage, "done": done, "total": total},
     })  # fmt: skip
@@ -64,8 +64,11 @@ def _check_totals(events: list[tuple[str, int, int]], doc: dict[str, Any]) -> No
         assert counts == sorted(counts) and counts[0] == 0, (stage, counts)
 
 
-@pytest.mark.parametrize("working", [WORKING, None])
-def test_progress_events_of_a_real_job(monkeypatch: pytest.MonkeyPatch,
+@pytest.mark.parametrize(("method", "working"), [
+    ("dynamic_tree", WORKING), ("dynamic_tree", None), ("static_tree", WORKING),
+    ("direct", WORKING),
+])  # fmt: skip
+def test_progress_events_of_a_real_job(monkeypatch: pytest.MonkeyPatch, method: str,
                                        working: int | None) -> None:  # fmt: skip
     """Every progress event of a real job (the worker's library call), replayed through
     :class:`Progress` one second apart: the percentage only grows, reaches the cap only in
@@ -73,22 +76,22 @@ def test_progress_events_of_a_real_job(monkeypatch: pytest.MonkeyPatch,
     the first few percent to the end."""
     shapes = [p for _, p in family(n_chains=2, chain_length=3, n_points=N_POINTS)]
     params = {"compare_direct": True, "working_points": working, "max_points": N_POINTS,
-              "cpd": {"max_iter": 60}}  # fmt: skip
+              "cpd": {"max_iter": 60}, "method": method}  # fmt: skip
     events: list[tuple[str, int, int]] = []
-    result = run_library("dynamic_tree", shapes, [f"s{k}" for k in range(len(shapes))], 0,
+    result = run_library(method, shapes, [f"s{k}" for k in range(len(shapes))], 0,
                          params, executor=SerialExecutor(),
                          progress=lambda *e: events.append(e))  # fmt: skip
     doc = result.to_dict()
     _check_totals(events, doc)
     stages = list(dict.fromkeys(s for s, _, _ in events))
-    assert "polish" in stages and "direct" in stages
+    assert ("polish" in stages) == (method == "dynamic_tree") and "direct" in stages
     assert ("full resolution" in stages) == (working is not None)
 
     now = [0.0]
     monkeypatch.setattr("service.progress.time.monotonic", lambda: now[0])
     progress = Progress(1, io.StringIO(), tty=False)
     progress.update(_job("queued", events, None, params, len(shapes)))
-    weights = phase_weights("dynamic_tree", compare_direct=True,
+    weights = phase_weights(method, compare_direct=method != "direct",
                             coarse_to_fine=working is not None, max_points=N_POINTS,
                             working_points=working)
     last_phase = list(weights)[-1]
@@ -108,7 +111,7 @@ def test_progress_events_of_a_real_job(monkeypatch: pytest.MonkeyPatch,
                 pace = (1 - fractions[-2]) / fractions[-2]
                 assert estimate.remaining <= remaining[-1] + pace + 1e-9, (events[k], remaining)
             remaining.append(estimate.remaining)
-        if phase_of(events[k][0]) != last_phase:
+        if phase_of(events[k][0], method) != last_phase:
             assert estimate.fraction < 0.99, events[k]
     assert fractions == sorted(fractions)
     # the end is not a leap: the last phase ends near 100%
