@@ -19,9 +19,10 @@ from typing import Any, TextIO
 import httpx
 import numpy as np
 
+from service.client import JobStatus
 from service.core.config import Settings
 from service.embedded import BackgroundStack
-from service.progress import Progress
+from service.progress import Progress, outcome_line
 
 
 def load_demo_shapes() -> tuple[str, dict[str, np.ndarray]]:
@@ -81,8 +82,6 @@ def follow_job(
     client: httpx.Client, location: str, out: TextIO, *, poll: float = 0.5
 ) -> dict[str, Any]:
     """Poll a job until it ends, drawing its progress as ``regtree watch`` does."""
-    from service.client import JobStatus
-
     job_id = int(location.rstrip("/").rsplit("/", 1)[1])
     progress = Progress(job_id, out)
     try:
@@ -165,10 +164,12 @@ def run_demo(
             location = job.headers["Location"]
             state = follow_job(client, location, out)
             if state["status"] != "succeeded":
+                print(outcome_line(JobStatus.from_json(state)), file=out)
                 print(f"job ended {state['status']}: {state['error']}", file=sys.stderr)
                 return 1
             result = client.get(f"{location}/result").raise_for_status().json()
-    print(f"job {state['id']} succeeded", file=out)
+    # the line ``regtree watch`` ends with
+    print(outcome_line(JobStatus.from_json(state), result.get("summary")), file=out)
     summarise(result, out)
     print(
         "\nsee it: `regtree serve`, then open /ui (the results page) and pick the collection "

@@ -2,18 +2,27 @@
 --wait`` and ``regtree demo``: the current stage with its count, an overall percentage and an
 estimate of the time left.
 
-The library reports progress per stage (``similarity``, ``layer 2``, ``layer 3``, ...,
-``leaves``, ``refine``, ``polish``, ``direct``), each with its own count: pairs of shapes for
-the similarity stages, registrations (a subject from a candidate parent) for the others. The
-overall percentage places the stage within the whole run: the similarity first, the tree's
-layers next (how many there will be is not known in advance, so each layer is given half of
-what is left of the tree's share), then leaves, refinement and polish, and direct CPD last when the
-job compares with it. It never goes back, and it is an estimate, as is the time left it gives
-(elapsed time x what is left / what is done).
+The library reports progress per stage, each with its own count: pairs of shapes for the
+similarity stages (``similarity``, ``similarity layer 3``, ...), registrations for the
+others. A tree job runs, in order: ``similarity``; the tree's layers (``similarity layer
+N``, ``layer N`` for N = 2, 3, ...); ``similarity leaves``, ``leaves``; ``refine``;
+``polish``; when it compares, ``similarity direct``, ``direct``; and when it decides at a
+working resolution below its shapes' (coarse to fine), ``full resolution`` and ``direct
+full resolution``, which count subjects. Stages with nothing to do are not reported.
+
+The overall percentage places the stage within the whole run with the share of time each
+phase took in measured runs (:data:`PHASE_WEIGHTS`, bench/bench_progress.py, bench/RESULTS.md
+section 5.2), counting only the phases the job runs. How many layers a tree has is not
+known in advance: the layers phase advances with the registrations done in all layers so
+far, against :data:`TREE_REGISTRATIONS_PER_SUBJECT` per subject, slowing down as it nears
+its end rather than stopping (:func:`_saturating`). The percentage never goes back. The
+time left is elapsed time x what is left / what is done; it is shown rounded up, so it never
+reads 0:00 while the job runs.
 """
 
 from __future__ import annotations
 
+import math
 import re
 import shutil
 import time
@@ -24,21 +33,51 @@ from typing import TYPE_CHECKING, Any, TextIO
 if TYPE_CHECKING:
     from service.client import JobStatus
 
-#: Share of a run for its similarity stages and, when the job compares, for direct CPD (the
-#: tree takes the rest). Direct CPD is one registration per subject, like a tree layer.
-SIMILARITY_SHARE = 0.2
-DIRECT_SHARE = 0.3
-#: Share of a coarse-to-fine job (``working_points``) for registering every edge at the
-#: stored resolution (stages ``full resolution`` and ``direct full resolution``), after the
-#: decisions at the working resolution take the rest. A job whose shapes are all small has
-#: no such stage: its percentage jumps from there to 100 at the end.
-FINE_SHARE = 0.5
-#: Within the tree's share: the layers up to this, leaves then refinement after.
-LAYERS_SHARE = 0.9
+#: Time per phase, measured (bench/bench_progress.py; bench/RESULTS.md section 5.2). The
+#: decisions (similarity to direct) as shares of their sum, the mean over the demo
+#: collection, 20 generated shapes of 800 points and 40 永 edge glyphs (no set left
+#: subjects waiting for leaves: their 0.03 is a layer's, not measured). The
+#: stored-resolution phases relative to the same sum for shapes as large as the working
+#: resolution; they grow with the square of ``max_points / working_points``
+#: (:data:`FINE_EXPONENT`, :func:`phase_weights`): a CPD at the stored resolution costs about
+#: the product of the two shapes' points, the decisions run at the working resolution.
+PHASE_WEIGHTS = {
+    "similarity": 0.19,
+    "layers": 0.47,
+    "leaves": 0.03,
+    "refine": 0.06,
+    "polish": 0.09,
+    "direct": 0.19,
+    "full resolution": 0.055,
+    "direct full resolution": 0.037,
+}
+#: How the stored-resolution weights grow with ``max_points / working_points``: measured
+#: 2.2 (tree) and 1.8 (direct) between ratios 2 and 5.6.
+FINE_EXPONENT = 2.0
+#: The ratio assumed for a job queued before ``max_points`` was recorded.
+DEFAULT_FINE_RATIO = 4.0
+#: Registrations the tree's layers run per subject, measured: 1.47 (demo), 2.38 (永 40),
+#: 3.55 (800-point chains, which bridge a stalled tree one subject at a time); a dynamic tree
+#: tries up to 3 candidates for a subject in a layer and may try it again in later layers;
+#: a static tree registers each subject once.
+TREE_REGISTRATIONS_PER_SUBJECT = 2.4
+#: Within a phase of two stages, the share of its first (the similarity of its pairs).
+SIMILARITY_PART = 0.25
 #: Before this much is done, the time left is not estimated.
 MIN_FRACTION_FOR_ETA = 0.03
 
-_LAYER = re.compile(r"(similarity )?layer (\d+)")
+_LAYER = re.compile(r"layer (\d+)")
+_PHASE_OF_STAGE = {
+    "similarity": "similarity",
+    "similarity leaves": "leaves",
+    "leaves": "leaves",
+    "refine": "refine",
+    "polish": "polish",
+    "similarity direct": "direct",
+    "direct": "direct",
+    "full resolution": "full resolution",
+    "direct full resolution": "direct full resolution",
+}
 
 
 def clock(seconds: float) -> str:
@@ -48,64 +87,126 @@ def clock(seconds: float) -> str:
     return f"{hours}:{minutes:02d}:{secs:02d}" if hours else f"{minutes}:{secs:02d}"
 
 
+def left(seconds: float) -> str:
+    """A time left: :func:`clock` rounded up, so that any time left reads at least 0:01."""
+    return clock(math.ceil(seconds))
+
+
 def stage_unit(stage: str | None) -> str:
-    """What a stage counts: pairs of shapes for similarity stages, else registrations."""
-    return "pairs" if (stage or "").startswith("similarity") else "registrations"
+    """What a stage counts: pairs of shapes for similarity stages, subjects at the stored
+    resolution, else registrations."""
+    if (stage or "").startswith("similarity"):
+        return "pairs"
+    return "subjects" if (stage or "").endswith("full resolution") else "registrations"
 
 
-def _tree_position(stage: str, f: float) -> float | None:
-    """Where a stage of the tree is, from 0 to 1 of the tree's share."""
-    m = _LAYER.fullmatch(stage)
-    if m:
-        layer = int(m.group(2))
-        start = 1.0 - 0.5 ** max(0, layer - 2)  # layer 2 from 0, layer 3 from 1/2, ...
-        width = 0.5 ** max(1, layer - 1)
-        # a layer's similarity is its first quarter, its registrations the rest
-        within = 0.25 * f if m.group(1) else 0.25 + 0.75 * f
-        return LAYERS_SHARE * (start + width * within)
-    rest = 1.0 - LAYERS_SHARE
-    if stage == "similarity leaves":
-        return LAYERS_SHARE
-    if stage == "leaves":
-        return LAYERS_SHARE + rest * 0.5 * f
-    if stage == "refine":
-        return LAYERS_SHARE + rest * (0.5 + 0.25 * f)
-    if stage == "polish":
-        return LAYERS_SHARE + rest * (0.75 + 0.25 * f)
-    return None
+def phase_of(stage: str, method: str = "dynamic_tree") -> str | None:
+    """The phase a stage of a job of `method` belongs to (see :data:`PHASE_WEIGHTS`); None
+    for one not known."""
+    if _LAYER.fullmatch(stage) or stage.startswith("similarity layer "):
+        return "layers"
+    if method == "direct" and stage == "full resolution":
+        return "direct full resolution"  # register_direct's subjects are direct's
+    return _PHASE_OF_STAGE.get(stage)
+
+
+def stored_resolution_stage(params: dict[str, Any]) -> bool:
+    """Whether a job ends with the stored-resolution stages: it decides at a working
+    resolution (``working_points``) and has a shape above it (``max_points``; a job queued
+    before that was recorded is assumed to)."""
+    working = params.get("working_points")
+    if not working:
+        return False
+    most = params.get("max_points")
+    return most is None or int(most) > int(working)
+
+
+def phase_weights(
+    method: str, *, compare_direct: bool, coarse_to_fine: bool, max_points: int | None = None,
+    working_points: int | None = None,
+) -> dict[str, float]:
+    """The phases a job runs, in order, each with its share of the run (summing to 1)."""
+    if method == "direct":
+        phases = ["direct"] + (["direct full resolution"] if coarse_to_fine else [])
+    else:
+        phases = ["similarity", "layers"]
+        if method == "dynamic_tree":
+            phases += ["leaves", "refine", "polish"]
+        if compare_direct:
+            phases.append("direct")
+        if coarse_to_fine:
+            phases += ["full resolution"] + (["direct full resolution"] if compare_direct else [])
+    ratio = DEFAULT_FINE_RATIO
+    if max_points and working_points:
+        ratio = max(1.0, max_points / working_points)
+    scale = ratio**FINE_EXPONENT
+    raw = {p: PHASE_WEIGHTS[p] * (scale if p.endswith("full resolution") else 1.0)
+           for p in phases}
+    total = sum(raw.values())
+    return {p: w / total for p, w in raw.items()}
+
+
+def _saturating(x: float) -> float:
+    """``x`` up to 3/4, then on towards 1 without reaching it (slope 1 throughout)."""
+    knee = 0.75
+    return x if x <= knee else 1.0 - (1.0 - knee) * math.exp(-(x - knee) / (1.0 - knee))
+
+
+def _within(method: str, phase: str, stage: str, f: float, subjects: int,
+            before: int, done: int) -> float:
+    """How far a phase is, from 0 to 1, at `stage` with `f` of its count done."""
+    if phase == "layers":
+        per_subject = 1.0 if method == "static_tree" else TREE_REGISTRATIONS_PER_SUBJECT
+        regs = before + (0 if stage.startswith("similarity") else done)
+        return _saturating(regs / (per_subject * max(subjects, 1)))
+    if phase in ("leaves", "direct") and stage.startswith("similarity"):
+        return SIMILARITY_PART * f
+    if phase in ("leaves", "direct"):
+        return SIMILARITY_PART + (1 - SIMILARITY_PART) * f
+    return f
 
 
 def overall_fraction(
     method: str, stage: str | None, done: int, total: int, *, compare_direct: bool,
-    coarse_to_fine: bool = False,
+    coarse_to_fine: bool = False, max_points: int | None = None,
+    working_points: int | None = None, subjects: int = 0, before: int = 0,
 ) -> float | None:
     """The estimated share of a running job that is done, from its current stage; None for
-    a stage this does not know. `coarse_to_fine`: the job decides at a working resolution
-    (its stages up to ``full resolution`` take ``1 - FINE_SHARE`` of it)."""
+    a stage this does not know. `coarse_to_fine`: the job ends with the stored-resolution
+    stages; `max_points`, `working_points`: the most points of its shapes and the working
+    resolution (the weight of those stages grows with their ratio); `subjects`: how many
+    subjects it has; `before`: the registrations done in the tree's earlier layers
+    (``layer N`` stages before this one)."""
     if not stage:
         return 0.0
+    phase = phase_of(stage, method)
+    weights = phase_weights(method, compare_direct=compare_direct and method != "direct",
+                            coarse_to_fine=coarse_to_fine, max_points=max_points,
+                            working_points=working_points)
+    if phase not in weights:
+        return None
     f = min(1.0, done / total) if total > 0 else 0.0
-    if coarse_to_fine:
-        direct = DIRECT_SHARE if compare_direct and method != "direct" else 0.0
-        if stage == "full resolution":
-            return 1.0 - FINE_SHARE + FINE_SHARE * (1.0 - direct) * f
-        if stage == "direct full resolution":
-            return 1.0 - FINE_SHARE * direct * (1.0 - f)
-        coarse = overall_fraction(method, stage, done, total, compare_direct=compare_direct)
-        return None if coarse is None else (1.0 - FINE_SHARE) * coarse
-    if method == "direct":
-        if stage == "similarity direct" or stage == "similarity":
-            return SIMILARITY_SHARE * f
-        return SIMILARITY_SHARE + (1 - SIMILARITY_SHARE) * f if stage == "direct" else None
-    direct = DIRECT_SHARE if compare_direct else 0.0
-    tree = 1.0 - SIMILARITY_SHARE - direct
-    if stage == "similarity":
-        return SIMILARITY_SHARE * f
-    if stage in ("similarity direct", "direct"):
-        within = 0.25 * f if stage == "similarity direct" else 0.25 + 0.75 * f
-        return SIMILARITY_SHARE + tree + direct * within
-    position = _tree_position(stage, f)
-    return None if position is None else SIMILARITY_SHARE + tree * position
+    start = 0.0
+    for p, w in weights.items():
+        if p == phase:
+            break
+        start += w
+    return min(1.0, start + weights[phase] * _within(method, phase, stage, f, subjects,
+                                                      before, done))
+
+
+def outcome_line(state: JobStatus, summary: dict[str, Any] | None = None) -> str:
+    """The line ``regtree watch``, ``run --wait`` and ``demo`` print when a job ends: its
+    status, how long it ran and, with the result's summary, what was attached."""
+    line = f"job {state.id} {state.status}"
+    if state.started_at is not None and state.finished_at is not None:
+        line += f" after {(state.finished_at - state.started_at).total_seconds():.1f} s"
+    if state.status == "succeeded" and summary:
+        line += f": {summary.get('attached')} of {summary.get('subjects')} subjects attached"
+        if summary.get("leaves"):
+            line += f" ({summary['leaves']} as low-confidence leaves)"
+        line += f", tree depth {summary.get('depth')}"
+    return line
 
 
 def _started(state: JobStatus) -> float | None:
@@ -157,6 +258,7 @@ class Progress:
         self.started = time.monotonic()
         self._run_started: float | None = None
         self._fraction = 0.0
+        self._layers: dict[str, int] = {}  # the total of each ``layer N`` stage seen
         self._last_key: tuple[Any, ...] | None = None
         self._last_line = self.started
         self._drawn = False
@@ -173,14 +275,22 @@ class Progress:
             return Estimate(self._fraction if state.finished else None, None)
         if self._run_started is None:
             self._run_started = _started(state) or time.monotonic()
-        compare = bool(state.params.get("compare_direct"))
+        if state.stage and _LAYER.fullmatch(state.stage):
+            self._layers[state.stage] = state.total
+        params = state.params
         fraction = overall_fraction(
-            state.method, state.stage, state.done, state.total, compare_direct=compare,
-            coarse_to_fine=bool(state.params.get("working_points")),
+            state.method, state.stage, state.done, state.total,
+            compare_direct=bool(params.get("compare_direct")),
+            coarse_to_fine=stored_resolution_stage(params),
+            max_points=params.get("max_points"),
+            working_points=params.get("working_points"),
+            subjects=max(0, state.n_shapes - 1),
+            before=sum(t for s, t in self._layers.items() if s != state.stage),
         )
-        if fraction is None:
-            return Estimate(self._fraction or None, None)
-        self._fraction = max(self._fraction, min(fraction, 0.99))
+        if fraction is None and not self._fraction:
+            return Estimate(None, None)
+        # a stage this does not know keeps the estimate as it was
+        self._fraction = max(self._fraction, min(fraction or 0.0, 0.99))
         ran = time.monotonic() - self._run_started
         remaining = None
         if self._fraction >= MIN_FRACTION_FOR_ETA and ran > 0:
@@ -196,7 +306,7 @@ class Progress:
             return ""
         text = f"overall {100 * estimate.fraction:.0f}%"
         if estimate.remaining is not None and estimate.fraction < 1:
-            text += f", about {clock(estimate.remaining)} left"
+            text += f", about {left(estimate.remaining)} left"
         return text
 
     def update(self, state: JobStatus) -> None:
@@ -230,7 +340,7 @@ class Progress:
         if estimate.fraction is not None:
             tail = f" {100 * estimate.fraction:3.0f}%"
             if estimate.remaining is not None and estimate.fraction < 1:
-                tail += f" ~{clock(estimate.remaining)} left"
+                tail += f" ~{left(estimate.remaining)} left"
             tail += f" {clock(self.elapsed())}"
             width = max(10, min(30, columns - len(head) - len(tail) - 5))
             filled = round(width * estimate.fraction)

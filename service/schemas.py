@@ -443,7 +443,8 @@ class JobOut(BaseModel):
         description="The job's options as it runs them: the thresholds, compare_direct, cpd, "
         "and the pose of the pre-alignment resolved from the request (pose, max_rotation) "
         "with pose_source saying where it came from: request, default for image "
-        "collections, or default."
+        "collections, or default; and max_points, the most points of any of the job's shapes "
+        "(above working_points, the job ends registering its tree at the stored resolution)."
     )
     n_shapes: int
     status: JobStatusName

@@ -27,7 +27,7 @@ from service.cli_client._common import (
     find_collection,
     find_shape,
 )
-from service.progress import Progress
+from service.progress import Progress, outcome_line
 
 # --- upload ------------------------------------------------------------------------------
 
@@ -186,24 +186,15 @@ def watch_job(
         progress.end_line()
         raise
     progress.end_line()
-    took = ""
-    if state.started_at is not None and state.finished_at is not None:
-        took = f" after {(state.finished_at - state.started_at).total_seconds():.1f} s"
     if state.status != "succeeded":
-        _out(f"job {job_id} {state.status}{took}", stream)
+        _out(outcome_line(state), stream)
         reason = f": {state.error}" if state.error else ""
         return _fail(f"job {job_id} {state.status}{reason}", EXIT_FAILED)
     try:
         summary = rt.result(job_id).summary
     except RegtreeError:  # the job succeeded: say so even if its summary cannot be read
         summary = {}
-    line = f"job {job_id} succeeded{took}"
-    if summary:
-        line += f": {summary.get('attached')} of {summary.get('subjects')} subjects attached"
-        if summary.get("leaves"):
-            line += f" ({summary['leaves']} as low-confidence leaves)"
-        line += f", tree depth {summary.get('depth')}"
-    _out(line, stream)
+    _out(outcome_line(state, summary), stream)
     _out(f"pictures and numbers: regtree results {job_id} --out DIR", stream)
     return EXIT_OK
 

@@ -104,12 +104,13 @@ class JobRefused(ValueError):
 class JobSpec:
     """What :meth:`JobQueue.enqueue` needs: the request, validated as far as it can be
     without the database. ``params_for`` gives the job's params from the source formats of
-    the collection's shapes (the default pose depends on them)."""
+    the collection's shapes (the default pose depends on them) and their point counts
+    (whether a coarse-to-fine job has a stored-resolution stage)."""
 
     collection_id: int
     model_shape_id: int
     method: str
-    params_for: Callable[[list[str]], dict[str, Any]]
+    params_for: Callable[[list[str], list[int]], dict[str, Any]]
     callback_url: str | None = None
 
 
@@ -186,7 +187,7 @@ class JobQueue:
                     f"{model.collection_id}, not to collection {spec.collection_id}"
                 )
             rows = s.execute(
-                select(Shape.id, Shape.source_format)
+                select(Shape.id, Shape.source_format, Shape.n_points)
                 .where(Shape.collection_id == spec.collection_id)
                 .order_by(Shape.id)
             ).all()
@@ -200,7 +201,8 @@ class JobQueue:
                 model_shape_id=spec.model_shape_id,
                 shape_ids=[row.id for row in rows],
                 method=spec.method,
-                params=spec.params_for([row.source_format for row in rows]),
+                params=spec.params_for([row.source_format for row in rows],
+                                       [row.n_points for row in rows]),
                 status=JobStatus.queued.value,
                 max_attempts=self.max_attempts,
                 callback_url=spec.callback_url,

@@ -40,10 +40,13 @@ def family():
 @pytest.fixture(scope="module")
 def runs(family):
     kw = {"cpd": FAST_CPD, "executor": SerialExecutor(), "names": family.names}
+    events: list[tuple[str, int, int]] = []
     return {
         "c2f": build_dynamic_tree(family.shapes, 0, working_points=WORKING,
-                                  compare_direct=True, **kw),
+                                  compare_direct=True, **kw,
+                                  progress=lambda *e: events.append(e)),
         "full": build_dynamic_tree(family.shapes, 0, working_points=None, **kw),
+        "c2f events": events,
     }
 
 
@@ -84,6 +87,23 @@ def test_results_are_at_the_stored_resolution(runs, family):
         assert len(steps[-1].control_points) == n_root  # the stored-resolution step
         assert len(steps) >= len(parent) + (3 if s in polished else 2)
     json.dumps(res.to_dict())
+
+
+def test_stored_resolution_stages_count_subjects(runs):
+    """``full resolution`` counts the tree's attached subjects (a polished one once, its
+    edge and polish step in one task) and ``direct full resolution`` direct's, each from 0
+    up to its total, after every stage decided at the working resolution."""
+    res, events = runs["c2f"], runs["c2f events"]
+    assert any((s.quality or {}).get("polish") for s in res.subjects)
+    stages = list(dict.fromkeys(stage for stage, _, _ in events))
+    assert stages[-2:] == ["full resolution", "direct full resolution"]
+    for stage, results in (("full resolution", res.subjects), ("direct full resolution",
+                                                                res.direct)):
+        seen = [(d, t) for s, d, t in events if s == stage]
+        attached = sum(1 for s in results if s.attached)
+        assert {t for _, t in seen} == {attached}
+        assert [d for d, _ in seen] == sorted(d for d, _ in seen)
+        assert seen[0][0] == 0 and seen[-1][0] == attached
 
 
 def test_coarse_to_fine_matches_a_full_resolution_run(runs, family):

@@ -84,7 +84,8 @@ def write_folder(folder: Path) -> list[str]:
 
 
 PROGRESS = re.compile(
-    r"^\[\s*[\d.]+ s\] job (\d+) (\w+)(?: (.+?) (\d+)/(\d+) (?:pairs|registrations) \(\d+%\))?"
+    r"^\[\s*[\d.]+ s\] job (\d+) (\w+)"
+    r"(?: (.+?) (\d+)/(\d+) (?:pairs|registrations|subjects) \(\d+%\))?"
     r"(?:; (\d+) subjects)?(?:; overall (\d+)%(?:, about [\d:]+ left)?)?$"
 )
 

@@ -10,7 +10,15 @@ from typing import Any
 import pytest
 
 from service.client import JobStatus
-from service.progress import Progress, clock, overall_fraction
+from service.progress import (
+    PHASE_WEIGHTS,
+    Progress,
+    clock,
+    left,
+    overall_fraction,
+    phase_weights,
+    stored_resolution_stage,
+)
 
 #: The stages a dynamic-tree job with direct comparison reports, in order (from the library).
 STAGES = [
@@ -52,23 +60,34 @@ def _run() -> list[JobStatus]:
     return [*states, _state("succeeded", "direct", 15, 15)]
 
 
+def _fractions(method: str, stages: list[tuple[str, int]], **kw: Any) -> list[float | None]:
+    """overall_fraction at every count of every stage, with the registrations of the
+    earlier layers counted as :class:`Progress` counts them."""
+    layers: dict[str, int] = {}
+    out = []
+    for stage, total in stages:
+        if stage.startswith("layer "):
+            layers[stage] = total
+        before = sum(t for s, t in layers.items() if s != stage)
+        out += [overall_fraction(method, stage, done, total, subjects=15, before=before, **kw)
+                for done in range(total + 1)]
+    return out
+
+
 @pytest.mark.parametrize("compare_direct", [True, False])
 def test_overall_fraction_only_grows_through_a_run(compare_direct: bool) -> None:
     stages = [s for s in STAGES if "direct" not in s[0] or compare_direct]
-    fractions = [
-        overall_fraction("dynamic_tree", stage, done, total, compare_direct=compare_direct)
-        for stage, total in stages
-        for done in range(total + 1)
-    ]
+    fractions = _fractions("dynamic_tree", stages, compare_direct=compare_direct)
     assert all(f is not None for f in fractions)
     assert fractions == sorted(fractions)  # type: ignore[type-var]
     assert fractions[0] == 0.0
     assert fractions[-1] == pytest.approx(1.0)
-    # deeper layers take less of what is left: layer 9 is past layer 8, both before leaves
-    deep = [overall_fraction("dynamic_tree", f"layer {k}", 1, 1, compare_direct=False)
-            for k in (8, 9)]  # fmt: skip
+    # a tree that needs more registrations than expected goes on growing, slower, and
+    # stays below the next phase
+    deep = [overall_fraction("dynamic_tree", "layer 9", 1, 1, compare_direct=False,
+                             subjects=15, before=b) for b in (20, 40, 80)]  # fmt: skip
     leaves = overall_fraction("dynamic_tree", "leaves", 0, 1, compare_direct=False)
-    assert deep[0] < deep[1] < leaves  # type: ignore[operator]
+    assert deep[0] < deep[1] < deep[2] < leaves  # type: ignore[operator]
 
 
 @pytest.mark.parametrize("method", ["dynamic_tree", "direct"])
@@ -80,23 +99,42 @@ def test_coarse_to_fine_jobs_keep_a_share_for_the_full_resolution(
     stages = [s for s in STAGES if ("direct" not in s[0] or compare)
               and (method != "direct" or "direct" in s[0])]  # fmt: skip
     stages += [("full resolution", 15)] + ([("direct full resolution", 15)] if compare else [])
-    fractions = [
-        overall_fraction(method, stage, done, total, compare_direct=compare_direct,
-                         coarse_to_fine=True)
-        for stage, total in stages
-        for done in range(total + 1)
-    ]  # fmt: skip
+    fractions = _fractions(method, stages, compare_direct=compare_direct, coarse_to_fine=True,
+                           max_points=1500)  # fmt: skip
     assert all(f is not None for f in fractions)
     assert fractions == sorted(fractions)  # type: ignore[type-var]
     assert fractions[-1] == pytest.approx(1.0)
+    weights = phase_weights(method, compare_direct=compare, coarse_to_fine=True,
+                            max_points=1500)  # fmt: skip
+    fine = [p for p in weights if p.endswith("full resolution")]
     start = overall_fraction(method, "full resolution", 0, 15, compare_direct=compare_direct,
-                             coarse_to_fine=True)  # fmt: skip
-    assert start == pytest.approx(0.5)
+                             coarse_to_fine=True, max_points=1500)  # fmt: skip
+    assert start == pytest.approx(1 - sum(weights[p] for p in fine))
+
+
+def test_phase_weights() -> None:
+    """Only the phases a job runs share it; the stored-resolution share grows with the
+    points of the largest shape; a job knows whether it has that stage from its params."""
+    every = phase_weights("dynamic_tree", compare_direct=True, coarse_to_fine=True)
+    assert list(every) == list(PHASE_WEIGHTS) and sum(every.values()) == pytest.approx(1.0)
+    plain = phase_weights("dynamic_tree", compare_direct=False, coarse_to_fine=False)
+    assert list(plain) == ["similarity", "layers", "leaves", "refine", "polish"]
+    assert sum(plain.values()) == pytest.approx(1.0)
+    static = phase_weights("static_tree", compare_direct=False, coarse_to_fine=False)
+    assert list(static) == ["similarity", "layers"]
+    fine = [phase_weights("dynamic_tree", compare_direct=False, coarse_to_fine=True,
+                          max_points=n, working_points=400)["full resolution"]
+            for n in (500, 1500, 3000)]  # fmt: skip
+    assert fine == sorted(fine) and fine[0] < fine[-1]
+    assert stored_resolution_stage({"working_points": 400, "max_points": 1200})
+    assert not stored_resolution_stage({"working_points": 400, "max_points": 150})
+    assert not stored_resolution_stage({"working_points": None, "max_points": 1200})
+    assert stored_resolution_stage({"working_points": 400})  # queued before max_points
 
 
 def test_overall_fraction_of_direct_and_unknown_stages() -> None:
     assert overall_fraction("direct", "similarity direct", 5, 10, compare_direct=False) == (
-        pytest.approx(0.1)
+        pytest.approx(0.125)
     )
     assert overall_fraction("direct", "direct", 15, 15, compare_direct=False) == 1.0
     assert overall_fraction("dynamic_tree", "something new", 1, 2, compare_direct=True) is None
@@ -129,11 +167,15 @@ def test_time_left_follows_the_elapsed_time(monkeypatch: pytest.MonkeyPatch) -> 
     progress.update(_state("running", "similarity", 0, 100))
     assert progress.estimate(_state("running", "similarity", 0, 100)).remaining is None
     now[0] += 30.0
-    # half the similarity of a job that compares: 10% of it, after 30 s -> 270 s left
+    # half the similarity of a job that compares, after 30 s
+    share = phase_weights("dynamic_tree", compare_direct=True, coarse_to_fine=False)
+    f = 0.5 * share["similarity"]
     estimate = progress.estimate(_state("running", "similarity", 50, 100))
-    assert estimate.fraction == pytest.approx(0.1)
-    assert estimate.remaining == pytest.approx(270.0)
+    assert estimate.fraction == pytest.approx(f)
+    assert estimate.remaining == pytest.approx(30.0 * (1 - f) / f)
     assert clock(270.0) == "4:30" and clock(3725.0) == "1:02:05"
+    # a time left is rounded up: it never reads 0:00
+    assert left(0.2) == "0:01" and left(59.5) == "1:00" and left(60.0) == "1:00"
 
 
 def test_terminal_line_is_redrawn_with_a_bar() -> None:

@@ -125,12 +125,15 @@ def resolve_pose(body: JobCreate, source_formats: list[str]) -> dict[str, Any]:
     return {**spec.to_dict(), "pose_source": source}
 
 
-def _params(body: JobCreate, formats: list[str]) -> dict[str, Any]:
+def _params(body: JobCreate, formats: list[str], points: list[int]) -> dict[str, Any]:
     """The job's params: the registration options and pose, or a grouping's threshold and
-    max_rotation."""
+    max_rotation; and ``max_points``, the most points of any of its shapes (above
+    ``working_points``, a job ends registering its tree at the stored resolution: its
+    progress counts on that stage)."""
     if body.method == GROUPING_METHOD:
         return {"group_threshold": body.group_threshold, "max_rotation": body.max_rotation}
     return {
+        "max_points": max(points, default=0),
         **body.model_dump(
             mode="json",
             include={"similarity_threshold", "error_threshold", "compare_direct", "cpd",
@@ -199,7 +202,7 @@ def create_job(
             collection_id=body.collection_id,
             model_shape_id=_model_shape_id(session, body),
             method=body.method,
-            params_for=lambda formats: _params(body, formats),
+            params_for=lambda formats, points: _params(body, formats, points),
             callback_url=body.callback_url,
         )
         entry = idempotency.lookup(session, scope, idempotency_key, request_hash)
