@@ -38,9 +38,9 @@ if TYPE_CHECKING:
 #: collection, 20 generated shapes of 800 points and 40 永 edge glyphs (no set left
 #: subjects waiting for leaves: their 0.03 is a layer's, not measured). The
 #: stored-resolution phases relative to the same sum for shapes as large as the working
-#: resolution; they grow with the square of ``max_points / working_points``
-#: (:data:`FINE_EXPONENT`, :func:`phase_weights`): a CPD at the stored resolution costs about
-#: the product of the two shapes' points, the decisions run at the working resolution.
+#: resolution; they grow as ``(max_points / working_points) ** 1.5``
+#: (:data:`FINE_EXPONENT`, :func:`phase_weights`): a CPD at the stored resolution costs
+#: between the points and their product, the decisions run at the working resolution.
 PHASE_WEIGHTS = {
     "similarity": 0.19,
     "layers": 0.47,
@@ -48,12 +48,14 @@ PHASE_WEIGHTS = {
     "refine": 0.06,
     "polish": 0.09,
     "direct": 0.19,
-    "full resolution": 0.055,
-    "direct full resolution": 0.037,
+    "full resolution": 0.05,
+    "direct full resolution": 0.048,
 }
 #: How the stored-resolution weights grow with ``max_points / working_points``: measured
-#: 2.2 (tree) and 1.8 (direct) between ratios 2 and 5.6.
-FINE_EXPONENT = 2.0
+#: 1.65 (tree) and 1.3 (direct) between ratios 2 and 5.6 with one warm-started CPD per
+#: subject and its near-linear E-step (bench/RESULTS.md section 5.2; 2.2 and 1.8 when the
+#: stage ran two CPDs for a polished subject and a quadratic fold check).
+FINE_EXPONENT = 1.5
 #: The ratio assumed for a job queued before ``max_points`` was recorded.
 DEFAULT_FINE_RATIO = 4.0
 #: Registrations the tree's layers run per subject, measured: 1.47 (demo), 2.38 (永 40),
