@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 
 __all__ = ["Normalization", "as_points", "normalise", "resample"]
 
@@ -149,3 +150,24 @@ def resample(points: ArrayLike, n: int, *, name: str = "points") -> FloatArray:
         return p
     idx = np.floor(np.arange(n) * (m / n)).astype(np.intp)
     return p[idx]
+
+
+def farthest_point_indices(points: FloatArray, n: int) -> IntArray:
+    """Indices (sorted) of a farthest-point subsample of `n` of `points` (all if fewer).
+
+    Deterministic and independent of the order of the points up to ties: it starts at the
+    point farthest from the centroid and adds, each time, the point farthest from those
+    chosen, so the subsample covers the shape evenly whatever the density of the input
+    (scans and edge maps are denser in places).
+    """
+    m = points.shape[0]
+    if m <= n:
+        return np.arange(m, dtype=np.intp)
+    chosen = np.empty(n, dtype=np.intp)
+    chosen[0] = int(np.argmax(np.sum((points - points.mean(axis=0)) ** 2, axis=1)))
+    d2 = np.sum((points - points[chosen[0]]) ** 2, axis=1)
+    for k in range(1, n):
+        nxt = int(np.argmax(d2))
+        chosen[k] = nxt
+        np.minimum(d2, np.sum((points - points[nxt]) ** 2, axis=1), out=d2)
+    return np.sort(chosen)

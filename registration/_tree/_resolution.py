@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid
 from .._error import registration_error
 from .._executor import Executor
+from .._points import farthest_point_indices
 from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
 from .._transform import (
@@ -87,27 +88,6 @@ def check_working_points(value: Any) -> int | None:
         raise ValueError(f"working_points must be None, 0 or an integer >= "
                          f"{MIN_WORKING_POINTS}; got {value!r}")
     return n
-
-
-def farthest_point_indices(points: FloatArray, n: int) -> IntArray:
-    """Indices (sorted) of a farthest-point subsample of `n` of `points` (all if fewer).
-
-    Deterministic and independent of the order of the points up to ties: it starts at the
-    point farthest from the centroid and adds, each time, the point farthest from those
-    chosen, so the subsample covers the shape evenly whatever the density of the input
-    (scans and edge maps are denser in places).
-    """
-    m = points.shape[0]
-    if m <= n:
-        return np.arange(m, dtype=np.intp)
-    chosen = np.empty(n, dtype=np.intp)
-    chosen[0] = int(np.argmax(np.sum((points - points.mean(axis=0)) ** 2, axis=1)))
-    d2 = np.sum((points - points[chosen[0]]) ** 2, axis=1)
-    for k in range(1, n):
-        nxt = int(np.argmax(d2))
-        chosen[k] = nxt
-        np.minimum(d2, np.sum((points - points[nxt]) ** 2, axis=1), out=d2)
-    return np.sort(chosen)
 
 
 def coarse_collection(full: _Collection, working_points: int | None) -> _Collection:

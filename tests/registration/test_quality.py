@@ -54,3 +54,29 @@ def test_part_of_the_subject_left_uncovered_lowers_coverage():
     ident = AffineTransform(A=np.eye(2), t=np.zeros(2))
     q = measure_quality(half, half, x, ident, registration_error(half, x), _spacing2(x))
     assert 0.4 < q.coverage < 0.65
+
+
+def test_the_checks_do_not_depend_on_how_densely_the_shapes_are_sampled():
+    """The same smooth registration sampled at 300 and at 2400 points gets about the same
+    checks and confidence: e / h^2 and the coverage within 2h would otherwise grow with
+    the density (h shrinks, the tracing noise does not) and score every dense registration
+    low."""
+    from registration._quality import QUALITY_POINTS
+
+    def warp(p: np.ndarray) -> np.ndarray:
+        return p @ np.array([[1.05, 0.08], [-0.04, 0.97]]).T + 0.04 * np.sin(2.0 * p[:, ::-1])
+
+    conf = {}
+    rng = np.random.default_rng(0)
+    for n in (300, 2400):
+        x = base_outline(n)
+        y = warp(base_outline(n + 7))  # another sampling of the same deformed outline,
+        y += rng.normal(scale=0.01, size=y.shape)  # traced with a little noise
+        reg = cpd_nonrigid(x, y)
+        q = measure_quality(x, np.asarray(reg.warped), y, reg.transform,
+                            registration_error(reg.warped, y), _spacing2(y))
+        conf[n] = q.confidence
+        assert q.coverage > 0.9
+    assert conf[300] > 0.8
+    assert abs(conf[2400] - conf[300]) < 0.1
+    assert QUALITY_POINTS < 2400  # the dense case is the subsampled one
