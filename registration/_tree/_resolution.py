@@ -15,12 +15,12 @@ result's warped points, correspondences, transforms and e are then those of the 
 shapes; the attempts, thresholds, similarity, confidence and quality checks keep the
 working resolution's figures the decisions were taken on (``quality`` adds
 ``working_error``, the e decided on, and ``stored_min_jacobian``, the fold check of the
-edge's warp on the stored points). The confidence stays the working resolution's because
-its model is calibrated on shapes of a few hundred points: its e / h^2 feature grows with
-the density of the points (h is the point spacing), and on the 73 永 edge glyphs at their
-stored 1167-2244 points it scored correct registrations near 0.05 (bench/RESULTS.md
-section 8), so that the tree run at the stored resolution left 71 of 72 subjects as
-leaves.
+edge's warp on the stored points). The confidence is the one the decisions were taken
+with (the quality checks measure any shape at most :data:`registration._quality.
+QUALITY_POINTS` points dense, the density their model was fitted at: before that, the 73
+永 edge glyphs measured at their stored 1167-2244 points scored correct registrations near
+0.05 and a tree run at the stored resolution left 71 of 72 subjects as leaves,
+bench/RESULTS.md section 8).
 
 Shapes at or below ``working_points`` are not subsampled; when no shape is above it,
 nothing here runs and the methods behave exactly as without a coarse stage.
