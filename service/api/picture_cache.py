@@ -17,7 +17,8 @@ import logging
 from collections.abc import Callable
 from typing import Annotated, Any, TypeVar
 
-from fastapi import Query, Request, Response
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.types import DecoratedCallable
 from sqlalchemy.orm import Session
 
 from service import __version__
@@ -60,6 +61,16 @@ def image_responses(media_type: str, *statuses: int) -> dict[int | str, dict[str
         304: {"description": "Not modified (the `If-None-Match` ETag matches)."},
         **problem_responses(*statuses),
     }
+
+
+def picture_route(router: APIRouter, path: str, summary: str, description: str | None = None,
+                  *, media_type: str = "image/png", gone: bool = False
+                  ) -> Callable[[DecoratedCallable], DecoratedCallable]:
+    """``router.get`` for a picture: its media type, 304 and problems 404, 409 and 422 (and 410
+    when it draws shapes that may have been ``gone`` since the job ran)."""
+    statuses = (404, 409, 410, 422) if gone else (404, 409, 422)
+    return router.get(path, response_class=Response, summary=summary, description=description,
+                      responses=image_responses(media_type, *statuses))
 
 
 def picture_etag(job: Job, *parts: object) -> str:

@@ -15,7 +15,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from service.api.deps import DbDep
-from service.api.picture_cache import WidthQuery, cached_picture, image_responses
+from service.api.picture_cache import WidthQuery, cached_picture, picture_route
 from service.api.problems import ProblemError, problem_responses
 from service.api.routes.results import stored_result
 from service.contract.names import GROUPING_METHOD, ProblemType
@@ -74,12 +74,9 @@ def _group_picture(job_id: int, request: Request, db: DbDep, key: tuple[object, 
     return cached_picture(request, db, locate, load)
 
 
-@router.get(
-    "/{job_id}/groups/gallery.png",
-    response_class=Response,
-    responses=image_responses("image/png", 404, 409, 422),
-    summary="The groups as a gallery",
-    description="One row per group (the largest 60): the representative framed in red, "
+@picture_route(
+    router, "/{job_id}/groups/gallery.png", "The groups as a gallery",
+    "One row per group (the largest 60): the representative framed in red, "
     "then its members, each titled with its shape id and confidence.",
 )
 def gallery_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None
@@ -94,12 +91,9 @@ def gallery_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = N
     return _group_picture(job_id, request, db, ("gallery", width), load)
 
 
-@router.get(
-    "/{job_id}/groups/dendrogram.png",
-    response_class=Response,
-    responses=image_responses("image/png", 404, 409, 422),
-    summary="The grouping's dendrogram",
-    description="The average-linkage tree over the mould distances, leaves coloured by "
+@picture_route(
+    router, "/{job_id}/groups/dendrogram.png", "The grouping's dendrogram",
+    "The average-linkage tree over the mould distances, leaves coloured by "
     "group, with the cut as a dashed line.",
 )
 def dendrogram_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None
@@ -109,14 +103,13 @@ def dendrogram_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery 
                                                              width=width))
 
 
-@router.get(
-    "/{job_id}/groups/instances/{shape_id}.png",
-    response_class=Response,
-    responses=image_responses("image/png", 404, 409, 410, 422),
-    summary="An instance beside its group's representative",
-    description="The shape aligned onto its group's representative, and where their "
+@picture_route(
+    router, "/{job_id}/groups/instances/{shape_id}.png",
+    "An instance beside its group's representative",
+    "The shape aligned onto its group's representative, and where their "
     "outlines differ (ink spread discounted), the largest difference circled. 404 for a "
     "shape not in the job; 410 when it or the representative was deleted since.",
+    gone=True,
 )
 def instance_png(job_id: DbId, shape_id: DbId, request: Request, db: DbDep) -> Response:
     def locate(session: Session) -> tuple[Job, tuple[object, ...], dict[str, Any]]:

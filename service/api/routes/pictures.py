@@ -15,7 +15,7 @@ from fastapi import APIRouter, Query, Request, Response
 from sqlalchemy.orm import Session
 
 from service.api.deps import DbDep
-from service.api.picture_cache import WidthQuery, cached_picture, image_responses
+from service.api.picture_cache import WidthQuery, cached_picture, picture_route
 from service.api.problems import ProblemError
 from service.api.routes.results import _subject, _succeeded_job
 from service.contract.names import ProblemType
@@ -51,38 +51,28 @@ def _tree(job_id: int, fmt: str, width: int | None, request: Request, db: DbDep)
                            partial(render_tree, fmt=fmt, width=width))
 
 
-@router.get(
-    "/{job_id}/result/tree.svg",
-    response_class=Response,
-    responses=image_responses("image/svg+xml", 404, 409, 422),
-    summary="The registration tree as SVG",
-    description="Shapes by layer (the model on top), edges coloured by the child's error e, "
+@picture_route(
+    router, "/{job_id}/result/tree.svg", "The registration tree as SVG",
+    "Shapes by layer (the model on top), edges coloured by the child's error e, "
     "low-confidence leaves on a dashed edge as hollow grey nodes (with a legend), shapes no "
     "member could register in a box apart. Each shape's name is a `<text>` in a "
     'group `<g id="node-<shape_id>">` (`unattached-<shape_id>` in the box), so a page can '
     "make the nodes clickable.",
+    media_type="image/svg+xml",
 )
 def tree_svg(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
     return _tree(job_id, "svg", width, request, db)
 
 
-@router.get(
-    "/{job_id}/result/tree.png",
-    response_class=Response,
-    responses=image_responses("image/png", 404, 409, 422),
-    summary="The registration tree as PNG",
-)
+@picture_route(router, "/{job_id}/result/tree.png", "The registration tree as PNG")
 def tree_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
     """The same picture as `tree.svg`, as a PNG image."""
     return _tree(job_id, "png", width, request, db)
 
 
-@router.get(
-    "/{job_id}/result/summary.png",
-    response_class=Response,
-    responses=image_responses("image/png", 404, 409, 422),
-    summary="Error e per tree layer, tree against direct CPD",
-    description="Mean (bar) and 95th percentile (whisker) of e for each layer, with direct "
+@picture_route(
+    router, "/{job_id}/result/summary.png", "Error e per tree layer, tree against direct CPD",
+    "Mean (bar) and 95th percentile (whisker) of e for each layer, with direct "
     "CPD's e on the same subjects beside it when the job compared with it.",
 )
 def summary_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
@@ -91,16 +81,15 @@ def summary_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = N
                            partial(render_summary, fmt="png", **options))
 
 
-@router.get(
-    "/{job_id}/result/subjects/{shape_id}/overlay.png",
-    response_class=Response,
-    responses=image_responses("image/png", 404, 409, 410, 422),
-    summary="A subject with the model warped onto it",
-    description="The subject's points (grey), the model warped onto it through the tree (red) "
+@picture_route(
+    router, "/{job_id}/result/subjects/{shape_id}/overlay.png",
+    "A subject with the model warped onto it",
+    "The subject's points (grey), the model warped onto it through the tree (red) "
     "and a sample of correspondence lines (green), titled with its layer, e and confidence "
     "(and a low-confidence leaf's reason); beside it, on the same axes, direct CPD's "
     "registration when the job computed it. An unattached subject is drawn alone with the "
     "reason. 410 when the subject's shape was deleted after the job ran.",
+    gone=True,
 )
 def subject_overlay_png(
     job_id: DbId,
