@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session
 
 from service.api.deps import DbDep
 from service.api.picture_cache import WidthQuery, cached_picture, picture_route
-from service.api.problems import ProblemError, problem_responses
+from service.api.problems import ProblemError, operation
 from service.api.routes.results import stored_result
 from service.contract.names import GROUPING_METHOD, ProblemType
 from service.contract.result import GroupingDocument
@@ -43,11 +43,9 @@ def grouping_of(session: Session, job_id: int) -> tuple[Job, dict[str, Any]]:
     return job, document
 
 
-@router.get(
-    "/{job_id}/groups",
+@operation(
+    router.get, "/{job_id}/groups", "Read a grouping job's groups", (404, 409, 422),
     response_model=GroupingDocument,
-    responses=problem_responses(404, 409, 422),
-    summary="Read a grouping job's groups",
     description="Which shapes came from one mould: each shape's group (`labels` by shape id, "
     "`instances` with confidence and representative), the groups with their representative, "
     "the distance matrix in `shape_ids` order and the average-linkage tree. 409 while the "
