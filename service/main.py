@@ -109,10 +109,7 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
     app.include_router(pages.router)  # the results page at /ui
     install_docs(app)  # /docs and /redoc
 
-    @documented(
-        app.get, "/healthz", "Liveness and database check", (503,),
-        tags=["health"],
-    )
+    @documented(app.get, "/healthz", "Liveness and database check", (503,), tags=["health"])
     def healthz() -> dict[str, str]:
         """`{"status": "ok"}` when the service runs and its database answers; 503 otherwise.
         Open without an API key."""

@@ -251,10 +251,7 @@ def list_jobs(
     return Page[JobOut](items=items, total=total, limit=page.limit, offset=page.offset)
 
 
-@operation(
-    router.get, "/{job_id}", "Read a job", (404,),
-    response_model=JobOut,
-)
+@operation(router.get, "/{job_id}", "Read a job", (404,), response_model=JobOut)
 def get_job(job_id: DbId, db: DbDep) -> JobOut:
     """The job's status (`queued`, `running`, `succeeded`, `failed`, `cancelled`), its
     `outcome` once ended, its progress (stage, steps done of the total), attempts, error and
