@@ -27,6 +27,8 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
+from ._pool import ClosedOnExit
+
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -48,7 +50,7 @@ def _distributed() -> Any:
     return distributed
 
 
-class DaskExecutor:
+class DaskExecutor(ClosedOnExit):
     """Runs the tasks of a collection on a Dask distributed cluster.
 
     Parameters
@@ -214,12 +216,6 @@ class DaskExecutor:
                 self.client.close()
             except Exception:  # already closed, or the scheduler is gone
                 pass
-
-    def __enter__(self) -> DaskExecutor:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"DaskExecutor({self.client.scheduler.address!r})"

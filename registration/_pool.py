@@ -32,7 +32,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
-from typing import Any, TypeVar
+from typing import Any, Self, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -105,7 +105,21 @@ def _context(method: str | None) -> Any:
     return context
 
 
-class LocalProcessExecutor:
+class ClosedOnExit:
+    """``with executor:`` closes the executor (its ``close``) on the way out, however it
+    leaves; the executors that hold processes or a connection share this."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class LocalProcessExecutor(ClosedOnExit):
     """A pool of local worker processes, stopped at once when ``check`` raises.
 
     Parameters
@@ -275,12 +289,6 @@ class LocalProcessExecutor:
                 slot.process.kill()
                 slot.process.join(5.0)
             slot.connection.close()
-
-    def __enter__(self) -> LocalProcessExecutor:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"LocalProcessExecutor(max_workers={self.max_workers})"

@@ -18,12 +18,8 @@ from service.api.middleware import (
     BodyLimitMiddleware,
     RequestLogMiddleware,
 )
-from service.api.problems import (
-    Problem,
-    ProblemError,
-    install_problem_handlers,
-    problem_responses,
-)
+from service.api.problems import Problem, ProblemError, install_problem_handlers
+from service.api.problems import operation as documented
 from service.api.routes import (
     collections,
     deliveries,
@@ -113,12 +109,7 @@ def create_app(settings: Settings | None = None, *, db: Database | None = None) 
     app.include_router(pages.router)  # the results page at /ui
     install_docs(app)  # /docs and /redoc
 
-    @app.get(
-        "/healthz",
-        tags=["health"],
-        summary="Liveness and database check",
-        responses=problem_responses(503),
-    )
+    @documented(app.get, "/healthz", "Liveness and database check", (503,), tags=["health"])
     def healthz() -> dict[str, str]:
         """`{"status": "ok"}` when the service runs and its database answers; 503 otherwise.
         Open without an API key."""

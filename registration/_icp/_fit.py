@@ -10,6 +10,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from .._points import as_points
+from .._transform import AffineTransform
 
 FloatArray = NDArray[np.float64]
 
@@ -43,8 +44,7 @@ class AffineICPResult:
 
     def apply(self, points: ArrayLike) -> FloatArray:
         """Map points with ``x -> A x + t``."""
-        p = np.asarray(points, dtype=np.float64)
-        return p @ self.A.T + self.t
+        return AffineTransform(self.A, self.t).apply(points)
 
     def to_dict(self) -> dict[str, object]:
         return {

@@ -9,6 +9,7 @@ exception (500, without internals in the body).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from http import HTTPStatus
 from typing import Any
 
@@ -16,6 +17,7 @@ from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi.types import DecoratedCallable
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
@@ -201,6 +203,22 @@ def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
         }
         for status in statuses
     }
+
+
+def operation(
+    verb: Callable[..., Callable[[DecoratedCallable], DecoratedCallable]],
+    path: str,
+    summary: str,
+    problems: tuple[int, ...],
+    description: str | None = None,
+    **options: Any,
+) -> Callable[[DecoratedCallable], DecoratedCallable]:
+    """``verb(path, ...)`` (``router.get``, ``router.post``, ...) with its summary, Markdown
+    description and the problem documents it may answer (:func:`problem_responses`, after the
+    operation's own ``responses``, if any); the other ``options`` (``response_model``,
+    ``status_code``, ...) go to FastAPI as they are."""
+    responses = {**options.pop("responses", {}), **problem_responses(*problems)}
+    return verb(path, summary=summary, description=description, responses=responses, **options)
 
 
 def not_found(what: str, ident: object) -> ProblemError:

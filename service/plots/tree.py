@@ -66,12 +66,13 @@ class _Plan:
     u_rows: int
     u_box: float
     fits: bool  # every name within its room
+    dpi: float  # the figure's pixels per inch: a point is dpi / 72 pixels
 
     def fitted_px(self) -> float:
         """Names' point size in screen pixels once the picture is fitted into the page's box
         (never enlarged)."""
         scale = min(1.0, _VIEW_W / self.fig_w, _VIEW_H / self.fig_h)
-        return self.fontsize * 100 / 72 * scale
+        return self.fontsize * self.dpi / 72 * scale
 
 
 @dataclass
@@ -336,7 +337,7 @@ def render_tree(
         fig_h = height or int(min(6000, max(320, top_px + tree_px + u_box + _BOTTOM_PX + 20)))
         fits = rotation != 0 or text <= 0.92 * lines * slot_px
         return _Plan(rotation, lines, fontsize, fig_w, fig_h, axes_w, slot_px, row_y, below,
-                     u_fontsize, per_row, u_rows, u_box, fits)  # fmt: skip
+                     u_fontsize, per_row, u_rows, u_box, fits, dpi)  # fmt: skip
 
     # names: across in one line, taking turns on two or three, or upright, whichever shows
     # them largest when the whole picture is fitted into the results page's tree box (a narrower

@@ -253,7 +253,7 @@ def test_page_files_are_public_and_pictures_need_the_key(
 
 def test_a_name_no_font_can_draw_is_reported_in_a_header() -> None:
     """Characters without any installed font come out as boxes: the response says which."""
-    from service.api.routes.pictures import _picture
+    from service.api.picture_cache import picture_response as _picture
     from service.plots import render_tree
     from tests.service.test_plots_cjk import document
 

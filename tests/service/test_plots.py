@@ -272,6 +272,18 @@ def test_tree_crowded_labels_turn_vertical() -> None:
     assert png_image(rendered).shape[1] == 1600
 
 
+
+@pytest.mark.parametrize("dpi", [100.0, 200.0])
+def test_tree_names_fitted_size_counts_the_figure_dpi(dpi: float) -> None:
+    """A point is dpi / 72 pixels: the layout compares names' fitted size at the real dpi."""
+    from service.plots.tree import _Plan
+
+    plan = _Plan(0, 1, 9.0, 600, 600, 500.0, 40.0, [0.0], 20.0, 9.0, 10, 0, 0.0, True, dpi)
+    assert plan.fitted_px() == pytest.approx(9.0 * dpi / 72)
+    # fitted into the page's box, a wider picture shrinks its names by the same factor
+    wide = _Plan(0, 1, 9.0, 1360, 600, 1260.0, 40.0, [0.0], 20.0, 9.0, 10, 0, 0.0, True, dpi)
+    assert wide.fitted_px() == pytest.approx(9.0 * dpi / 72 * 680 / 1360)
+
 # --- subject ---------------------------------------------------------------------------------
 
 

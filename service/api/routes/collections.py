@@ -8,7 +8,7 @@ from sqlalchemy.orm import Session
 
 from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep
-from service.api.problems import not_found, problem_responses
+from service.api.problems import not_found, operation
 from service.models import Collection, Shape
 from service.schemas import CollectionCreate, CollectionOut, DbId, Page
 
@@ -46,12 +46,9 @@ def get_collection_or_404(
     return collection
 
 
-@router.post(
-    "",
-    status_code=status.HTTP_201_CREATED,
-    response_model=CollectionOut,
-    responses=problem_responses(401, 413, 422),
-    summary="Create a collection",
+@operation(
+    router.post, "", "Create a collection", (401, 413, 422),
+    status_code=status.HTTP_201_CREATED, response_model=CollectionOut,
 )
 def create_collection(
     body: CollectionCreate,
@@ -102,11 +99,9 @@ def list_collections(db: DbDep, page: PaginationDep) -> Page[CollectionOut]:
     return Page[CollectionOut](items=items, total=total, limit=page.limit, offset=page.offset)
 
 
-@router.get(
-    "/{collection_id}",
+@operation(
+    router.get, "/{collection_id}", "Read a collection", (404,),
     response_model=CollectionOut,
-    responses=problem_responses(404),
-    summary="Read a collection",
 )
 def get_collection(collection_id: DbId, db: DbDep) -> CollectionOut:
     """The collection's name, description, number of shapes and times."""
@@ -116,11 +111,9 @@ def get_collection(collection_id: DbId, db: DbDep) -> CollectionOut:
         return collection_out(collection, n_shapes)
 
 
-@router.delete(
-    "/{collection_id}",
+@operation(
+    router.delete, "/{collection_id}", "Delete a collection, its shapes, jobs and results", (404,),
     status_code=status.HTTP_204_NO_CONTENT,
-    responses=problem_responses(404),
-    summary="Delete a collection, its shapes, jobs and results",
 )
 def delete_collection(collection_id: DbId, db: DbDep) -> Response:
     """Deletes the collection with everything in it: its shapes, and its jobs with their

@@ -6,18 +6,16 @@ from fastapi import APIRouter
 from sqlalchemy import select
 
 from service.api.deps import DbDep
-from service.api.problems import not_found, problem_responses
+from service.api.problems import not_found, operation
 from service.models import TERMINAL_STATUSES, CallbackAttempt, CallbackDelivery, Job
 from service.schemas import DbId, DeliveriesOut, DeliveryAttemptOut
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
 
-@router.get(
-    "/{job_id}/deliveries",
+@operation(
+    router.get, "/{job_id}/deliveries", "Read a job's callback deliveries", (404,),
     response_model=DeliveriesOut,
-    responses=problem_responses(404),
-    summary="Read a job's callback deliveries",
     description="The state of the job's callback (none, waiting for the job to end, "
     "pending, delivered, failed) and every try: when, how long, the receiver's status code "
     "and what went wrong. A callback is a POST of compact JSON (job_id, state: succeeded, "

@@ -21,7 +21,7 @@ from fastapi import APIRouter, Query, Response
 from sqlalchemy.orm import Session, undefer
 
 from service.api.deps import DbDep
-from service.api.problems import ProblemError, problem_responses
+from service.api.problems import ProblemError, operation
 from service.api.routes.results import (
     LeafQuery,
     MinConfidenceQuery,
@@ -105,12 +105,10 @@ def similarity_document(
     return out
 
 
-@router.get(
-    "/{job_id}/similarity",
-    response_model=SimilarityDocument,
-    response_model_exclude_unset=True,
-    responses=problem_responses(404, 409, 422),
-    summary="The similarity D the job computed, and each shape's nearest shapes",
+@operation(
+    router.get, "/{job_id}/similarity",
+    "The similarity D the job computed, and each shape's nearest shapes", (404, 409, 422),
+    response_model=SimilarityDocument, response_model_exclude_unset=True,
     description="D (eq. 9, affine ICP with bidirectional distance) between the job's shapes, "
     "in the order of `shape_ids`: `D[i][j]` moves shape i onto shape j (the direction the "
     "tree uses, member onto subject), null for pairs the job did not need. `nearest` lists, "
@@ -164,14 +162,10 @@ def subjects_csv(document: Mapping[str, Any], subjects: Sequence[Mapping[str, An
     return buffer.getvalue()
 
 
-@router.get(
-    "/{job_id}/result.csv",
+@operation(
+    router.get, "/{job_id}/result.csv", "A job's per-subject results as CSV", (404, 409, 422),
     response_class=Response,
-    responses={
-        200: {"content": {"text/csv": {}}, "description": "One row per subject."},
-        **problem_responses(404, 409, 422),
-    },
-    summary="A job's per-subject results as CSV",
+    responses={200: {"content": {"text/csv": {}}, "description": "One row per subject."}},
     description="One row per subject, with the columns " + ", ".join(CSV_COLUMNS) + ". "
     "Numbers at full precision, empty where there is none (an unattached subject has no "
     "layer, parent or e); path_shape_ids is space-separated, root first. min_confidence, "
@@ -225,14 +219,13 @@ def _pictures(
     return files
 
 
-@router.get(
-    "/{job_id}/export.zip",
+@operation(
+    router.get, "/{job_id}/export.zip",
+    "A whole job as one ZIP: JSON, CSV and pictures", (404, 409, 422),
     response_class=Response,
     responses={
-        200: {"content": {"application/zip": {}}, "description": "The job as one ZIP file."},
-        **problem_responses(404, 409, 422),
+        200: {"content": {"application/zip": {}}, "description": "The job as one ZIP file."}
     },
-    summary="A whole job as one ZIP: JSON, CSV and pictures",
     description="`result.json` (the full result: every subject with its warped model, "
     "correspondences and transform, and `root_subject`: the model's own entry with the "
     "identity transform), `result.csv`, `similarity.json` (when the job kept it), `job.json`, "

@@ -7,6 +7,7 @@ the other picture routes (strong ETag from the finished job, 304 on ``If-None-Ma
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 from fastapi import APIRouter, Request, Response
@@ -14,15 +15,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from service.api.deps import DbDep
-from service.api.problems import ProblemError, problem_responses
-from service.api.routes.pictures import (
-    WidthQuery,
-    _etag,
-    _image_responses,
-    _matches,
-    _not_modified,
-    _picture,
-)
+from service.api.picture_cache import WidthQuery, cached_picture, picture_route
+from service.api.problems import ProblemError, operation
 from service.api.routes.results import stored_result
 from service.contract.names import GROUPING_METHOD, ProblemType
 from service.contract.result import GroupingDocument
@@ -49,11 +43,9 @@ def grouping_of(session: Session, job_id: int) -> tuple[Job, dict[str, Any]]:
     return job, document
 
 
-@router.get(
-    "/{job_id}/groups",
+@operation(
+    router.get, "/{job_id}/groups", "Read a grouping job's groups", (404, 409, 422),
     response_model=GroupingDocument,
-    responses=problem_responses(404, 409, 422),
-    summary="Read a grouping job's groups",
     description="Which shapes came from one mould: each shape's group (`labels` by shape id, "
     "`instances` with confidence and representative), the groups with their representative, "
     "the distance matrix in `shape_ids` order and the average-linkage tree. 409 while the "
@@ -70,69 +62,63 @@ def _y_down(session: Session, shape_ids: list[int]) -> bool:
 
 
 def _group_picture(job_id: int, request: Request, db: DbDep, key: tuple[object, ...],
-                   draw: Callable[[Session, dict[str, Any]], Rendered]) -> Response:
-    """A picture of a grouping: 304 when the ETag matches, else ``draw(session, doc)``."""
-    with db.read() as session:
+                   load: Callable[[Session, dict[str, Any]], Callable[[], Rendered]]
+                   ) -> Response:
+    """A picture of a grouping: 304 when the client holds it, else ``load(session, doc)()``."""
+    def locate(session: Session) -> tuple[Job, tuple[object, ...], dict[str, Any]]:
         job, document = grouping_of(session, job_id)
-        etag = _etag(job, *key)
-        if _matches(request, etag):
-            return _not_modified(etag)
-        rendered = draw(session, document)
-    return _picture(rendered, etag)
+        return job, key, document
+
+    return cached_picture(request, db, locate, load)
 
 
-@router.get(
-    "/{job_id}/groups/gallery.png",
-    response_class=Response,
-    responses=_image_responses("image/png", 404, 409, 422),
-    summary="The groups as a gallery",
-    description="One row per group (the largest 60): the representative framed in red, "
+@picture_route(
+    router, "/{job_id}/groups/gallery.png", "The groups as a gallery",
+    "One row per group (the largest 60): the representative framed in red, "
     "then its members, each titled with its shape id and confidence.",
 )
 def gallery_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None
                 ) -> Response:
-    def draw(session: Session, document: dict[str, Any]) -> Rendered:
+    def load(session: Session, document: dict[str, Any]) -> Callable[[], Rendered]:
         ids = [int(s) for s in document["shape_ids"]]
         rows = session.scalars(select(Shape).where(Shape.id.in_(ids))).all()
         points = {s.id: s.points for s in rows}
-        return render_gallery(document, points, width=width, y_down=_y_down(session, ids))
+        return partial(render_gallery, document, points, width=width,
+                       y_down=_y_down(session, ids))
 
-    return _group_picture(job_id, request, db, ("gallery", width), draw)
+    return _group_picture(job_id, request, db, ("gallery", width), load)
 
 
-@router.get(
-    "/{job_id}/groups/dendrogram.png",
-    response_class=Response,
-    responses=_image_responses("image/png", 404, 409, 422),
-    summary="The grouping's dendrogram",
-    description="The average-linkage tree over the mould distances, leaves coloured by "
+@picture_route(
+    router, "/{job_id}/groups/dendrogram.png", "The grouping's dendrogram",
+    "The average-linkage tree over the mould distances, leaves coloured by "
     "group, with the cut as a dashed line.",
 )
 def dendrogram_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None
                    ) -> Response:
     return _group_picture(job_id, request, db, ("dendrogram", width),
-                          lambda _session, document: render_dendrogram(document, width=width))
+                          lambda _session, document: partial(render_dendrogram, document,
+                                                             width=width))
 
 
-@router.get(
-    "/{job_id}/groups/instances/{shape_id}.png",
-    response_class=Response,
-    responses=_image_responses("image/png", 404, 409, 410, 422),
-    summary="An instance beside its group's representative",
-    description="The shape aligned onto its group's representative, and where their "
+@picture_route(
+    router, "/{job_id}/groups/instances/{shape_id}.png",
+    "An instance beside its group's representative",
+    "The shape aligned onto its group's representative, and where their "
     "outlines differ (ink spread discounted), the largest difference circled. 404 for a "
     "shape not in the job; 410 when it or the representative was deleted since.",
+    gone=True,
 )
 def instance_png(job_id: DbId, shape_id: DbId, request: Request, db: DbDep) -> Response:
-    with db.read() as session:
+    def locate(session: Session) -> tuple[Job, tuple[object, ...], dict[str, Any]]:
         job, document = grouping_of(session, job_id)
         instance = next((i for i in document["instances"] if i["shape_id"] == shape_id), None)
         if instance is None:
             raise ProblemError(404, f"shape {shape_id} is not in grouping job {job_id}",
                                type_=ProblemType.NOT_FOUND)
-        etag = _etag(job, "instance", shape_id)
-        if _matches(request, etag):
-            return _not_modified(etag)
+        return job, ("instance", shape_id), instance
+
+    def load(session: Session, instance: dict[str, Any]) -> Callable[[], Rendered]:
         rep_id = int(instance["representative_shape_id"])
         shape, rep = session.get(Shape, shape_id), session.get(Shape, rep_id)
         if shape is None or rep is None:
@@ -141,5 +127,6 @@ def instance_png(job_id: DbId, shape_id: DbId, request: Request, db: DbDep) -> R
                                "points are needed to draw the comparison",
                                type_=ProblemType.SHAPE_DELETED)
         y_down = made_from_image(shape.source_format)
-        a, b = shape.points, rep.points
-    return _picture(render_instance(instance, a, b, y_down=y_down), etag)
+        return partial(render_instance, instance, shape.points, rep.points, y_down=y_down)
+
+    return cached_picture(request, db, locate, load)

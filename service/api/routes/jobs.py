@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session
 
 from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
-from service.api.problems import ProblemError, not_found, problem_responses
+from service.api.problems import ProblemError, not_found, operation
 from service.contract.names import GROUPING_METHOD, ProblemType
 from service.jobs import callbacks
 from service.jobs.queue import JobQueue, JobRefused, JobSpec, Outcome
@@ -161,12 +161,9 @@ def _unprocessable(detail: str, type_: str = ProblemType.INVALID_JOB) -> Problem
     return ProblemError(422, detail, type_=type_)
 
 
-@router.post(
-    "",
-    status_code=status.HTTP_202_ACCEPTED,
-    response_model=JobOut,
-    responses=problem_responses(401, 413, 422),
-    summary="Submit a registration job",
+@operation(
+    router.post, "", "Submit a registration job", (401, 413, 422),
+    status_code=status.HTTP_202_ACCEPTED, response_model=JobOut,
     description="Queues the job and answers 202 with a `Location` to poll. The job registers "
     "the model shape onto every shape the collection holds now. Without `pose` and "
     "`max_rotation`, a collection whose shapes were all uploaded as PNG or JPEG images is "
@@ -257,9 +254,7 @@ def list_jobs(
     return Page[JobOut](items=items, total=total, limit=page.limit, offset=page.offset)
 
 
-@router.get(
-    "/{job_id}", response_model=JobOut, responses=problem_responses(404), summary="Read a job"
-)
+@operation(router.get, "/{job_id}", "Read a job", (404,), response_model=JobOut)
 def get_job(job_id: DbId, db: DbDep) -> JobOut:
     """The job's status (`queued`, `running`, `succeeded`, `failed`, `cancelled`), its
     `outcome` once ended, its progress (stage, steps done of the total), attempts, error and
@@ -268,12 +263,9 @@ def get_job(job_id: DbId, db: DbDep) -> JobOut:
         return job_out(session, _get_job(session, job_id))
 
 
-@router.post(
-    "/{job_id}/cancel",
-    status_code=status.HTTP_202_ACCEPTED,
-    response_model=JobOut,
-    responses=problem_responses(404, 409),
-    summary="Cancel a job",
+@operation(
+    router.post, "/{job_id}/cancel", "Cancel a job", (404, 409),
+    status_code=status.HTTP_202_ACCEPTED, response_model=JobOut,
     description="A queued job (waiting for its first attempt or a retry) is cancelled at "
     "once: status `cancelled`, outcome `cancelled`. A running job gets `cancel_requested`; its "
     "worker sees the request within the setting `cancel_poll_seconds` (1 s by default), stops "

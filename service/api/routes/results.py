@@ -12,7 +12,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from service.api.deps import DbDep, SettingsDep
-from service.api.problems import ProblemError, not_found, problem_responses
+from service.api.problems import ProblemError, not_found, operation
 from service.api.routes.jobs import _get_job
 from service.contract.names import GROUPING_METHOD, SUBJECT_SORTS, ProblemType, SubjectSort
 from service.contract.result import ResultDocument, SubjectDetail
@@ -164,12 +164,9 @@ def result_document(
     return document
 
 
-@router.get(
-    "/{job_id}/result",
-    response_model=ResultDocument,
-    response_model_exclude_unset=True,
-    responses=problem_responses(404, 409, 422),
-    summary="Read a job's result",
+@operation(
+    router.get, "/{job_id}/result", "Read a job's result", (404, 409, 422),
+    response_model=ResultDocument, response_model_exclude_unset=True,
     description=RESULT_DESCRIPTION,
 )
 def get_result(
@@ -254,12 +251,10 @@ def subject_document(session: Session, job_id: int, shape_id: int) -> dict[str, 
     raise not_found(f"subject {shape_id} in the result of job", job_id)
 
 
-@router.get(
-    "/{job_id}/result/subjects/{shape_id}",
-    response_model=SubjectDetail,
-    response_model_exclude_unset=True,
-    responses=problem_responses(404, 409),
-    summary="Read one subject of a result: tree place, transform, correspondences, error",
+@operation(
+    router.get, "/{job_id}/result/subjects/{shape_id}",
+    "Read one subject of a result: tree place, transform, correspondences, error", (404, 409),
+    response_model=SubjectDetail, response_model_exclude_unset=True,
     description="The subject's place in the tree, e, confidence and quality, the model "
     "warped onto it (`warped`, the subject's coordinates), `correspondence`, and the "
     "`transform` (root normalisation, steps, subject normalisation). The model's own shape "
@@ -308,11 +303,10 @@ def _transform_of(db: DbDep, job_id: int, shape_id: int, n_points: int, limit: i
         raise ProblemError(422, str(e), type_=ProblemType.VALIDATION_ERROR) from e
 
 
-@router.post(
-    "/{job_id}/result/subjects/{shape_id}/transform",
+@operation(
+    router.post, "/{job_id}/result/subjects/{shape_id}/transform",
+    "Map points from the model onto a subject with the stored transform", (404, 409, 422),
     response_model=TransformOut,
-    responses=problem_responses(404, 409, 422),
-    summary="Map points from the model onto a subject with the stored transform",
     description="The chain of registrations along the subject's tree path, applied to points "
     "in the model shape's coordinates. For the model's own shape id: the identity.",
 )
@@ -327,11 +321,10 @@ def transform_points(
     )
 
 
-@router.post(
-    "/{job_id}/result/subjects/{shape_id}/inverse-transform",
+@operation(
+    router.post, "/{job_id}/result/subjects/{shape_id}/inverse-transform",
+    "Map points from a subject back onto the model (the inverse transform)", (404, 409, 422),
     response_model=InverseTransformOut,
-    responses=problem_responses(404, 409, 422),
-    summary="Map points from a subject back onto the model (the inverse transform)",
     description="The inverse of the subject's transform, for points in the subject's "
     "coordinates. Affine steps are inverted exactly; CPD's warp has no closed-form inverse, "
     "so each point's preimage is solved for by Newton iterations. Each answer is checked by "

@@ -20,7 +20,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from service import ingest
 from service.api import idempotency, shape_store
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
-from service.api.problems import ProblemError, not_found, problem_responses
+from service.api.problems import ProblemError, not_found, operation
 from service.api.routes.collections import get_collection_or_404
 from service.api.shape_store import NewShape, OnConflict, content_name
 from service.contract.names import ProblemType
@@ -332,13 +332,10 @@ async def _form(request: Request, max_batch_files: int) -> AsyncIterator[FormDat
         await form.close()
 
 
-@router.post(
-    "",
-    status_code=status.HTTP_201_CREATED,
-    response_model=ShapeOut | ShapeBatchOut,
-    responses=problem_responses(401, 404, 409, 413, 415, 422),
+@operation(
+    router.post, "", "Upload one shape or a batch", (401, 404, 409, 413, 415, 422),
+    status_code=status.HTTP_201_CREATED, response_model=ShapeOut | ShapeBatchOut,
     openapi_extra=_UPLOAD_OPENAPI,
-    summary="Upload one shape or a batch",
     description=_UPLOAD_DOC + _LIMITS_DOC,
 )
 async def upload_shapes(
@@ -471,11 +468,9 @@ async def upload_shapes(
     return stored[0]
 
 
-@router.get(
-    "",
+@operation(
+    router.get, "", "List a collection's shapes (metadata only)", (404,),
     response_model=Page[ShapeOut],
-    responses=problem_responses(404),
-    summary="List a collection's shapes (metadata only)",
 )
 def list_shapes(collection_id: DbId, db: DbDep, page: PaginationDep) -> Page[ShapeOut]:
     """The collection's shapes in upload order, one page at a time: id, name, source
@@ -488,11 +483,9 @@ def list_shapes(collection_id: DbId, db: DbDep, page: PaginationDep) -> Page[Sha
     return Page[ShapeOut](items=items, total=total, limit=page.limit, offset=page.offset)
 
 
-@router.get(
-    "/{shape_id}",
+@operation(
+    router.get, "/{shape_id}", "Read a shape with its points", (404,),
     response_model=ShapeDetail,
-    responses=problem_responses(404),
-    summary="Read a shape with its points",
 )
 def get_shape(collection_id: DbId, shape_id: DbId, db: DbDep) -> ShapeDetail:
     """The shape's metadata and its points as stored: (x, y) pairs in the units they were
@@ -505,11 +498,9 @@ def get_shape(collection_id: DbId, shape_id: DbId, db: DbDep) -> ShapeDetail:
         return ShapeDetail(**out.model_dump(), points=[tuple(p) for p in shape.points.tolist()])
 
 
-@router.delete(
-    "/{shape_id}",
+@operation(
+    router.delete, "/{shape_id}", "Delete a shape", (404, 409),
     status_code=status.HTTP_204_NO_CONTENT,
-    responses=problem_responses(404, 409),
-    summary="Delete a shape",
 )
 def delete_shape(collection_id: DbId, shape_id: DbId, db: DbDep) -> Response:
     """Deletes the shape: 204 with no body. A shape that a queued or running job uses is
