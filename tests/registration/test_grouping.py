@@ -182,7 +182,7 @@ def test_a_counter_is_outside_the_ink_whether_closed_or_not():
     box = [[0.2, 0.2, 0.8, 0.2], [0.2, 0.8, 0.8, 0.8], [0.2, 0.2, 0.2, 0.8]]
 
     def outline(right_end: float, n: int) -> np.ndarray:
-        mould = draw_strokes(box + [[0.8, 0.2, 0.8, right_end]], size=160, width=0.08)
+        mould = draw_strokes([*box, [0.8, 0.2, 0.8, right_end]], size=160, width=0.08)
         return contour_points(np.where(mould, 0, 255).astype(np.uint8), n)
 
     centre = int(np.argmin(np.abs(grid_centres())))
