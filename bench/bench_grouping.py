@@ -20,7 +20,7 @@ For every setting: same-mould and different-mould distance quantiles (the data f
 automatic threshold), the threshold chosen, ARI against the true moulds.
 
     .venv/bin/python bench/bench_grouping.py [--settings yong,yong-recut,...] [--seed 0]
-        [--moulds 40] [--impressions 5] [--cache DIR]
+        [--moulds 40] [--impressions 5] [--cache DIR] [--rules]
 """
 
 from __future__ import annotations
@@ -172,8 +172,8 @@ def scans(name: str, moulds: int, n: int, seed: int, cache: Path | None
     return shapes, truth
 
 
-def run(name: str, moulds: int, n: int, seed: int, cache: Path | None = None
-        ) -> dict[str, float]:
+def run(name: str, moulds: int, n: int, seed: int, cache: Path | None = None,
+        rules: bool = False) -> dict[str, float]:
     t0 = time.perf_counter()
     shapes, truth = scans(name, moulds, n, seed, cache)
     t1 = time.perf_counter()
@@ -199,6 +199,14 @@ def run(name: str, moulds: int, n: int, seed: int, cache: Path | None = None
             sweep[f] = adjusted_rand_index(labels, truth)
         print(f"  ARI by cut (x noise level), {rule}: "
               + ", ".join(f"{f:g}x {a:.3f}" for f, a in sweep.items()))
+    if rules:
+        from grouping_rules import rule_table
+
+        table = rule_table(res.distances, np.asarray(truth), adjusted_rand_index)
+        subs = list(next(iter(table.values())))
+        print(f"  ARI by rule (same distances){'':14s}" + "".join(f"{s:>10s}" for s in subs))
+        for rule_name, row in table.items():
+            print(f"    {rule_name:40s}" + "".join(f"{row[s]:10.3f}" for s in subs))
     return {"ari": ari, "seconds": t2 - t1, "cpu": cpu, "threshold": res.threshold}
 
 
@@ -259,6 +267,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--moulds", type=int, default=40)
     ap.add_argument("--impressions", type=int, default=5)
+    ap.add_argument("--rules", action="store_true",
+                    help="also score other cut rules on the same distances (grouping_rules.py)")
     ap.add_argument("--cache", type=Path, default=None,
                     help="keep the simulated, ingested scans in this folder and reuse them")
     args = ap.parse_args()
@@ -273,7 +283,7 @@ def main() -> None:
         if name == "service":
             run_service(args.moulds, args.impressions, args.seed)
         else:
-            run(name, args.moulds, args.impressions, args.seed, args.cache)
+            run(name, args.moulds, args.impressions, args.seed, args.cache, args.rules)
 
 
 if __name__ == "__main__":
