@@ -191,9 +191,9 @@ def group_instances(
     """Group instances of one character by the mould (type, block) that printed them.
 
     Two instances are from one mould when their outlines, aligned by an affine map and
-    with a uniform ink spread or starvation discounted, differ nowhere by much (see
-    :mod:`registration._outline_field`): printing noise moves outlines a little
-    everywhere, another mould moves them a lot somewhere. Groups: average-linkage
+    with a uniform ink spread or starvation counted once rather than in every place,
+    differ nowhere by much (see :mod:`registration._outline_field`): printing noise
+    moves outlines a little everywhere, another mould moves them a lot somewhere. Groups: average-linkage
     hierarchical clustering cut at `threshold`; then every instance alone in its group
     joins the group of at least three members it is nearest to on average, if within
     ``1.5 x threshold`` (a damaged print rather than a mould of its own).
@@ -359,13 +359,14 @@ class InstanceComparison:
         Both point sets normalised (centroid 0, unit RMS radius), the instance mapped onto
         the reference by the fitted affine map.
     difference : ndarray, shape (g, g)
-        Local ink-discounted outline difference on a grid (rows = y), in the reference's
-        normalised frame; ``grid`` holds the cell centres along either axis.
+        Local outline difference, the uniform ink shift taken out, on a grid (rows = y)
+        in the reference's normalised frame; ``grid`` holds the cell centres along
+        either axis.
     grid : ndarray, shape (g,)
     distance : float
         The mould distance of the pair, as :func:`group_instances` measures it.
     ink_offset : float
-        The uniform outline shift discounted (positive: the reference's ink is heavier).
+        The uniform outline shift taken out (positive: the reference's ink is heavier).
     worst : tuple of float
         (x, y) of the largest local difference.
     """

@@ -166,7 +166,10 @@ def test_compare_instances_says_where_a_recut_differs():
     assert same.distance < other.distance
     assert other.difference.shape == (len(other.grid), len(other.grid))
     assert other.instance.shape[1] == 2 and other.reference.shape[1] == 2
-    assert other.difference.max() == pytest.approx(other.distance - abs(other.ink_offset) / 2)
+    from registration._outline_field import INK_WEIGHT
+
+    assert other.difference.max() == pytest.approx(
+        other.distance - abs(other.ink_offset) / INK_WEIGHT)
     with pytest.raises(ValueError, match="reference"):
         compare_instances(shapes[0], np.zeros((5, 3)))
 
