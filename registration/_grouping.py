@@ -193,10 +193,11 @@ def group_instances(
     Two instances are from one mould when their outlines, aligned by an affine map and
     with a uniform ink spread or starvation counted once rather than in every place,
     differ nowhere by much (see :mod:`registration._outline_field`): printing noise
-    moves outlines a little everywhere, another mould moves them a lot somewhere. Groups: average-linkage
-    hierarchical clustering cut at `threshold`; then every instance alone in its group
-    joins the group of at least three members it is nearest to on average, if within
-    ``1.5 x threshold`` (a damaged print rather than a mould of its own).
+    moves outlines a little everywhere, another mould moves them a lot somewhere.
+    Groups: average-linkage hierarchical clustering cut at `threshold`; then every
+    instance alone in its group joins the group of at least three members it is nearest
+    to on average, if within ``1.5 x threshold`` (a damaged print rather than a mould of
+    its own).
 
     Parameters
     ----------
