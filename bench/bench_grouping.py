@@ -20,7 +20,7 @@ For every setting: same-mould and different-mould distance quantiles (the data f
 automatic threshold), the threshold chosen, ARI against the true moulds.
 
     .venv/bin/python bench/bench_grouping.py [--settings yong,yong-recut,...] [--seed 0]
-        [--moulds 40] [--impressions 5] [--cache DIR]
+        [--moulds 40] [--impressions 5] [--cache DIR] [--rules]
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ from PIL import Image
 from scipy.cluster.hierarchy import fcluster
 
 from registration import group_instances
+from registration._grouping import ATTACH_FACTOR, _attach_lone
 from registration.impressions import (
     draw_strokes,
     identical_moulds,
@@ -54,7 +55,7 @@ MPEG7 = DATA / "mpeg7"
 TARGET_POINTS = 3000
 #: Cuts of the average-linkage tree shown beside the default one (the automatic threshold
 #: is NOISE_FACTOR x the noise level, within bounds).
-CUT_FACTORS = (1.5, 2.0, 2.5, 3.0, 3.5)
+CUT_FACTORS = (1.5, 1.75, 2.0, 2.25, 2.5, 3.0, 3.5)
 
 
 def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
@@ -171,8 +172,8 @@ def scans(name: str, moulds: int, n: int, seed: int, cache: Path | None
     return shapes, truth
 
 
-def run(name: str, moulds: int, n: int, seed: int, cache: Path | None = None
-        ) -> dict[str, float]:
+def run(name: str, moulds: int, n: int, seed: int, cache: Path | None = None,
+        rules: bool = False) -> dict[str, float]:
     t0 = time.perf_counter()
     shapes, truth = scans(name, moulds, n, seed, cache)
     t1 = time.perf_counter()
@@ -188,10 +189,24 @@ def run(name: str, moulds: int, n: int, seed: int, cache: Path | None = None
           f"({res.threshold_source}), {res.n_groups} groups for {len(set(truth))} moulds, "
           f"{res.pairs_computed} pairs, ARI {ari:.3f}, group_instances {t2 - t1:.1f} s "
           f"wall, {cpu:.1f} s CPU (this process and its pool)")
-    sweep = {f: adjusted_rand_index(fcluster(res.linkage, f * res.noise_level, "distance"),
-                                    truth) for f in CUT_FACTORS}
-    print("  ARI by cut (x noise level): "
-          + ", ".join(f"{f:g}x {a:.3f}" for f, a in sweep.items()))
+    for rule, attach in (("cut only", False), ("cut + lone prints attached", True)):
+        sweep = {}
+        for f in CUT_FACTORS:
+            thr = f * res.noise_level
+            labels = np.asarray(fcluster(res.linkage, thr, "distance") - 1, dtype=np.intp)
+            if attach:
+                labels = _attach_lone(res.distances, labels, ATTACH_FACTOR * thr)
+            sweep[f] = adjusted_rand_index(labels, truth)
+        print(f"  ARI by cut (x noise level), {rule}: "
+              + ", ".join(f"{f:g}x {a:.3f}" for f, a in sweep.items()))
+    if rules:
+        from grouping_rules import rule_table
+
+        table = rule_table(res.distances, np.asarray(truth), adjusted_rand_index)
+        subs = list(next(iter(table.values())))
+        print(f"  ARI by rule (same distances){'':14s}" + "".join(f"{s:>10s}" for s in subs))
+        for rule_name, row in table.items():
+            print(f"    {rule_name:40s}" + "".join(f"{row[s]:10.3f}" for s in subs))
     return {"ari": ari, "seconds": t2 - t1, "cpu": cpu, "threshold": res.threshold}
 
 
@@ -252,6 +267,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--moulds", type=int, default=40)
     ap.add_argument("--impressions", type=int, default=5)
+    ap.add_argument("--rules", action="store_true",
+                    help="also score other cut rules on the same distances (grouping_rules.py)")
     ap.add_argument("--cache", type=Path, default=None,
                     help="keep the simulated, ingested scans in this folder and reuse them")
     args = ap.parse_args()
@@ -266,7 +283,7 @@ def main() -> None:
         if name == "service":
             run_service(args.moulds, args.impressions, args.seed)
         else:
-            run(name, args.moulds, args.impressions, args.seed, args.cache)
+            run(name, args.moulds, args.impressions, args.seed, args.cache, args.rules)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,11 @@
 :func:`group_instances` computes the outline-field distance of :mod:`._outline_field`
 (every instance aligned to the collection's median field, near pairs once more to each
 other) and cuts an average-linkage tree at a threshold: average linkage, unlike single
-linkage, does not let a chain of near pairs pull two moulds together.
+linkage, does not let a chain of near pairs pull two moulds together. An instance left
+alone by the cut then joins its nearest group of three or more when it is within 1.5 x
+the threshold of it on average: a printing accident (a thin tip eroded, a narrow gap
+closed) hits one print, a different mould every print it made, so a lone print far from
+a group is more likely a damaged print of it than a mould of its own.
 """
 
 from __future__ import annotations
@@ -39,10 +43,16 @@ __all__ = ["GroupingResult", "InstanceComparison", "MouldGroup", "compare_instan
 
 #: Automatic threshold = NOISE_FACTOR x the median nearest-instance distance, kept within
 #: [THRESHOLD_MIN, THRESHOLD_MAX] (units: the shapes' RMS radius). Measured in bench/
-#: bench_grouping.py on several settings (see bench/RESULTS.md, section 6).
-NOISE_FACTOR = 2.5
+#: bench_grouping.py on several settings (see bench/RESULTS.md, sections 6.1 and 6.2).
+NOISE_FACTOR = 2.0
 THRESHOLD_MIN = 0.04
 THRESHOLD_MAX = 0.15
+#: A lone instance (a group of one at the cut) joins the group it is nearest to on average
+#: when that group has at least ATTACH_MIN_SIZE members and the mean distance is at most
+#: ATTACH_FACTOR x the threshold: a printing accident (an eroded tip, a closed gap) hits
+#: one print, while another mould shows in all of its prints (bench/RESULTS.md 6.2).
+ATTACH_FACTOR = 1.5
+ATTACH_MIN_SIZE = 3
 _CHUNK = 32
 
 
@@ -93,7 +103,8 @@ class GroupingResult:
         aligned to each other (far by the screen) hold the screen's estimate.
     threshold : float
         The cut of the average-linkage tree: two groups whose members are farther apart
-        than this on average are not merged.
+        than this on average are not merged (but an instance alone at the cut joins its
+        nearest group of three or more within ``1.5 x`` this on average).
     threshold_source : {"given", "automatic"}
     noise_level : float
         Median over instances of the distance to the nearest other instance.
@@ -158,9 +169,14 @@ def _check_options(shapes: Sequence[ArrayLike], threshold: float | None, neighbo
         raise ValueError(f"max_rotation must be in (0, 180] degrees; got {max_rotation!r}")
 
 
-def _refine_chunk(chunk: list[tuple[FloatArray, FloatArray]]) -> list[float]:
-    return [float(d) for d in pair_distances([f for ab in chunk for f in ab],
-                                             [(2 * k, 2 * k + 1) for k in range(len(chunk))])]
+def _refine_chunk(chunk: list[tuple[FloatArray, FloatArray, FloatArray, FloatArray]]
+                  ) -> list[float]:
+    """Each pair (own field a, own field b, a and b in the common frame): the smaller of
+    the distance in the common frame and after aligning a's own field onto b's (the
+    common frame can distort an instance: the median of unlike shapes is a blob)."""
+    own = pair_distances([f for fs in chunk for f in fs[:2]],
+                         [(2 * k, 2 * k + 1) for k in range(len(chunk))])
+    return [min(float(d), field_distance(fs[2], fs[3])) for d, fs in zip(own, chunk, strict=True)]
 
 
 def group_instances(
@@ -175,10 +191,13 @@ def group_instances(
     """Group instances of one character by the mould (type, block) that printed them.
 
     Two instances are from one mould when their outlines, aligned by an affine map and
-    with a uniform ink spread or starvation discounted, differ nowhere by much (see
-    :mod:`registration._outline_field`): printing noise moves outlines a little
-    everywhere, another mould moves them a lot somewhere. Groups: average-linkage
-    hierarchical clustering cut at `threshold`.
+    with a uniform ink spread or starvation counted once rather than in every place,
+    differ nowhere by much (see :mod:`registration._outline_field`): printing noise
+    moves outlines a little everywhere, another mould moves them a lot somewhere.
+    Groups: average-linkage hierarchical clustering cut at `threshold`; then every
+    instance alone in its group joins the group of at least three members it is nearest
+    to on average, if within ``1.5 x threshold`` (a damaged print rather than a mould of
+    its own).
 
     Parameters
     ----------
@@ -188,12 +207,13 @@ def group_instances(
         to within a few degrees unless `max_rotation` is given.
     threshold : float, optional
         Cut of the average-linkage tree, in units of the shapes' RMS radius. Default:
-        automatic, ``2.5 x`` the median distance of an instance to its nearest other
-        instance, kept within [0.04, 0.15] (measured, bench/RESULTS.md section 6).
+        automatic, ``2 x`` the median distance of an instance to its nearest other
+        instance, kept within [0.04, 0.15] (measured, bench/RESULTS.md section 6.2).
     neighbours : int
-        Pairs aligned to each other (after the common alignment) per instance: its
-        nearest by a cheap field difference; the distances of farther pairs are
-        estimated from that difference. Bounds cost, not group size.
+        Pairs aligned to each other per instance: its nearest by a cheap field
+        difference, in the common frame and on its own field (up to twice this many);
+        the distances of farther pairs are estimated from that difference. Bounds cost,
+        not group size.
     max_rotation : float, optional
         Also try starting rotations up to this many degrees (10 degree steps) when
         aligning every instance to the collection's median; default: as given only.
@@ -227,28 +247,7 @@ def group_instances(
                        0.0, 0, dropped)
     aligned = common_frame(fields, max_rotation=max_rotation,
                            progress=lambda d, t: report("alignment", d, t))
-    S = screen(aligned)
-    np.fill_diagonal(S, np.inf)
-    k = min(neighbours, n - 1)
-    near = np.argsort(S, axis=1, kind="stable")[:, :k]
-    pairs = sorted({(min(i, int(j)), max(i, int(j))) for i in range(n) for j in near[i]})
-    D = np.full((n, n), np.nan)
-    np.fill_diagonal(D, 0.0)
-    chunks = [pairs[c:c + _CHUNK] for c in range(0, len(pairs), _CHUNK)]
-    done = 0
-    with owned_executor(executor, len(pairs) // _CHUNK * 4) as ex:
-        for c, ds in ex.map_unordered(
-                _refine_chunk, [[(aligned[i], aligned[j]) for i, j in ch] for ch in chunks]):
-            for (i, j), d in zip(chunks[c], ds, strict=True):
-                D[i, j] = D[j, i] = min(d, field_distance(aligned[i], aligned[j]))
-            done += len(chunks[c])
-            report("pairs", done, len(pairs))
-    known = ~np.isnan(D) & ~np.eye(n, dtype=bool)
-    # farther pairs: the screen scaled as the measured pairs scale it (they are far)
-    ratio = float(np.median(D[known] / np.maximum(S[known], 1e-12)))
-    D = np.where(np.isnan(D), ratio * S, D)
-    np.fill_diagonal(D, 0.0)
-    D = (D + D.T) / 2
+    D, pairs = _distances(fields, aligned, neighbours, executor, report)
     noise = float(np.median(np.where(np.eye(n, dtype=bool), np.inf, D).min(axis=1)))
     if threshold is None:
         thr = float(np.clip(NOISE_FACTOR * noise, THRESHOLD_MIN, THRESHOLD_MAX))
@@ -256,8 +255,62 @@ def group_instances(
     else:
         thr, source = float(threshold), "given"
     Z = linkage(squareform(D, checks=False), method="average")
-    labels = np.asarray(fcluster(Z, thr, criterion="distance") - 1, dtype=np.intp)
-    return _result(D, labels, thr, source, noise, len(pairs), dropped, Z)
+    labels = _attach_lone(D, np.asarray(fcluster(Z, thr, criterion="distance") - 1,
+                                        dtype=np.intp), ATTACH_FACTOR * thr)
+    return _result(D, labels, thr, source, noise, pairs, dropped, Z)
+
+
+def _distances(fields: list[FloatArray], aligned: list[FloatArray], neighbours: int,
+               executor: Executor | None, report: ProgressCallback
+               ) -> tuple[FloatArray, int]:
+    """All-pairs mould distances: each instance's nearest by either screen (in the common
+    frame and on its own field; the common frame can distort an instance unlike the
+    median) measured, the others estimated from the screen; and the pairs measured."""
+    n = len(fields)
+    S_common, S_own = screen(aligned), screen(fields)
+    pairs_set: set[tuple[int, int]] = set()
+    k = min(neighbours, n - 1)
+    for S in (S_common, S_own):
+        np.fill_diagonal(S, np.inf)
+        near = np.argsort(S, axis=1, kind="stable")[:, :k]
+        pairs_set |= {(min(i, int(j)), max(i, int(j))) for i in range(n) for j in near[i]}
+    S = np.minimum(S_common, S_own)
+    pairs = sorted(pairs_set)
+    D = np.full((n, n), np.nan)
+    np.fill_diagonal(D, 0.0)
+    chunks = [pairs[c:c + _CHUNK] for c in range(0, len(pairs), _CHUNK)]
+    done = 0
+    with owned_executor(executor, len(pairs) // _CHUNK * 4) as ex:
+        for c, ds in ex.map_unordered(
+                _refine_chunk, [[(fields[i], fields[j], aligned[i], aligned[j])
+                                 for i, j in ch] for ch in chunks]):
+            for (i, j), d in zip(chunks[c], ds, strict=True):
+                D[i, j] = D[j, i] = d
+            done += len(chunks[c])
+            report("pairs", done, len(pairs))
+    known = ~np.isnan(D) & ~np.eye(n, dtype=bool)
+    # farther pairs: the screen scaled as the measured pairs scale it (they are far)
+    ratio = float(np.median(D[known] / np.maximum(S[known], 1e-12)))
+    D = np.where(np.isnan(D), ratio * S, D)
+    np.fill_diagonal(D, 0.0)
+    return (D + D.T) / 2, len(pairs)
+
+
+def _attach_lone(D: FloatArray, labels: NDArray[np.intp], reach: float) -> NDArray[np.intp]:
+    """Every instance alone in its group joins the group of at least ATTACH_MIN_SIZE
+    members it is nearest to on average, when that mean distance is within `reach`
+    (lone instances do not join each other: two of them are no evidence of a mould)."""
+    out = labels.copy()
+    counts = np.bincount(labels)
+    hosts = np.flatnonzero(counts >= ATTACH_MIN_SIZE)
+    if hosts.size == 0:
+        return out
+    for i in np.flatnonzero(counts[labels] == 1):
+        means = np.array([D[i, labels == h].mean() for h in hosts])
+        best = int(np.argmin(means))
+        if means[best] <= reach:
+            out[i] = hosts[best]
+    return out
 
 
 def _medoid(D: FloatArray, members: NDArray[np.intp]) -> int:
@@ -307,13 +360,14 @@ class InstanceComparison:
         Both point sets normalised (centroid 0, unit RMS radius), the instance mapped onto
         the reference by the fitted affine map.
     difference : ndarray, shape (g, g)
-        Local ink-discounted outline difference on a grid (rows = y), in the reference's
-        normalised frame; ``grid`` holds the cell centres along either axis.
+        Local outline difference, the uniform ink shift taken out, on a grid (rows = y)
+        in the reference's normalised frame; ``grid`` holds the cell centres along
+        either axis.
     grid : ndarray, shape (g,)
     distance : float
         The mould distance of the pair, as :func:`group_instances` measures it.
     ink_offset : float
-        The uniform outline shift discounted (positive: the reference's ink is heavier).
+        The uniform outline shift taken out (positive: the reference's ink is heavier).
     worst : tuple of float
         (x, y) of the largest local difference.
     """

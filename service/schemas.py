@@ -300,7 +300,8 @@ class JobCreate(BaseModel):
     group_threshold: float | None = Field(
         default=None,
         description="Grouping only: the cut of the average-linkage tree (units: the shapes' "
-        "RMS radius); null = automatic (2.5x the median nearest-instance distance).",
+        "RMS radius); null = automatic (2x the median nearest-instance distance; a lone "
+        "shape then joins its nearest group of 3+ within 1.5x the cut).",
     )
     similarity_threshold: float | None = Field(
         default=None, description="Largest similarity distance D for a tree edge; null = auto."

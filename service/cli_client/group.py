@@ -28,7 +28,7 @@ def add_group_command(command: Callable[..., argparse.ArgumentParser],
     group.add_argument("collection", metavar="COLLECTION", help="its name or id")
     group.add_argument("--threshold", type=positive_float, metavar="X",
                        help="cut of the average-linkage tree, in units of the shapes' RMS "
-                       "radius (default: automatic, 2.5x the median nearest distance)")
+                       "radius (default: automatic, 2x the median nearest distance)")
     group.add_argument("--max-rotation", type=float, metavar="DEG",
                        help="the scans may be rotated by up to DEG degrees (default: a few)")
     group.add_argument("--wait", action=argparse.BooleanOptionalAction, default=True,

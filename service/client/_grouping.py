@@ -27,7 +27,7 @@ class Grouping(HttpClient):
         """Queue a job grouping the collection's shapes by the mould that printed them.
 
         ``threshold`` (units: the shapes' RMS radius) cuts the average-linkage tree; None
-        lets the service choose (2.5x the median nearest-instance distance).
+        lets the service choose (2x the median nearest-instance distance).
         ``max_rotation`` (degrees) when the scans may be rotated by more than a few degrees.
         Follow it with :meth:`wait`, then read :meth:`groups`.
         """

@@ -166,6 +166,68 @@ def test_compare_instances_says_where_a_recut_differs():
     assert same.distance < other.distance
     assert other.difference.shape == (len(other.grid), len(other.grid))
     assert other.instance.shape[1] == 2 and other.reference.shape[1] == 2
-    assert other.difference.max() == pytest.approx(other.distance - abs(other.ink_offset) / 2)
+    from registration._outline_field import INK_WEIGHT
+
+    assert other.difference.max() == pytest.approx(
+        other.distance - abs(other.ink_offset) / INK_WEIGHT)
     with pytest.raises(ValueError, match="reference"):
         compare_instances(shapes[0], np.zeros((5, 3)))
+
+
+def test_a_counter_is_outside_the_ink_whether_closed_or_not():
+    """口 closed, and with one side stopping short of (or just touching) the next: the
+    counter's field is outside in every case, so ink spread closing a gap between two
+    strokes moves an instance little (it used to fill the counter)."""
+    from registration import compare_instances
+    from registration._mould_distance import prepare_impression
+    from registration._outline_field import grid_centres, outline_field
+
+    box = [[0.2, 0.2, 0.8, 0.2], [0.2, 0.8, 0.8, 0.8], [0.2, 0.2, 0.2, 0.8]]
+
+    def outline(right_end: float, n: int) -> np.ndarray:
+        mould = draw_strokes([*box, [0.8, 0.2, 0.8, right_end]], size=160, width=0.08)
+        return contour_points(np.where(mould, 0, 255).astype(np.uint8), n)
+
+    centre = int(np.argmin(np.abs(grid_centres())))
+    for n in (300, 800, 3000):
+        for end in (0.8, 0.725, 0.7):  # closed, a neck, a gap of 3 pixels
+            field = outline_field(prepare_impression(outline(end, n), name="s").points).field
+            assert field[centre, centre] < 0, (n, end)
+            assert field.max() > 0
+        assert compare_instances(outline(0.8, n), outline(0.7, n)).distance < 0.08
+
+
+def test_a_lone_instance_joins_its_nearest_group_of_three_within_reach():
+    from registration._grouping import ATTACH_MIN_SIZE, _attach_lone
+
+    assert ATTACH_MIN_SIZE == 3
+    # instances 0-3 a group, 4-5 a pair, 6 near the group (0.12 on average), 7 near the
+    # pair only, 8 far from everything, 9 and 10 near each other (both alone at the cut)
+    n = 11
+    D = np.full((n, n), 1.0)
+    D[np.ix_(range(4), range(4))] = 0.05
+    D[np.ix_([4, 5], [4, 5])] = 0.05
+    D[6, :4] = D[:4, 6] = [0.1, 0.1, 0.14, 0.14]
+    D[7, [4, 5]] = D[[4, 5], 7] = 0.1
+    D[9, 10] = D[10, 9] = 0.1
+    np.fill_diagonal(D, 0.0)
+    labels = np.array([0, 0, 0, 0, 1, 1, 2, 3, 4, 5, 6])
+    out = _attach_lone(D, labels, reach=0.15)
+    assert list(out) == [0, 0, 0, 0, 1, 1, 0, 3, 4, 5, 6]
+    assert list(_attach_lone(D, labels, reach=0.11)) == list(labels)  # mean 0.12 > 0.11
+    assert list(_attach_lone(D, np.arange(n), reach=0.5)) == list(range(n))  # no group
+
+
+def test_a_damaged_print_joins_its_mould():
+    """Three moulds x 4 prints and a fifth print of the first with its last stroke short
+    by 0.4 of a stroke width (a printing accident: one print, not a mould): farther from
+    its mould than the cut on average, it joins that mould's group all the same."""
+    moulds = [draw_strokes(s, size=160, width=0.08) for s in (A, B, C)]
+    shapes, truth = prints(moulds, 4, seed=0)
+    damaged = [list(s) for s in A]
+    damaged[2] = [0.25, 0.55, 0.72, 0.55]  # the third stroke 0.03 of the size shorter
+    shapes.append(contour_points(simulate_impressions(
+        draw_strokes(damaged, size=160, width=0.08), 1, seed=5)[0]))
+    res = group_instances(shapes)
+    assert res.distances[-1, :4].mean() > res.threshold
+    assert same_partition(res.labels, np.r_[truth, truth[0]])
