@@ -155,8 +155,9 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
     """One edge at the stored resolution: the coarse edge's steps, then a short CPD.
 
     The warm-started CPD runs in the subject's normalised frame (``normalize=False``: both
-    sets stay where the coarse edge put them) from a variance of half the remaining e, so
-    it corrects locally instead of registering again from scratch. The fold check covers
+    sets stay where the coarse edge put them) from a variance of
+    :data:`FINE_SIGMA2_FACTOR` times half the remaining e, so it corrects locally instead of
+    registering again from scratch. The fold check covers
     the edge's non-rigid steps and the fine one, on the stored points as the edge's affine
     pre-alignment leaves them.
     """
