@@ -176,6 +176,8 @@ class Job(Base):
     progress_stage: Mapped[str | None] = mapped_column(String(100), nullable=True)
     progress_done: Mapped[int] = mapped_column(Integer, default=0)
     progress_total: Mapped[int] = mapped_column(Integer, default=0)
+    # The worker's estimate of the share of the whole job done (service.progress).
+    progress_fraction: Mapped[float | None] = mapped_column(Float, nullable=True)
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     max_attempts: Mapped[int] = mapped_column(Integer, default=3)
     lease_owner: Mapped[str | None] = mapped_column(String(200), nullable=True)

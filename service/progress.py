@@ -222,6 +222,48 @@ def _started(state: JobStatus) -> float | None:
     return time.monotonic() - max(0.0, ago)
 
 
+class FractionTracker:
+    """The overall share of one job done, from the stages it reports in order: kept from
+    going back, below 1 until the job ends, the tree's earlier layers counted (what
+    :func:`overall_fraction` needs from the history). The worker keeps one per running job
+    and stores its figure with the progress; :class:`Progress` keeps one per job it shows.
+    """
+
+    def __init__(self, method: str, params: dict[str, Any], n_shapes: int) -> None:
+        self.method = method
+        self.params = params
+        self.subjects = max(0, n_shapes - 1)
+        self.fraction = 0.0
+        self._layers: dict[str, int] = {}  # the total of each ``layer N`` stage seen
+
+    def update(self, stage: str | None, done: int, total: int) -> float | None:
+        """The share done after this progress report; None while no stage is known."""
+        if stage and _LAYER.fullmatch(stage):
+            self._layers[stage] = total
+        params = self.params
+        fraction = overall_fraction(
+            self.method, stage, done, total,
+            compare_direct=bool(params.get("compare_direct")),
+            coarse_to_fine=stored_resolution_stage(params),
+            max_points=params.get("max_points"),
+            working_points=params.get("working_points"),
+            subjects=self.subjects,
+            before=sum(t for s, t in self._layers.items() if s != stage),
+        )
+        if fraction is None and not self.fraction:
+            return None
+        # a stage this does not know keeps the estimate as it was
+        self.fraction = max(self.fraction, min(fraction or 0.0, 0.99))
+        return self.fraction
+
+
+def seconds_left(fraction: float | None, ran: float) -> float | None:
+    """The time left of a job `fraction` done after `ran` seconds, once enough is done."""
+    if fraction is None or fraction < MIN_FRACTION_FOR_ETA or ran <= 0:
+        return None
+    return ran * (1 - fraction) / fraction
+
+
 @dataclass
 class Estimate:
     """What the line shows besides the stage: overall share done and the time left."""
@@ -260,7 +302,7 @@ class Progress:
         self.started = time.monotonic()
         self._run_started: float | None = None
         self._fraction = 0.0
-        self._layers: dict[str, int] = {}  # the total of each ``layer N`` stage seen
+        self._tracker: FractionTracker | None = None
         self._last_key: tuple[Any, ...] | None = None
         self._last_line = self.started
         self._drawn = False
@@ -277,27 +319,13 @@ class Progress:
             return Estimate(self._fraction if state.finished else None, None)
         if self._run_started is None:
             self._run_started = _started(state) or time.monotonic()
-        if state.stage and _LAYER.fullmatch(state.stage):
-            self._layers[state.stage] = state.total
-        params = state.params
-        fraction = overall_fraction(
-            state.method, state.stage, state.done, state.total,
-            compare_direct=bool(params.get("compare_direct")),
-            coarse_to_fine=stored_resolution_stage(params),
-            max_points=params.get("max_points"),
-            working_points=params.get("working_points"),
-            subjects=max(0, state.n_shapes - 1),
-            before=sum(t for s, t in self._layers.items() if s != state.stage),
-        )
-        if fraction is None and not self._fraction:
+        if self._tracker is None:
+            self._tracker = FractionTracker(state.method, state.params, state.n_shapes)
+        if self._tracker.update(state.stage, state.done, state.total) is None:
             return Estimate(None, None)
-        # a stage this does not know keeps the estimate as it was
-        self._fraction = max(self._fraction, min(fraction or 0.0, 0.99))
-        ran = time.monotonic() - self._run_started
-        remaining = None
-        if self._fraction >= MIN_FRACTION_FOR_ETA and ran > 0:
-            remaining = ran * (1 - self._fraction) / self._fraction
-        return Estimate(self._fraction, remaining)
+        self._fraction = self._tracker.fraction
+        return Estimate(self._fraction,
+                        seconds_left(self._fraction, time.monotonic() - self._run_started))
 
     def _subjects(self, state: JobStatus) -> str:
         return f"{state.n_shapes - 1} subjects" if state.n_shapes > 1 else ""

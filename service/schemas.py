@@ -382,6 +382,15 @@ class Progress(BaseModel):
     stage: str | None
     done: int
     total: int
+    fraction: float | None = Field(
+        default=None, ge=0.0, le=1.0,
+        description="Estimated share of the whole job done (0-1; it never goes back and "
+        "reaches 1 when the job succeeds), from the stages run so far weighted by their "
+        "measured cost; null while no stage is known, and for grouping jobs.")
+    seconds_left: float | None = Field(
+        default=None, ge=0.0,
+        description="Estimated seconds until the job ends, from the time it has run and "
+        "`fraction`; null until 3% is done, and once the job is not running.")
 
 
 class JobLinks(BaseModel):

@@ -126,11 +126,16 @@ def is_transient(exc: BaseException) -> bool:
     return any(word in message for word in words)
 
 
-def _progress(progress: tuple[str, int, int] | None) -> dict[str, Any]:
+def _progress(progress: tuple[str, int, int] | None,
+              fraction: float | None = None) -> dict[str, Any]:
     if progress is None:
         return {}
     stage, done, total = progress
-    return {"progress_stage": stage[:100], "progress_done": done, "progress_total": total}
+    out: dict[str, Any] = {"progress_stage": stage[:100], "progress_done": done,
+                           "progress_total": total}
+    if fraction is not None:
+        out["progress_fraction"] = float(fraction)
+    return out
 
 
 class JobQueue:
@@ -261,6 +266,7 @@ class JobQueue:
                     started_at=job.started_at or now,
                     updated_at=now,
                     error=None,
+                    progress_fraction=None,  # each attempt estimates from its start
                 )
                 .execution_options(synchronize_session=False)
             )
@@ -288,8 +294,10 @@ class JobQueue:
             return Outcome.lost
         return Outcome.cancel_requested if row.cancel_requested else Outcome.held
 
-    def heartbeat(self, claim: Claim, *, progress: tuple[str, int, int] | None = None) -> Outcome:
-        """Extend the lease (and write the latest progress, if given)."""
+    def heartbeat(self, claim: Claim, *, progress: tuple[str, int, int] | None = None,
+                  fraction: float | None = None) -> Outcome:
+        """Extend the lease (and write the latest progress, if given, with the estimated
+        share of the whole job done)."""
         now = utcnow()
         with self.db.write() as session:
             held = self._update(
@@ -297,7 +305,7 @@ class JobQueue:
                 claim,
                 lease_expires_at=now + timedelta(seconds=self.lease_seconds),
                 heartbeat_at=now,
-                **_progress(progress),
+                **_progress(progress, fraction),
             )
             if not held:
                 return Outcome.lost

@@ -40,6 +40,7 @@ from service.jobs.document import json_safe, similarity_npy, to_api_document
 from service.jobs.grouping import run_grouping
 from service.jobs.queue import Claim, JobQueue, Outcome, is_transient
 from service.models import Job, Shape
+from service.progress import FractionTracker
 
 if TYPE_CHECKING:
     from registration import CollectionResult, Executor
@@ -75,8 +76,11 @@ class JobControl:
         claim: Claim,
         settings: Settings,
         shutdown: threading.Event | None = None,
+        tracker: FractionTracker | None = None,
     ) -> None:
         self.queue = queue
+        self.tracker = tracker  # the overall share done, written with the progress
+        self._fraction: float | None = None
         self.claim = claim
         self.settings = settings
         self.shutdown = shutdown or threading.Event()
@@ -117,8 +121,9 @@ class JobControl:
                 if time.monotonic() >= next_beat - 1e-3:
                     next_beat = time.monotonic() + beat
                     with self._lock:
-                        latest = self._latest
-                    state = self.queue.heartbeat(self.claim, progress=latest)
+                        latest, fraction = self._latest, self._fraction
+                    state = self.queue.heartbeat(self.claim, progress=latest,
+                                                 fraction=fraction)
                 elif self.cancel.is_set():
                     continue  # already seen: the run is stopping
                 else:
@@ -160,11 +165,15 @@ class JobControl:
         now = time.monotonic()
         with self._lock:
             self._latest = (str(stage), int(done), int(total))
+            if self.tracker is not None:
+                self._fraction = self.tracker.update(str(stage), int(done), int(total))
+            fraction = self._fraction
             due = now - self._last_write >= self.settings.progress_min_interval_seconds
             if due:
                 self._last_write = now
         if due:
-            state = self.queue.heartbeat(self.claim, progress=(str(stage), int(done), int(total)))
+            state = self.queue.heartbeat(self.claim, progress=(str(stage), int(done), int(total)),
+                                         fraction=fraction)
             self._apply(state)
             self.check()
 
@@ -333,7 +342,8 @@ def run_claimed(
     started = time.monotonic()
     executor: Executor | None = None
     completed = False
-    with JobControl(queue, claim, settings, shutdown) as control:
+    tracker = FractionTracker(method, params, len(shape_ids))
+    with JobControl(queue, claim, settings, shutdown, tracker) as control:
         try:
             control.check()
             executor = _executor(settings, control)

@@ -230,7 +230,8 @@ function renderJobHeader(job) {
   if (running) {
     const p = job.progress || {};
     const bar = $("ui-job-progressbar");
-    if (p.total) { bar.max = p.total; bar.value = p.done; } else { bar.removeAttribute("value"); }
+    if (p.fraction != null) { bar.max = 1; bar.value = p.fraction; }
+    else if (p.total) { bar.max = p.total; bar.value = p.done; } else { bar.removeAttribute("value"); }
     $("ui-job-progresstext").textContent = progressText(job) + (job.cancel_requested ? " — cancelling" : "");
   }
   $("ui-job-cancel").hidden = !running || job.cancel_requested;

@@ -154,19 +154,27 @@ export function fmtTime(iso) {
   const p = (n) => String(n).padStart(2, "0");
   return `${d.getFullYear()}-${p(d.getMonth() + 1)}-${p(d.getDate())} ${p(d.getHours())}:${p(d.getMinutes())}`;
 }
-export function fmtDuration(a, b) {
-  if (!a || !b) return "–";
-  const s = (new Date(b) - new Date(a)) / 1000;
+export function fmtSeconds(s) {
   if (s < 60) return `${s.toFixed(1)} s`;
   const m = Math.floor(s / 60);
   return `${m} min ${Math.round(s - 60 * m)} s`;
+}
+export function fmtDuration(a, b) {
+  if (!a || !b) return "–";
+  return fmtSeconds((new Date(b) - new Date(a)) / 1000);
 }
 export const methodLabel = (m) => METHOD_LABELS[m] || String(m || "").replace(/_/g, " ");
 export const statusBadge = (status) => el("span", { class: `status ${status}`, text: status, "data-status": status });
 export function progressText(job) {
   const p = job.progress || {};
   const stage = p.stage ? p.stage.replace(/_/g, " ") : job.status;
-  return p.total ? `${stage} ${p.done}/${p.total}` : stage;
+  let text = p.total ? `${stage} ${p.done}/${p.total}` : stage;
+  // the worker's estimate of the whole job (the same figures as `regtree watch`)
+  if (p.fraction != null && !TERMINAL.has(job.status)) {
+    text += ` · overall ${Math.floor(100 * p.fraction)}%`;
+    if (p.seconds_left != null) text += `, about ${fmtSeconds(Math.ceil(p.seconds_left))} left`;
+  }
+  return text;
 }
 
 export function go(hash) {

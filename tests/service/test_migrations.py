@@ -40,9 +40,13 @@ def _cli(tmp_path: Path, url: str, *args: str) -> str:
     return done.stdout.strip()
 
 
+#: The newest migration (migrations/versions).
+HEAD = "0005"
+
+
 def assert_migration_roundtrip(tmp_path: Path, url: str) -> None:
     """Upgrade from empty, schema == models, downgrade to base, upgrade again (any database)."""
-    assert _cli(tmp_path, url, "upgrade") == "0004"
+    assert _cli(tmp_path, url, "upgrade") == HEAD
     engine = create_engine(url)
     try:
         assert TABLES <= set(inspect(engine).get_table_names())
@@ -50,8 +54,8 @@ def assert_migration_roundtrip(tmp_path: Path, url: str) -> None:
             assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
         assert _cli(tmp_path, url, "downgrade", "base") == "base"
         assert set(inspect(engine).get_table_names()) <= {"alembic_version"}
-        assert _cli(tmp_path, url, "upgrade", "head") == "0004"
-        assert _cli(tmp_path, url, "current") == "0004"
+        assert _cli(tmp_path, url, "upgrade", "head") == HEAD
+        assert _cli(tmp_path, url, "current") == HEAD
     finally:
         engine.dispose()
 

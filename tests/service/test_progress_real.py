@@ -123,14 +123,19 @@ def test_progress_events_of_a_real_job(monkeypatch: pytest.MonkeyPatch, method: 
 # --- over HTTP ------------------------------------------------------------------------------
 
 
+def _key(state: dict[str, Any]) -> tuple[Any, ...]:
+    p = state["progress"]  # seconds_left changes with the clock alone
+    return state["status"], p["stage"], p["done"], p["total"], p["fraction"]
+
+
 def _poll(client: httpx.Client, job_id: int, timeout: float = 120) -> list[dict[str, Any]]:
     """Every distinct state of a job from submission to its end, as fast as it changes."""
     states: list[dict[str, Any]] = []
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         state = client.get(f"/v1/jobs/{job_id}").raise_for_status().json()
-        key = (state["status"], state["progress"])
-        if not states or key != (states[-1]["status"], states[-1]["progress"]):
+        key = _key(state)
+        if not states or key != _key(states[-1]):
             states.append(state)
         if state["status"] in ("succeeded", "failed", "cancelled"):
             return states
@@ -178,6 +183,18 @@ def test_progress_over_http(polled: tuple[list[dict[str, Any]], dict[str, Any]])
             assert total == subjects
         if stage == "full resolution":
             assert total == attached
+
+    # the worker's own estimate, in the job document: never going back, 1 at the end, a
+    # time left once a few percent are done (what the results page shows)
+    fractions = [s["progress"]["fraction"] for s in running]
+    assert all(f is not None and 0 <= f < 1 for f in fractions), fractions
+    assert fractions == sorted(fractions), fractions
+    assert states[-1]["progress"]["fraction"] == 1.0
+    assert states[-1]["progress"]["seconds_left"] is None
+    for s in running:
+        p = s["progress"]
+        if p["fraction"] >= MIN_FRACTION_FOR_ETA:
+            assert p["seconds_left"] is not None and p["seconds_left"] >= 0, p
 
     out = io.StringIO()
     progress = Progress(int(states[0]["id"]), out, tty=False)

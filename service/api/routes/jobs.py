@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from datetime import UTC
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request, Response, status
@@ -20,7 +21,9 @@ from service.models import (
     Job,
     Shape,
     made_from_image,
+    utcnow,
 )
+from service.progress import seconds_left
 from service.schemas import (
     DbId,
     JobCreate,
@@ -55,6 +58,18 @@ def job_out(session: Session, job: Job) -> JobOut:
     return job_outs(session, [job])[0]
 
 
+def _progress_out(job: Job) -> dict[str, Any]:
+    """The job's progress with the worker's estimate of the share done and, while it runs,
+    the time left."""
+    fraction = 1.0 if job.status == "succeeded" else job.progress_fraction
+    left = None
+    if job.status == "running" and job.started_at is not None:
+        started = job.started_at if job.started_at.tzinfo else job.started_at.replace(tzinfo=UTC)
+        left = seconds_left(fraction, (utcnow() - started).total_seconds())
+    return {"stage": job.progress_stage, "done": job.progress_done,
+            "total": job.progress_total, "fraction": fraction, "seconds_left": left}
+
+
 def _job_out(job: Job, collection_name: str | None, model_name: str | None) -> JobOut:
     base = f"/v1/jobs/{job.id}"
     return JobOut.model_validate(
@@ -68,11 +83,7 @@ def _job_out(job: Job, collection_name: str | None, model_name: str | None) -> J
             "params": job.params,
             "n_shapes": len(job.shape_ids),
             "status": job.status,
-            "progress": {
-                "stage": job.progress_stage,
-                "done": job.progress_done,
-                "total": job.progress_total,
-            },
+            "progress": _progress_out(job),
             "attempts": job.attempts,
             "max_attempts": job.max_attempts,
             "cancel_requested": job.cancel_requested,
