@@ -193,14 +193,21 @@ def _edge_steps(chain: ChainTransform, parent: ChainTransform) -> tuple[PointTra
     return chain.steps[len(parent.steps):]
 
 
+def _polish_steps(res: SubjectResult) -> int:
+    """How many CPD steps the polish (see :mod:`._polish`) added to `res`'s chain."""
+    polish = (res.quality or {}).get("polish")
+    return 0 if polish is None else int(polish.get("steps", 1))
+
+
 def _as_built(res: SubjectResult) -> ChainTransform:
-    """The chain `res` was attached with: a polished subject's chain (see :mod:`._polish`)
-    ends in one more CPD step that its children were not built on."""
+    """The chain `res` was attached with: a polished subject's chain ends in the polish's
+    CPD steps, which its children were not built on."""
     assert res.transform is not None
-    if (res.quality or {}).get("polish") is None:
+    n = _polish_steps(res)
+    if n == 0:
         return res.transform
     chain = res.transform
-    return ChainTransform(source=chain.source, target=chain.target, steps=chain.steps[:-1],
+    return ChainTransform(source=chain.source, target=chain.target, steps=chain.steps[:-n],
                           path=chain.path)
 
 
@@ -255,14 +262,17 @@ def _refined_subjects(
     for s in polished:
         assert s.transform is not None
         tasks.append(_FineTask(subject=s.index, q=fine[s.index].q,
-                               steps=(s.transform.steps[-1],), y=full.normed[s.index],
-                               cpd=cpd))
+                               steps=s.transform.steps[-_polish_steps(s):],
+                               y=full.normed[s.index], cpd=cpd))
     counted = _counting(progress, stage, done, total)
     for res in _map_tasks(_refine_edge, tasks, executor, counted, stage):
         node = fine[res.subject]
-        step = out[res.subject].transform.steps[-1]  # type: ignore[union-attr]
+        s = out[res.subject]
+        assert s.transform is not None
+        polish = s.transform.steps[-_polish_steps(s):]
         chain = ChainTransform(source=node.chain.source, target=node.chain.target,
-                               steps=(*node.chain.steps, step, res.step), path=node.chain.path)
+                               steps=(*node.chain.steps, *polish, res.step),
+                               path=node.chain.path)
         fine[res.subject] = _FineNode(q=res.warped, chain=chain)
         fine_outcome[res.subject] = res
     for index, res in fine_outcome.items():

@@ -78,10 +78,13 @@ def test_results_are_at_the_stored_resolution(runs, family):
     assert polished, "nothing polished: the family is too shallow to test the polish here"
     for s in polished:
         parent_steps = 0 if s.parent == 0 else len(res.subject(s.parent).transform.steps)
-        parent_polished = s.parent != 0 and (res.subject(s.parent).quality or {}).get("polish")
-        # the edge (its steps, then the stored resolution's), then the polish and its own
-        # stored-resolution step; a polished parent's last two are not in the child's chain
-        assert len(s.transform.steps) >= parent_steps - (2 if parent_polished else 0) + 4
+        parent_polish = (res.subject(s.parent).quality or {}).get("polish") if s.parent else None
+        # the edge (its steps, then the stored resolution's), then the polish's stages and
+        # their own stored-resolution step; a polished parent's polish steps and their
+        # stored-resolution step are not in the child's chain
+        parent_extra = parent_polish["steps"] + 1 if parent_polish else 0
+        own = 3 + s.quality["polish"]["steps"]
+        assert len(s.transform.steps) >= parent_steps - parent_extra + own
     json.dumps(res.to_dict())
 
 
