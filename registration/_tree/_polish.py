@@ -1,16 +1,18 @@
-"""A final polish of each chained registration: one more CPD from the root model as warped
-along the chain onto the subject, so the slide the chain accumulated can relax.
+"""A final polish of each chained registration: CPD from the root model as warped along
+the chain onto the subject, coarse to fine, so the slide the chain accumulated can relax.
 
 Each edge of a tree path registers the root model, as already warped onto the parent,
 onto the child; the error of one link (0.035-0.04 of the subject's size on the 永
 deformation chains, near the sampling floor) adds up along the path. After the tree is
-built, every attached subject at layer >= ``POLISH_MIN_LAYER`` is registered once more:
-CPD moves the root's points, where the chain left them, onto the subject again (the same
-CPD options; the points keep the root's order), with sigma^2 starting from the start's
-residual rather than from the spread of all pairs (it starts aligned). The polished
-registration replaces the chained one only when it passes the checks the tree holds every
-registration to: its warp does not fold, its e is no larger, and its own confidence is at
-least ``MIN_CONFIDENCE``. Figures: bench/RESULTS.md, section 0.00.
+built, every attached subject at layer >= ``POLISH_MIN_LAYER`` is registered again, in
+the stages of ``POLISH_BETA_FACTORS``: each stage's CPD moves the root's points, where the
+previous stage (first: the chain) left them, onto the subject (the tree's CPD options but
+a kernel width beta scaled by the stage's factor; the points keep the root's order), with
+sigma^2 starting from that start's residual rather than from the spread of all pairs (it
+starts aligned). A stage is kept only when it passes the checks the tree holds every
+registration to: its warp does not fold, its e is no larger than its start's, and its own
+confidence is at least ``MIN_CONFIDENCE``; a rejected stage ends the polish. Figures:
+bench/RESULTS.md, sections 0.00 (one stage) and 0.000 (coarse to fine).
 """
 
 from __future__ import annotations
