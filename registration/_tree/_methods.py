@@ -125,12 +125,14 @@ def build_dynamic_tree(
         the registration from there is better (higher confidence, or as confident with a
         lower e). No cycles: a subject never moves below itself.
     polish : bool
-        Finally, every subject at layer >= 3 is registered once more by CPD from the root
-        model where its chain left it, and takes that registration when it does not fold,
-        lowers e and keeps a confidence >= 0.2 (see :mod:`._polish`): the slide a chain
-        accumulates link by link can relax. One more CPD per deep subject. On the
-        ground-truth chains of bench/bench_groundtruth.py it lowered the correspondence
-        error on every family (bench/RESULTS.md, 0.00); False: the tree as built.
+        Finally, every subject at layer >= 3 is registered again by CPD from the root
+        model where its chain left it, in two stages, the edges' kernel width beta then
+        half of it, each stage taken when it does not fold, lowers e and keeps a
+        confidence >= 0.2 (see :mod:`._polish`): the slide a chain accumulates link by link
+        can relax, then the finer deformation the edges' smooth kernel leaves out is fitted.
+        Up to two more CPD per deep subject. On the ground-truth chains of
+        bench/bench_groundtruth.py it lowered the correspondence error on every family
+        (bench/RESULTS.md, 0.00 and 0.000); False: the tree as built.
     compare_direct : bool
         Also run direct CPD from the root on every subject, for comparison.
     working_points : int or None

@@ -1,16 +1,18 @@
-"""A final polish of each chained registration: one more CPD from the root model as warped
-along the chain onto the subject, so the slide the chain accumulated can relax.
+"""A final polish of each chained registration: CPD from the root model as warped along
+the chain onto the subject, coarse to fine, so the slide the chain accumulated can relax.
 
 Each edge of a tree path registers the root model, as already warped onto the parent,
 onto the child; the error of one link (0.035-0.04 of the subject's size on the 永
 deformation chains, near the sampling floor) adds up along the path. After the tree is
-built, every attached subject at layer >= ``POLISH_MIN_LAYER`` is registered once more:
-CPD moves the root's points, where the chain left them, onto the subject again (the same
-CPD options; the points keep the root's order), with sigma^2 starting from the start's
-residual rather than from the spread of all pairs (it starts aligned). The polished
-registration replaces the chained one only when it passes the checks the tree holds every
-registration to: its warp does not fold, its e is no larger, and its own confidence is at
-least ``MIN_CONFIDENCE``. Figures: bench/RESULTS.md, section 0.00.
+built, every attached subject at layer >= ``POLISH_MIN_LAYER`` is registered again, in
+the stages of ``POLISH_BETA_FACTORS``: each stage's CPD moves the root's points, where the
+previous stage (first: the chain) left them, onto the subject (the tree's CPD options but
+a kernel width beta scaled by the stage's factor; the points keep the root's order), with
+sigma^2 starting from that start's residual rather than from the spread of all pairs (it
+starts aligned). A stage is kept only when it passes the checks the tree holds every
+registration to: its warp does not fold, its e is no larger than its start's, and its own
+confidence is at least ``MIN_CONFIDENCE``; a rejected stage ends the polish. Figures:
+bench/RESULTS.md, sections 0.00 (one stage) and 0.000 (coarse to fine).
 """
 
 from __future__ import annotations
@@ -36,12 +38,19 @@ IntArray = NDArray[np.intp]
 #: Subjects at this tree layer or deeper are polished (layer 2 is registered from the root
 #: directly: nothing accumulated to relax).
 POLISH_MIN_LAYER = 3
+#: The polish's CPD stages, coarse to fine: the kernel width beta of each as a fraction of
+#: the tree's. The first, with the edges' own kernel, relaxes the slide the chain
+#: accumulated; the second, from there (already aligned, so a finer kernel cannot wander),
+#: fits the finer deformation the edges' smooth kernel leaves out. Each stage is kept only
+#: when it passes the checks, and a finer one runs only after a kept one.
+POLISH_BETA_FACTORS = (1.0, 0.5)
 
 
 @dataclass(frozen=True)
 class _PolishTask:
     subject: int
     start: FloatArray  # the root model warped along the chain (subject's normalised coords)
+    error: float  # the chained registration's e
     y: FloatArray  # the subject, normalised coordinates
     cpd: CPDOptions
     spacing2: float
@@ -54,41 +63,55 @@ class _PolishOutcome:
     error: float
     correspondence: IntArray
     probability: FloatArray
-    step: PointTransform
-    quality: RegistrationQuality
+    steps: tuple[PointTransform, ...]  # the stages kept, coarse to fine (none: rejected)
+    quality: tuple[RegistrationQuality, ...]  # of each stage kept
 
 
 def _polish_task(task: _PolishTask) -> _PolishOutcome:
     o = task.cpd
-    # the start already lies on the subject: sigma^2 from its residual (e = mean squared
-    # nearest distance, both ways; sigma^2 is per coordinate), not from the spread of all
-    # pairs, which would let CPD wander off again; never below the squared point spacing
-    sigma2 = max(0.5 * registration_error(task.start, task.y), task.spacing2)
-    res = cpd_nonrigid(task.start, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w,
-                       max_iter=o.max_iter, tol=o.tol, dtype=o.dtype, sigma2=sigma2)
-    warped = np.asarray(res.warped, dtype=np.float64)
-    e = registration_error(warped, task.y)
-    return _PolishOutcome(
-        subject=task.subject, warped=warped, error=e,
-        correspondence=np.asarray(res.correspondence, dtype=np.intp),
-        probability=np.asarray(res.probability, dtype=np.float64), step=res.transform,
-        quality=measure_quality(task.start, warped, task.y, res.transform, e, task.spacing2),
-    )
+    cur, e_cur = task.start, task.error
+    steps: list[PointTransform] = []
+    quality: list[RegistrationQuality] = []
+    corr: IntArray = np.zeros(0, dtype=np.intp)
+    prob: FloatArray = np.zeros(0)
+    for factor in POLISH_BETA_FACTORS:
+        # the start already lies on the subject: sigma^2 from its residual (e = mean
+        # squared nearest distance, both ways; sigma^2 is per coordinate), not from the
+        # spread of all pairs, which would let CPD wander off again; never below the
+        # squared point spacing
+        sigma2 = max(0.5 * e_cur, task.spacing2)
+        res = cpd_nonrigid(cur, task.y, beta=factor * o.beta, lmbda=o.lmbda, w=o.w,
+                           max_iter=o.max_iter, tol=o.tol, dtype=o.dtype, sigma2=sigma2)
+        warped = np.asarray(res.warped, dtype=np.float64)
+        e = registration_error(warped, task.y)
+        q = measure_quality(cur, warped, task.y, res.transform, e, task.spacing2)
+        if not (q.min_jacobian > 0 and e <= e_cur and q.confidence >= MIN_CONFIDENCE):
+            break  # this stage is not kept, nor any finer one
+        steps.append(res.transform)
+        quality.append(q)
+        cur, e_cur = warped, e
+        corr = np.asarray(res.correspondence, dtype=np.intp)
+        prob = np.asarray(res.probability, dtype=np.float64)
+    return _PolishOutcome(subject=task.subject, warped=cur, error=e_cur, correspondence=corr,
+                          probability=prob, steps=tuple(steps), quality=tuple(quality))
 
 
 def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome) -> SubjectResult:
     """`old` with the polished registration in place of the chained one."""
-    assert old.transform is not None and old.confidence is not None
-    chain = replace(old.transform, steps=(*old.transform.steps, out.step))
+    assert old.transform is not None and old.confidence is not None and out.steps
+    chain = replace(old.transform, steps=(*old.transform.steps, *out.steps))
     assert isinstance(chain, ChainTransform)
+    confidence = min(old.confidence, *(q.confidence for q in out.quality))
     quality = {**(old.quality or {}), "polish": {
-        "error_before": old.error, **out.quality.to_dict()}}
+        "error_before": old.error, "steps": len(out.steps), **out.quality[-1].to_dict(),
+        "confidence": min(q.confidence for q in out.quality),
+        "min_jacobian": min(q.min_jacobian for q in out.quality)}}
     return replace(
         old, error=out.error, warped=coll.norms[out.subject].invert(out.warped),
         correspondence=out.correspondence, probability=out.probability, transform=chain,
-        confidence=min(old.confidence, out.quality.confidence), quality=quality,
-        reason=f"{old.reason}; polished: one more CPD from the chained model (e "
-               f"{old.error:.3g} -> {out.error:.3g})",
+        confidence=confidence, quality=quality,
+        reason=f"{old.reason}; polished: {len(out.steps)} more CPD from the chained model "
+               f"(e {old.error:.3g} -> {out.error:.3g})",
     )
 
 
@@ -102,8 +125,8 @@ def _polish_subjects(
 ) -> None:
     """Polish every attached subject at layer >= `min_layer` in place (see the module doc)."""
     tasks = [
-        _PolishTask(subject=s, start=coll.norms[s].apply(r.warped), y=coll.normed[s], cpd=cpd,
-                    spacing2=coll.spacing2[s])
+        _PolishTask(subject=s, start=coll.norms[s].apply(r.warped), error=r.error,
+                    y=coll.normed[s], cpd=cpd, spacing2=coll.spacing2[s])
         for s, r in sorted(results.items())
         if r.warped is not None and r.layer is not None and r.layer >= min_layer
         and r.error is not None and r.transform is not None and r.confidence is not None
@@ -114,10 +137,7 @@ def _polish_subjects(
         if progress is not None:
             progress("polish", 0, len(tasks))
         for done, (_, out) in enumerate(ex.map_unordered(_polish_task, tasks), start=1):
-            old = results[out.subject]
-            assert old.error is not None
-            if (out.quality.min_jacobian > 0 and out.error <= old.error
-                    and out.quality.confidence >= MIN_CONFIDENCE):
-                results[out.subject] = _polished(coll, old, out)
+            if out.steps:
+                results[out.subject] = _polished(coll, results[out.subject], out)
             if progress is not None:
                 progress("polish", done, len(tasks))

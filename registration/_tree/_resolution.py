@@ -195,14 +195,21 @@ def _edge_steps(chain: ChainTransform, parent: ChainTransform) -> tuple[PointTra
     return chain.steps[len(parent.steps):]
 
 
+def _polish_steps(res: SubjectResult) -> int:
+    """How many CPD steps the polish (see :mod:`._polish`) added to `res`'s chain."""
+    polish = (res.quality or {}).get("polish")
+    return 0 if polish is None else int(polish.get("steps", 1))
+
+
 def _as_built(res: SubjectResult) -> ChainTransform:
-    """The chain `res` was attached with: a polished subject's chain (see :mod:`._polish`)
-    ends in one more CPD step that its children were not built on."""
+    """The chain `res` was attached with: a polished subject's chain ends in the polish's
+    CPD steps, which its children were not built on."""
     assert res.transform is not None
-    if (res.quality or {}).get("polish") is None:
+    n = _polish_steps(res)
+    if n == 0:
         return res.transform
     chain = res.transform
-    return ChainTransform(source=chain.source, target=chain.target, steps=chain.steps[:-1],
+    return ChainTransform(source=chain.source, target=chain.target, steps=chain.steps[:-n],
                           path=chain.path)
 
 

@@ -14,6 +14,7 @@ from registration import (
     build_static_tree,
     register_direct,
 )
+from registration._tree._polish import POLISH_BETA_FACTORS
 from registration.synthetic import chained_family, correspondence_error
 
 FAST_CPD = CPDOptions(max_iter=60)
@@ -385,4 +386,6 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
         assert "polished" in s.reason
         # the reported transform still maps the root model onto the reported warped model
         assert np.allclose(s.transform.apply(shapes[0]), s.warped, atol=1e-8)
-        assert len(s.transform.steps) == len(before.transform.steps) + 1
+        # the polish's stages, coarse to fine, each a CPD step of the chain
+        assert 1 <= p["steps"] <= len(POLISH_BETA_FACTORS)
+        assert len(s.transform.steps) == len(before.transform.steps) + p["steps"]

@@ -1,0 +1,197 @@
+"""Variants of the tree's final polish, on the ground-truth runs of bench_groundtruth.py.
+
+The dynamic tree is built once per run with ``polish=False`` (cached under
+``bench/out/polish_cache``), plain CPD beside it; then each variant re-registers every
+attached subject at layer >= 3 from where the chain left the root model, with the
+acceptance checks of ``registration/_tree/_polish.py`` (no fold, e no larger than the
+start's, confidence >= 0.2; a rejected stage ends the variant). With ``stages:2,1`` this
+reproduces the library's default polish offline (same GT errors as bench_groundtruth.py).
+Printed: GT correspondence error / plain CPD's (all subjects / far half) per run, pooled
+per family, and the worst run.
+
+Variants (comma-separated, ``--variants``):
+
+- ``none``: the tree as built;
+- ``stages:B1:B2:...``: one CPD stage per kernel width (beta, absolute; the edges use 2),
+  each from the previous kept stage, sigma^2 from half the start's e (>= h^2);
+- ``lam:L``: one stage at beta 2 with lambda L;
+- ``floor:F``: one stage that stops once sigma^2 reaches F h^2;
+- ``dense``: one stage whose model adds, to each point, the midpoint to its nearest
+  neighbour (twice the points; only the root's points are read back);
+- ``chained``: layers in order, a subject's start is the edge from its parent's polished
+  registration (a CPD at the default sigma^2), then one stage; else as ``stages:2``.
+
+    .venv/bin/python bench/bench_polish_variants.py --data /work/shared/data \\
+        --families edge skel fish chinese --designs 0 --seeds 1 \\
+        --variants none,stages:2,stages:2:1,stages:1:1
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_groundtruth as bg
+
+from registration import CPDOptions, build_dynamic_tree, cpd_nonrigid, register_direct
+from registration._cpd import _nonrigid
+from registration._error import registration_error
+from registration._points import normalise
+from registration._quality import measure_quality
+from registration._tree._rules import MIN_CONFIDENCE, _spacing2
+
+CACHE = Path(__file__).resolve().parent / "out" / "polish_cache"
+CPD = CPDOptions()
+Array = np.ndarray
+
+
+def _cpd(start: Array, y: Array, sigma2: float | None, beta: float = CPD.beta,
+         lmbda: float = CPD.lmbda, floor: float | None = None) -> tuple[Array, Any]:
+    old = _nonrigid.SIGMA2_FLOOR_REL
+    if floor is not None:
+        _nonrigid.SIGMA2_FLOOR_REL = floor  # relative to the normalised subject (RMS 1)
+    try:
+        r = cpd_nonrigid(start, y, beta=beta, lmbda=lmbda, w=CPD.w, max_iter=CPD.max_iter,
+                         tol=CPD.tol, dtype=CPD.dtype, sigma2=sigma2)
+    finally:
+        _nonrigid.SIGMA2_FLOOR_REL = old
+    return np.asarray(r.warped, dtype=np.float64), r
+
+
+def _stage(start: Array, y: Array, h2: float, **kw: Any) -> tuple[Array, bool]:
+    """One CPD stage from `start`, and whether it passes the polish's checks."""
+    e0 = registration_error(start, y)
+    out, r = _cpd(start, y, max(0.5 * e0, h2), **kw)
+    e = registration_error(out, y)
+    q = measure_quality(start, out, y, r.transform, e, h2)
+    return out, bool(e <= e0 and q.min_jacobian > 0 and q.confidence >= MIN_CONFIDENCE)
+
+
+def _polish(variant: str, start: Array, y: Array, h2: float) -> Array:
+    kind, _, arg = variant.partition(":")
+    if kind == "stages":
+        cur = start
+        for beta in (float(b) for b in arg.split(":")):
+            out, ok = _stage(cur, y, h2, beta=beta)
+            if not ok:
+                break
+            cur = out
+        return cur
+    if kind == "lam":
+        out, ok = _stage(start, y, h2, lmbda=float(arg))
+    elif kind == "floor":
+        out, ok = _stage(start, y, h2, floor=float(arg) * h2)
+    elif kind == "dense":
+        _, j = cKDTree(start).query(start, k=2)
+        dense = np.vstack([start, 0.5 * (start + start[j[:, 1]])])
+        full, _ = _cpd(dense, y, max(0.5 * registration_error(start, y), h2))
+        out = full[: len(start)]
+        ok = registration_error(out, y) <= registration_error(start, y)
+    else:
+        raise SystemExit(f"unknown variant {variant!r}")
+    return out if ok else start
+
+
+def _built(case: bg.Case) -> dict[str, Any]:
+    CACHE.mkdir(parents=True, exist_ok=True)
+    key = CACHE / f"{case.label.replace(' ', '_')}_r{case.root}.pkl"
+    if key.exists():
+        return pickle.loads(key.read_bytes())  # type: ignore[no-any-return]
+    tree = build_dynamic_tree(case.shapes, root=case.root, polish=False)
+    plain = register_direct(case.shapes, root=case.root, prealign=False)
+    d = {"tree": {s.index: (s.warped, s.layer, s.parent) for s in tree.subjects},
+         "plain": {s.index: s.warped for s in plain.subjects}}
+    key.write_bytes(pickle.dumps(d))
+    return d
+
+
+def run_variant(variant: str, case: bg.Case, d: dict[str, Any]) -> list[tuple[float, float, bool]]:
+    """(GT error, plain CPD's GT error, far) per subject."""
+    tree, plain = d["tree"], d["plain"]
+    nrm = [normalise(p) for p in case.shapes]
+    h2 = [_spacing2(p) for p, _ in nrm]
+    out: dict[int, Array] = {}
+    for k in sorted(tree, key=lambda k: tree[k][1] or 0):
+        warped, layer, parent = tree[k]
+        if warped is None or k == case.root:
+            continue
+        y, nm = nrm[k]
+        start = nm.apply(warped)
+        if variant != "none" and layer is not None and layer >= 3:
+            if variant == "chained" and parent != case.root and parent in out:
+                edge, _ = _cpd(nrm[parent][1].apply(out[parent]), y, None)
+                first = edge if registration_error(edge, y) <= registration_error(start, y) \
+                    else start
+                start = _polish("stages:2", first, y, h2[k])
+            else:
+                start = _polish("stages:2" if variant == "chained" else variant, start, y,
+                                h2[k])
+        out[k] = nm.invert(start)
+    rows = []
+    for k, w in out.items():
+        g = bg.gt_error(w, case.truth[k], case.shapes[k])
+        p = bg.gt_error(plain[k], case.truth[k], case.shapes[k])
+        assert g is not None and p is not None
+        rows.append((g, p, case.distance[k] >= case.far_from))
+    return rows
+
+
+def _ratio(rows: list[tuple[float, float, bool]], far: bool = False) -> float:
+    sel = [r for r in rows if r[2] or not far]
+    return float(np.mean([r[0] for r in sel]) / np.mean([r[1] for r in sel])) if sel else np.nan
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=bg.DATA)
+    ap.add_argument("--families", nargs="*", default=["edge", "skel", "fish", "chinese"],
+                    help="edge skel fish chinese generated")
+    ap.add_argument("--designs", default="0,72", help="glyph ids or rows of index.csv")
+    ap.add_argument("--seeds", type=int, default=1)
+    ap.add_argument("--trials", type=int, default=3)
+    ap.add_argument("--variants", default="none,stages:2,stages:2:1")
+    args = ap.parse_args()
+    bg.DATA, bg.GLYPHS = args.data, args.data / "glyphs_yong"
+    bg.CHUI = args.data / "chui_rangarajan"
+    if not args.data.is_dir():
+        raise SystemExit(f"NOTE: {args.data} is missing: this benchmark needs the shared data")
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    seeds = list(range(args.seeds))
+    for fam in args.families:
+        if fam in ("edge", "skel"):
+            cases = bg.glyph_cases(fam, bg.pick_designs(args.designs, 0), seeds, True)
+        elif fam in ("fish", "chinese"):
+            cases = bg.chui_cases(fam, list(range(args.trials)))
+        elif fam == "generated":
+            cases = bg.generated_cases(seeds)
+        else:
+            raise SystemExit(f"unknown family {fam!r}")
+        per: dict[str, list[list[tuple[float, float, bool]]]] = {v: [] for v in variants}
+        for case in cases:
+            d = _built(case)
+            line = []
+            for v in variants:
+                t0 = time.perf_counter()
+                rows = run_variant(v, case, d)
+                per[v].append(rows)
+                line.append(f"{v} {_ratio(rows):.3f}/{_ratio(rows, True):.3f} "
+                            f"({time.perf_counter() - t0:.0f}s)")
+            print(f"{case.label} r{case.root}: " + "  ".join(line), flush=True)
+        print(f"== {fam}: variant / plain CPD, pooled all, far, worst run (all)")
+        for v in variants:
+            rows = [r for run in per[v] for r in run]
+            worst = max(_ratio(run) for run in per[v])
+            print(f"   {v:16s} {_ratio(rows):.3f} {_ratio(rows, True):.3f} {worst:.3f}",
+                  flush=True)
+
+
+if __name__ == "__main__":
+    main()
