@@ -130,7 +130,7 @@ class _Composed:
 class _FineTask:
     subject: int
     q: FloatArray  # the full root model as warped onto the parent (parent's normalised coords)
-    steps: tuple[PointTransform, ...]  # the coarse edge: affine pre-alignment, then CPD
+    steps: tuple[PointTransform, ...]  # the coarse edge (affine, then CPD) or polish stages
     y: FloatArray  # the stored subject, normalised
     cpd: CPDOptions
 
