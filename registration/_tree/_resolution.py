@@ -223,46 +223,62 @@ def _refined_subjects(
 ) -> list[SubjectResult]:
     """`subjects` (decided at the working resolution) with every registration redone at
     the stored resolution, a layer at a time from the root: one short CPD per subject,
-    started from its parent's final stored-resolution result moved by the subject's coarse
-    edge (and, for a polished subject, its coarse polish step: see :mod:`._polish`).
+    started from its parent's stored-resolution result as its children were built on, moved
+    by the subject's coarse edge (and, for a polished subject, its coarse polish steps: see
+    :mod:`._polish`). A polished subject with children gets one more CPD, of its edge alone,
+    for its children to start from (as at the working resolution, where they were built on
+    its chained registration, not on the polished one).
 
     The edge is a map of the plane fitted between the parent's shape and the subject's,
-    so it carries the parent's refined correspondences over as well as the ones it was
-    fitted from. On six 永 ground-truth families (bench/RESULTS.md section 8.1) this gave
-    the same correspondence error (0.99x on average, 0.95-1.04x per family) as redoing a
-    polished subject's edge as built and then its polish (two CPDs, and a barrier between
-    them), in 0.3-0.6 of the time; one CPD per subject from its whole coarse chain was
-    worse (1.04x: the chain's accumulated error is left to a single correction)."""
+    so it carries the parent's refined correspondences over. On six 永 ground-truth
+    families (bench/RESULTS.md section 8.1) one CPD for a polished subject (edge and polish
+    together) gave the same correspondence error (0.99x) as redoing its edge and then its
+    polish (two CPDs); one CPD per subject from its whole coarse chain was worse (1.04x).
+    Children start from the as-built result because a polish that lowers e can still move
+    correspondences the wrong way, and a child started from it inherits that (seen with the
+    two-stage polish on one 永 design: 0.69x -> 0.88x of plain CPD)."""
     root = full.root
     fine = {root: _FineNode(q=full.normed[root], chain=full.root_chain())}
     coarse_chain = {root: full.root_chain()}
     out = {s.index: s for s in subjects}
     pending = sorted((s for s in subjects if s.attached and s.parent is not None),
                      key=lambda s: (len(s.path), s.index))
+    parents = {s.parent for s in pending}
     by_depth: dict[int, list[SubjectResult]] = {}
     for s in pending:
         by_depth.setdefault(len(s.path), []).append(s)
     total, done = len(pending), 0
     fine_outcome: dict[int, _FineOutcome] = {}
+    final_chain: dict[int, ChainTransform] = {}
     for depth in sorted(by_depth):
         group = by_depth[depth]
-        tasks, steps = [], {}
+        tasks, kinds, edges, steps = [], [], {}, {}
         for s in group:
             assert s.parent is not None and s.transform is not None
             built = _as_built(s)
             coarse_chain[s.index] = built
-            steps[s.index] = (*_edge_steps(built, coarse_chain[s.parent]),
-                              *s.transform.steps[len(built.steps):])
+            edges[s.index] = _edge_steps(built, coarse_chain[s.parent])
+            steps[s.index] = (*edges[s.index], *s.transform.steps[len(built.steps):])
             tasks.append(_FineTask(subject=s.index, q=fine[s.parent].q, steps=steps[s.index],
                                    y=full.normed[s.index], cpd=cpd))
-        counted = _counting(progress, stage, done, total)
-        for res in _map_tasks(_refine_edge, tasks, executor, counted, stage):
+            kinds.append("final")
+            if built is not s.transform and s.index in parents:
+                tasks.append(_FineTask(subject=s.index, q=fine[s.parent].q,
+                                       steps=edges[s.index], y=full.normed[s.index], cpd=cpd))
+                kinds.append("built")
+        counted = _counting(progress, stage, done, total, len(group) / len(tasks))
+        for kind, res in zip(kinds, _map_tasks(_refine_edge, tasks, executor, counted, stage),
+                             strict=True):
             s = out[res.subject]
             assert s.parent is not None
-            chain = fine[s.parent].chain.extended((*steps[s.index], res.step),
-                                                  full.norms[s.index], s.index)
-            fine[s.index] = _FineNode(q=res.warped, chain=chain)
-            fine_outcome[s.index] = res
+            own = steps[s.index] if kind == "final" else edges[s.index]
+            chain = fine[s.parent].chain.extended((*own, res.step), full.norms[s.index],
+                                                  s.index)
+            if kind == "final":
+                fine_outcome[s.index] = res
+                final_chain[s.index] = chain
+            if kind == "built" or s.index not in fine:
+                fine[s.index] = _FineNode(q=res.warped, chain=chain)
         done += len(group)
     for index, res in fine_outcome.items():
         s = out[index]
@@ -272,18 +288,19 @@ def _refined_subjects(
         s.warped = full.norms[index].invert(res.warped)
         s.correspondence = res.correspondence
         s.probability = res.probability
-        s.transform = fine[index].chain
+        s.transform = final_chain[index]
     return [out[s.index] for s in subjects]
 
 
 def _counting(progress: ProgressCallback | None, stage: str, offset: int,
-              total: int) -> ProgressCallback | None:
-    """A progress callback that reports one layer's count within the whole stage's."""
+              total: int, per_task: float = 1.0) -> ProgressCallback | None:
+    """A progress callback that reports one layer's count within the whole stage's, in
+    subjects (`per_task` of a subject a task)."""
     if progress is None:
         return None
 
     def report(_stage: str, done: int, _total: int) -> None:
-        progress(stage, offset + done, total)
+        progress(stage, offset + int(done * per_task + 1e-9), total)
 
     return report
 

@@ -75,15 +75,20 @@ def test_results_are_at_the_stored_resolution(runs, family):
     res = runs["c2f"]
     assert res.options["working_points"] == WORKING
     _check_stored_resolution(res, family)
-    # one stored-resolution CPD per subject, after its parent's whole chain: the edge (its
-    # coarse steps), a polished subject's coarse polish step, then the stored resolution's
+    # one stored-resolution CPD per subject, after its parent's chain as built: the edge
+    # (its coarse steps), a polished subject's coarse polish steps, then the stored
+    # resolution's
     n_root = len(family.shapes[0])
     polished = [s for s in res.subjects if (s.quality or {}).get("polish")]
     assert polished, "nothing polished: the family is too shallow to test the polish here"
     for s in res.subjects:
         parent = () if s.parent == 0 else res.subject(s.parent).transform.steps
         steps = s.transform.steps
-        assert steps[:len(parent)] == parent  # the parent's chain, as it reports it
+        # the parent's chain as its children were built on it: without its polish and
+        # the stored-resolution step that follows it
+        parent_polish = (res.subject(s.parent).quality or {}).get("polish") if s.parent else None
+        shared = len(parent) - (parent_polish["steps"] + 1 if parent_polish else 0)
+        assert steps[:shared] == parent[:shared]
         assert len(steps[-1].control_points) == n_root  # the stored-resolution step
         # at least the edge's CPD, the polish's stages, the stored resolution's step
         polish = (s.quality or {}).get("polish")
@@ -178,3 +183,32 @@ def test_farthest_point_subsample_is_deterministic_and_even():
     assert set(perm[farthest_point_indices(scatter[perm], 50)]) == set(
         farthest_point_indices(scatter, 50))
     np.testing.assert_array_equal(farthest_point_indices(pts[:10], 50), np.arange(10))
+
+
+def test_children_of_a_polished_subject_start_from_its_registration_as_built():
+    """A polished subject's children were built, at the working resolution, on its chained
+    registration, not on the polished one: at the stored resolution they start from its
+    edge's own stored-resolution CPD (one more task for such a subject), so a polish that
+    lowers e but moves correspondences the wrong way stays with that subject."""
+    fam = deformation_chains(base_outline(1500), n_chains=2, chain_length=4, n_points=240,
+                             seed=0, step=0.3)
+    events: list[tuple[str, int, int]] = []
+    res = build_dynamic_tree(fam.shapes, 0, working_points=WORKING, cpd=FAST_CPD,
+                             executor=SerialExecutor(), progress=lambda *e: events.append(e))
+    _check_stored_resolution(res, fam)
+    n_root = len(fam.shapes[0])
+    polished_parents = [s for s in res.subjects if (s.quality or {}).get("polish")
+                        and any(c.parent == s.index for c in res.subjects)]
+    assert polished_parents, "no polished subject with children: pick another family"
+    for p in polished_parents:
+        built = p.transform.steps[:len(p.transform.steps) - p.quality["polish"]["steps"] - 1]
+        for c in (c for c in res.subjects if c.parent == p.index):
+            assert c.transform.steps[:len(built)] == built
+            # then the parent's own stored-resolution step of its edge, not its polish
+            step = c.transform.steps[len(built)]
+            assert len(step.control_points) == n_root
+            assert step is not p.transform.steps[-1]
+    counts = [(d, t) for s, d, t in events if s == "full resolution"]
+    attached = sum(1 for s in res.subjects if s.attached)
+    assert counts[-1] == (attached, attached)
+    assert [d for d, _ in counts] == sorted(d for d, _ in counts)
