@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -171,3 +172,9 @@ def farthest_point_indices(points: FloatArray, n: int) -> IntArray:
         chosen[k] = nxt
         np.minimum(d2, np.sum((points - points[nxt]) ** 2, axis=1), out=d2)
     return np.sort(chosen)
+
+
+def mean_spacing2(points: FloatArray) -> float:
+    """Mean squared nearest-neighbour spacing h^2 of a shape's points."""
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(np.mean(d[:, 1] ** 2))

@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from ._error import registration_error
-from ._points import farthest_point_indices
+from ._points import farthest_point_indices, mean_spacing2
 from ._transform import PointTransform, jacobian_matrices
 
 FloatArray = NDArray[np.float64]
@@ -165,8 +165,7 @@ def measure_quality(
         prealigned, warped = prealigned[pick], warped[pick]
         subject = subject[farthest_point_indices(subject, QUALITY_POINTS)]
         error = registration_error(warped, subject)
-        d, _ = cKDTree(subject).query(subject, k=2)
-        spacing2 = float(np.mean(d[:, 1] ** 2))
+        spacing2 = mean_spacing2(subject)
     J = jacobian_matrices(warp, prealigned)
     det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
     min_jac = float(det.min())

@@ -12,12 +12,12 @@ from numpy.typing import ArrayLike, NDArray
 from .._candidates import candidate_pairs
 from .._cpd import CPDOptions
 from .._executor import Executor
-from .._points import Normalization, normalise
+from .._points import Normalization, mean_spacing2, normalise
 from .._pose import PoseSpec
 from .._result import SubjectResult
 from .._similarity import ProgressCallback, Similarity
 from .._transform import ChainTransform
-from ._rules import _SimilarityRule, _spacing2
+from ._rules import _SimilarityRule
 from ._tasks import _RegOutcome
 
 FloatArray = NDArray[np.float64]
@@ -53,7 +53,7 @@ class _Collection:
             norms.append(nm)
         label = list(names) if names is not None else [f"shape-{k}" for k in range(len(shapes))]
         return cls(normed=normed, norms=norms, names=label, root=root,
-                   spacing2=[_spacing2(p) for p in normed])
+                   spacing2=[mean_spacing2(p) for p in normed])
 
     @property
     def n(self) -> int:

@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid
 from .._error import registration_error
 from .._executor import Executor
-from .._points import farthest_point_indices
+from .._points import farthest_point_indices, mean_spacing2
 from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
 from .._transform import (
@@ -49,7 +49,6 @@ from .._transform import (
     jacobian_determinants,
 )
 from ._collection import _Collection
-from ._rules import _spacing2
 from ._tasks import _map_tasks
 
 FloatArray = NDArray[np.float64]
@@ -101,7 +100,7 @@ def coarse_collection(full: _Collection, working_points: int | None) -> _Collect
         return full
     normed = [p[farthest_point_indices(p, working_points)] for p in full.normed]
     return _Collection(normed=normed, norms=list(full.norms), names=list(full.names),
-                       root=full.root, spacing2=[_spacing2(p) for p in normed])
+                       root=full.root, spacing2=[mean_spacing2(p) for p in normed])
 
 
 @dataclass(frozen=True)

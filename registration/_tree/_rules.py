@@ -11,7 +11,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from .._similarity import Similarity
 from ._tasks import _RegOutcome
@@ -198,12 +197,6 @@ def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:
     if not errs:
         return math.inf
     return ERROR_FACTOR * float(np.percentile(errs, 25))
-
-
-def _spacing2(normalised: FloatArray) -> float:
-    """Mean squared nearest-neighbour spacing h^2 of a shape's points."""
-    d, _ = cKDTree(normalised).query(normalised, k=2)
-    return float(np.mean(d[:, 1] ** 2))
 
 
 def _spacing_floor(spacing2: float) -> float:

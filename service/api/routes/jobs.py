@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from datetime import UTC
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request, Response, status
@@ -63,9 +62,8 @@ def _progress_out(job: Job) -> dict[str, Any]:
     the time left."""
     fraction = 1.0 if job.status == "succeeded" else job.progress_fraction
     left = None
-    if job.status == "running" and job.started_at is not None:
-        started = job.started_at if job.started_at.tzinfo else job.started_at.replace(tzinfo=UTC)
-        left = seconds_left(fraction, (utcnow() - started).total_seconds())
+    if job.status == "running" and job.started_at is not None:  # UTCDateTime: aware
+        left = seconds_left(fraction, (utcnow() - job.started_at).total_seconds())
     return {"stage": job.progress_stage, "done": job.progress_done,
             "total": job.progress_total, "fraction": fraction, "seconds_left": left}
 
