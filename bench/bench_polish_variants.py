@@ -18,6 +18,7 @@ Variants (comma-separated, ``--variants``):
 - ``floor:F``: one stage that stops once sigma^2 reaches F h^2;
 - ``dense``: one stage whose model adds, to each point, the midpoint to its nearest
   neighbour (twice the points; only the root's points are read back);
+- ``l2/VARIANT``: VARIANT from layer 2 on (the subjects registered from the root directly);
 - ``chained``: layers in order, a subject's start is the edge from its parent's polished
   registration (a CPD at the default sigma^2), then one stage; else as ``stages:2``.
 
@@ -44,9 +45,10 @@ import bench_groundtruth as bg
 from registration import CPDOptions, build_dynamic_tree, cpd_nonrigid, register_direct
 from registration._cpd import _nonrigid
 from registration._error import registration_error
+from registration._points import mean_spacing2 as _spacing2
 from registration._points import normalise
 from registration._quality import measure_quality
-from registration._tree._rules import MIN_CONFIDENCE, _spacing2
+from registration._tree._rules import MIN_CONFIDENCE
 
 CACHE = Path(__file__).resolve().parent / "out" / "polish_cache"
 CPD = CPDOptions()
@@ -125,15 +127,17 @@ def run_variant(variant: str, case: bg.Case, d: dict[str, Any]) -> list[tuple[fl
             continue
         y, nm = nrm[k]
         start = nm.apply(warped)
-        if variant != "none" and layer is not None and layer >= 3:
-            if variant == "chained" and parent != case.root and parent in out:
+        kind, min_layer = variant, 3
+        if variant.startswith("l2/"):  # the same variant from layer 2 on
+            kind, min_layer = variant[3:], 2
+        if kind != "none" and layer is not None and layer >= min_layer:
+            if kind == "chained" and parent != case.root and parent in out:
                 edge, _ = _cpd(nrm[parent][1].apply(out[parent]), y, None)
                 first = edge if registration_error(edge, y) <= registration_error(start, y) \
                     else start
                 start = _polish("stages:2", first, y, h2[k])
             else:
-                start = _polish("stages:2" if variant == "chained" else variant, start, y,
-                                h2[k])
+                start = _polish("stages:2" if kind == "chained" else kind, start, y, h2[k])
         out[k] = nm.invert(start)
     rows = []
     for k, w in out.items():

@@ -36,9 +36,9 @@ from scipy.optimize import minimize
 
 from registration import CPDOptions, LocalProcessExecutor, normalise
 from registration._icp import pairwise_affine_icp, prepare_shape
+from registration._points import mean_spacing2 as _spacing2
 from registration._pose import PoseSpec
 from registration._quality import _FEATURES, GOOD_ERROR
-from registration._tree._rules import _spacing2
 from registration._tree._tasks import _register_from, _RegTask, _Start
 from registration.synthetic import chained_family, deformation_chains
 
