@@ -125,8 +125,8 @@ def build_dynamic_tree(
         the registration from there is better (higher confidence, or as confident with a
         lower e). No cycles: a subject never moves below itself.
     polish : bool
-        Finally, every subject at layer >= 3 is registered again by CPD from the root
-        model where its chain left it, in two stages, the edges' kernel width beta then
+        Finally, every attached subject is registered again by CPD from the root
+        model where its chain (for layer 2: its one edge) left it, in two stages, the edges' kernel width beta then
         half of it, each stage taken when it does not fold, lowers e and keeps a
         confidence >= 0.2 (see :mod:`._polish`): the slide a chain accumulates link by link
         can relax, then the finer deformation the edges' smooth kernel leaves out is fitted.

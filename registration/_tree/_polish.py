@@ -35,9 +35,13 @@ from ._rules import MIN_CONFIDENCE
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
-#: Subjects at this tree layer or deeper are polished (layer 2 is registered from the root
-#: directly: nothing accumulated to relax).
-POLISH_MIN_LAYER = 3
+#: Subjects at this tree layer or deeper are polished: every attached subject. Layer 2 is
+#: registered from the root directly, so no chain accumulated there, but its CPD stopped
+#: at its tolerance from a start far from the subject; restarted from where it stopped
+#: (sigma^2 from the residual) it keeps fitting. Ground truth (bench/RESULTS.md 0.0000):
+#: Chui fish 0.76 -> 0.26 of plain CPD, Chinese 0.64 -> 0.44, glyph edges and skeletons
+#: within +-0.02 (their layer-2 subjects gain little).
+POLISH_MIN_LAYER = 2
 #: The polish's CPD stages, coarse to fine: the kernel width beta of each as a fraction of
 #: the tree's. The first, with the edges' own kernel, relaxes the slide the chain
 #: accumulated; the second, from there (already aligned, so a finer kernel cannot wander),

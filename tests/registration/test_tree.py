@@ -368,7 +368,7 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
     plain = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, polish=False,
                                executor=SerialExecutor())
     res = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
-    assert plain.thresholds["polish"] == "off" and res.thresholds["polish"] == "layer >= 3"
+    assert plain.thresholds["polish"] == "off" and res.thresholds["polish"] == "layer >= 2"
     polished = {s.index for s in res.subjects if "polish" in (s.quality or {})}
     assert polished, "no subject was polished on a chained family"
     for s in res.subjects:
@@ -378,7 +378,7 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
         if s.index not in polished:
             assert s.error == before.error
             continue
-        assert s.layer is not None and s.layer >= 3
+        assert s.layer is not None and s.layer >= 2
         p = s.quality["polish"]
         assert p["error_before"] == before.error and s.error <= before.error
         assert p["min_jacobian"] > 0 and p["confidence"] >= 0.2
