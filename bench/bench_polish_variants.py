@@ -14,6 +14,9 @@ Variants (comma-separated, ``--variants``):
 - ``none``: the tree as built;
 - ``stages:B1:B2:...``: one CPD stage per kernel width (beta, absolute; the edges use 2),
   each from the previous kept stage, sigma^2 from half the start's e (>= h^2);
+- ``skip:B1:B2:...``: as ``stages``, but a rejected stage is skipped, not the end;
+- ``end:B1:B2:...``: the stages run on whatever their e (fold and confidence still end
+  them); the last whose e is no larger than the chain's is kept;
 - ``lam:L``: one stage at beta 2 with lambda L;
 - ``floor:F``: one stage that stops once sigma^2 reaches F h^2;
 - ``dense``: one stage whose model adds, to each point, the midpoint to its nearest
@@ -87,6 +90,26 @@ def _polish(variant: str, start: Array, y: Array, h2: float) -> Array:
                 break
             cur = out
         return cur
+    if kind == "skip":  # a rejected stage is skipped: the next starts from the last kept
+        cur = start
+        for beta in (float(b) for b in arg.split(":")):
+            out, ok = _stage(cur, y, h2, beta=beta)
+            cur = out if ok else cur
+        return cur
+    if kind == "end":  # the stages run on regardless of e; the last one whose e is no
+        # larger than the start's (and that passes the other checks) is kept
+        e0, cur, best = registration_error(start, y), start, start
+        for beta in (float(b) for b in arg.split(":")):
+            e_cur = registration_error(cur, y)
+            out, r = _cpd(cur, y, max(0.5 * e_cur, h2), beta=beta)
+            e = registration_error(out, y)
+            q = measure_quality(cur, out, y, r.transform, e, h2)
+            if not (q.min_jacobian > 0 and q.confidence >= MIN_CONFIDENCE):
+                break
+            cur = out
+            if e <= e0:
+                best = out
+        return best
     if kind == "lam":
         out, ok = _stage(start, y, h2, lmbda=float(arg))
     elif kind == "floor":

@@ -125,14 +125,15 @@ def build_dynamic_tree(
         the registration from there is better (higher confidence, or as confident with a
         lower e). No cycles: a subject never moves below itself.
     polish : bool
-        Finally, every attached subject is registered again by CPD from the root
-        model where its chain (for layer 2: its one edge) left it, in two stages, the edges' kernel width beta then
-        half of it, each stage taken when it does not fold, lowers e and keeps a
-        confidence >= 0.2 (see :mod:`._polish`): the slide a chain accumulates link by link
-        can relax, then the finer deformation the edges' smooth kernel leaves out is fitted.
-        Up to two more CPD per deep subject. On the ground-truth chains of
-        bench/bench_groundtruth.py it lowered the correspondence error on every family
-        (bench/RESULTS.md, 0.00 and 0.000); False: the tree as built.
+        Finally, every attached subject is registered again by CPD from the root model
+        where its chain (at layer 2: its one edge) left it, in two stages, the edges'
+        kernel width beta then half of it; a stage is kept when it does not fold, lowers
+        e and keeps a confidence >= 0.2, and a rejected stage is skipped (see
+        :mod:`._polish`): the slide a chain accumulates link by link can relax, then the
+        finer deformation the edges' smooth kernel leaves out is fitted. Up to two more
+        CPD per subject. On the ground-truth chains of bench/bench_groundtruth.py it
+        lowered the correspondence error on every family (bench/RESULTS.md, 0.00, 0.000
+        and 0.0000); False: the tree as built.
     compare_direct : bool
         Also run direct CPD from the root on every subject, for comparison.
     working_points : int or None

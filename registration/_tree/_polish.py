@@ -11,8 +11,12 @@ a kernel width beta scaled by the stage's factor; the points keep the root's ord
 sigma^2 starting from that start's residual rather than from the spread of all pairs (it
 starts aligned). A stage is kept only when it passes the checks the tree holds every
 registration to: its warp does not fold, its e is no larger than its start's, and its own
-confidence is at least ``MIN_CONFIDENCE``; a rejected stage ends the polish. Figures:
-bench/RESULTS.md, sections 0.00 (one stage) and 0.000 (coarse to fine).
+confidence is at least ``MIN_CONFIDENCE``. A rejected stage is skipped: the next starts
+where the last kept one (or the chain) left the points. A chain's composed field has more
+freedom than one CPD's, so its e can be lower than a wide stage's while its points have
+slid: there the finer stage, from the chain, still lowers e and the correspondence error.
+Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine) and 0.0000
+(layer 2, skipping).
 """
 
 from __future__ import annotations
@@ -46,7 +50,7 @@ POLISH_MIN_LAYER = 2
 #: the tree's. The first, with the edges' own kernel, relaxes the slide the chain
 #: accumulated; the second, from there (already aligned, so a finer kernel cannot wander),
 #: fits the finer deformation the edges' smooth kernel leaves out. Each stage is kept only
-#: when it passes the checks, and a finer one runs only after a kept one.
+#: when it passes the checks; a rejected one is skipped.
 POLISH_BETA_FACTORS = (1.0, 0.5)
 
 
@@ -90,7 +94,7 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
         e = registration_error(warped, task.y)
         q = measure_quality(cur, warped, task.y, res.transform, e, task.spacing2)
         if not (q.min_jacobian > 0 and e <= e_cur and q.confidence >= MIN_CONFIDENCE):
-            break  # this stage is not kept, nor any finer one
+            continue  # this stage is not kept; the next starts where the last kept left
         steps.append(res.transform)
         quality.append(q)
         cur, e_cur = warped, e

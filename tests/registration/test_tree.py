@@ -389,3 +389,34 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
         # the polish's stages, coarse to fine, each a CPD step of the chain
         assert 1 <= p["steps"] <= len(POLISH_BETA_FACTORS)
         assert len(s.transform.steps) == len(before.transform.steps) + p["steps"]
+
+
+def test_a_rejected_polish_stage_is_skipped_not_the_end(family, monkeypatch):
+    """A chain's composed field can reach a lower e than one wide CPD stage while its
+    points have slid (the first stage then raises e and is rejected); the finer stage
+    still runs, from the chain's points, and is kept when it passes the checks."""
+    from registration._error import registration_error
+    from registration._points import mean_spacing2, normalise
+    from registration._tree import _polish as polish_module
+
+    real = polish_module.cpd_nonrigid
+    betas: list[float] = []
+
+    def first_stage_misses(x, y, **kw):
+        betas.append(kw["beta"])
+        if len(betas) == 1:  # the wide stage lands off the subject: its e rises
+            return real(x, y + 0.3, **kw)
+        return real(x, y, **kw)
+
+    monkeypatch.setattr(polish_module, "cpd_nonrigid", first_stage_misses)
+    y, _ = normalise(family.shapes[3])
+    start = y + 0.01 * np.sin(7 * y[:, ::-1])  # near the subject, slightly off
+    task = polish_module._PolishTask(
+        subject=3, start=start, error=registration_error(start, y), y=y, cpd=FAST_CPD,
+        spacing2=mean_spacing2(y))
+    out = polish_module._polish_task(task)
+    assert betas == [f * FAST_CPD.beta for f in POLISH_BETA_FACTORS]
+    # the first stage was rejected, the second kept: one step, from the chain's points
+    assert len(out.steps) == 1 and len(out.quality) == 1
+    assert out.error < task.error
+    assert np.allclose(out.steps[0].apply(start), out.warped, atol=1e-8)
