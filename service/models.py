@@ -167,7 +167,8 @@ class Job(Base):
         Id, ForeignKey("collections.id", ondelete="CASCADE")
     )
     # A plain id, not a foreign key: a finished job keeps naming its model after a delete.
-    model_shape_id: Mapped[int] = mapped_column(Id)
+    # Null for a grouping, which has no model (migration 0006).
+    model_shape_id: Mapped[int | None] = mapped_column(Id, nullable=True)
     # The shapes of the collection when the job was submitted, in input order.
     shape_ids: Mapped[list[int]] = mapped_column(JSON)
     method: Mapped[str] = mapped_column(String(40))

@@ -288,8 +288,8 @@ class JobCreate(BaseModel):
     model_shape_id: DbId | None = Field(
         default=None,
         description="The model shape; it must be in the collection. Required by the "
-        "registration methods; a grouping has no model (null: the collection's first shape "
-        "is recorded).",
+        "registration methods; a grouping has no model (one given is ignored: the job's is "
+        "null).",
     )
     method: Method = Field(
         default=DEFAULT_METHOD,
@@ -444,9 +444,13 @@ class JobOut(BaseModel):
     collection_name: str | None = Field(
         default=None, description="The collection's name; null once it is deleted."
     )
-    model_shape_id: int
+    model_shape_id: int | None = Field(
+        description="The model shape; null for a grouping, which has no model."
+    )
     model_name: str | None = Field(
-        default=None, description="The model shape's name; null once the shape is deleted."
+        default=None,
+        description="The model shape's name; null once the shape is deleted, and for a "
+        "grouping.",
     )
     method: Method
     params: dict[str, Any] = Field(

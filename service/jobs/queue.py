@@ -108,7 +108,7 @@ class JobSpec:
     (whether a coarse-to-fine job has a stored-resolution stage)."""
 
     collection_id: int
-    model_shape_id: int
+    model_shape_id: int | None  # None: a job without a model (a grouping)
     method: str
     params_for: Callable[[list[str], list[int]], dict[str, Any]]
     callback_url: str | None = None
@@ -183,10 +183,10 @@ class JobQueue:
         with self._writing(session) as s:
             if s.get(Collection, spec.collection_id) is None:
                 raise JobRefused(f"collection {spec.collection_id} does not exist")
-            model = s.get(Shape, spec.model_shape_id)
-            if model is None:
+            model = None if spec.model_shape_id is None else s.get(Shape, spec.model_shape_id)
+            if spec.model_shape_id is not None and model is None:
                 raise JobRefused(f"model shape {spec.model_shape_id} does not exist")
-            if model.collection_id != spec.collection_id:
+            if model is not None and model.collection_id != spec.collection_id:
                 raise JobRefused(
                     f"model shape {spec.model_shape_id} belongs to collection "
                     f"{model.collection_id}, not to collection {spec.collection_id}"
@@ -197,9 +197,11 @@ class JobQueue:
                 .order_by(Shape.id)
             ).all()
             if len(rows) < 2:
+                needs = ("the model and at least one other shape" if model is not None
+                         else "at least two shapes")
                 raise JobRefused(
                     f"collection {spec.collection_id} has {len(rows)} shape(s); a job "
-                    "needs the model and at least one other shape"
+                    f"needs {needs}"
                 )
             job = Job(
                 collection_id=spec.collection_id,
