@@ -23,6 +23,7 @@ from service.cli_client._common import (
     find_collection,
     find_shape,
 )
+from service.cli_client.parser import RUN_JOB_OPTIONS
 from service.progress import Progress, outcome_line
 
 # --- upload ------------------------------------------------------------------------------
@@ -123,18 +124,8 @@ def _pose_text(params: Mapping[str, Any]) -> str:
 def cmd_run(args: argparse.Namespace, rt: RegtreeClient) -> int:
     collection = find_collection(rt, args.collection)
     model = find_shape(rt, collection, args.model)
-    job = rt.start_job(
-        collection.id,
-        model.id,
-        method=args.method,
-        similarity_threshold=args.similarity_threshold,
-        error_threshold=args.error_threshold,
-        pose=args.pose,
-        max_rotation=args.max_rotation,
-        compare_direct=args.compare_direct,
-        working_points=args.working_points,
-        callback_url=args.callback_url,
-    )
+    options = {name: getattr(args, name) for name in RUN_JOB_OPTIONS}
+    job = rt.start_job(collection.id, model.id, **options)
     if args.quiet:
         _out(str(job.id))
     else:
