@@ -53,6 +53,7 @@ from sqlalchemy import and_, or_, select, update
 from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.orm import Session
 
+from service.contract.names import GROUPING_METHOD
 from service.core.config import Settings
 from service.db import Database, lock_first
 from service.jobs import callbacks
@@ -183,6 +184,8 @@ class JobQueue:
         with self._writing(session) as s:
             if s.get(Collection, spec.collection_id) is None:
                 raise JobRefused(f"collection {spec.collection_id} does not exist")
+            if spec.model_shape_id is None and spec.method != GROUPING_METHOD:
+                raise JobRefused(f"model_shape_id is required by method {spec.method}")
             model = None if spec.model_shape_id is None else s.get(Shape, spec.model_shape_id)
             if spec.model_shape_id is not None and model is None:
                 raise JobRefused(f"model shape {spec.model_shape_id} does not exist")
