@@ -63,6 +63,13 @@ class Base(DeclarativeBase):
     pass
 
 
+def _never_reused_ids(*table_args: Any) -> tuple[Any, ...]:
+    """``__table_args__`` for a table whose ids are never handed out again: SQLite's
+    AUTOINCREMENT (a deleted job's id never names a new job); other databases' sequences
+    already behave so."""
+    return (*table_args, {"sqlite_autoincrement": True})
+
+
 class JobStatus(enum.StrEnum):
     queued = "queued"
     running = "running"
@@ -90,7 +97,7 @@ class JobOutcome(enum.StrEnum):
 
 class Collection(Base):
     __tablename__ = "collections"
-    __table_args__ = ({"sqlite_autoincrement": True},)
+    __table_args__ = _never_reused_ids()
 
     id: Mapped[int] = mapped_column(Id, primary_key=True)
     name: Mapped[str] = mapped_column(String(200))
@@ -105,10 +112,7 @@ class Collection(Base):
 
 class Shape(Base):
     __tablename__ = "shapes"
-    __table_args__ = (
-        Index("ix_shapes_collection_id_id", "collection_id", "id"),
-        {"sqlite_autoincrement": True},
-    )
+    __table_args__ = _never_reused_ids(Index("ix_shapes_collection_id_id", "collection_id", "id"))
 
     id: Mapped[int] = mapped_column(Id, primary_key=True)
     collection_id: Mapped[int] = mapped_column(
@@ -156,10 +160,9 @@ def points_from_npy(data: bytes) -> np.ndarray:
 
 class Job(Base):
     __tablename__ = "jobs"
-    __table_args__ = (
+    __table_args__ = _never_reused_ids(
         Index("ix_jobs_status_created", "status", "created_at"),
         Index("ix_jobs_collection_id", "collection_id"),
-        {"sqlite_autoincrement": True},
     )
 
     id: Mapped[int] = mapped_column(Id, primary_key=True)
@@ -167,7 +170,8 @@ class Job(Base):
         Id, ForeignKey("collections.id", ondelete="CASCADE")
     )
     # A plain id, not a foreign key: a finished job keeps naming its model after a delete.
-    model_shape_id: Mapped[int] = mapped_column(Id)
+    # Null for a grouping, which has no model (migration 0006).
+    model_shape_id: Mapped[int | None] = mapped_column(Id, nullable=True)
     # The shapes of the collection when the job was submitted, in input order.
     shape_ids: Mapped[list[int]] = mapped_column(JSON)
     method: Mapped[str] = mapped_column(String(40))
@@ -227,10 +231,7 @@ class CallbackAttempt(Base):
     """One try at delivering a job's callback: when, and what the receiver answered."""
 
     __tablename__ = "callback_attempts"
-    __table_args__ = (
-        Index("ix_callback_attempts_job_id", "job_id", "attempt"),
-        {"sqlite_autoincrement": True},
-    )
+    __table_args__ = _never_reused_ids(Index("ix_callback_attempts_job_id", "job_id", "attempt"))
 
     id: Mapped[int] = mapped_column(Id, primary_key=True)
     job_id: Mapped[int] = mapped_column(

@@ -28,7 +28,7 @@ from service.contract.names import (
 )
 from service.contract.names import ImageMode as ImageMode  # re-exported for routes/shapes.py
 from service.contract.result import ResultDocument
-from service.core.limits import bounds, example
+from service.core.limits import bounds, example, examples
 
 T = TypeVar("T")
 
@@ -81,11 +81,8 @@ class Page(BaseModel, Generic[T]):
 
 
 class CollectionCreate(BaseModel):
-    model_config = ConfigDict(
-        extra="forbid",
-        json_schema_extra={
-            "examples": [{"name": "yong-glyphs", "description": "永 from 73 font designs"}]
-        },
+    model_config = examples(
+        {"name": "yong-glyphs", "description": "永 from 73 font designs"}, extra="forbid"
     )
 
     name: str = Field(min_length=1, max_length=200, pattern=NO_NUL)
@@ -93,19 +90,15 @@ class CollectionCreate(BaseModel):
 
 
 class CollectionOut(BaseModel):
-    model_config = ConfigDict(
-        json_schema_extra={
-            "examples": [
-                {
-                    "id": 1,
-                    "name": "yong-glyphs",
-                    "description": "永 from 73 font designs",
-                    "n_shapes": 73,
-                    "created_at": "2026-01-01T12:00:00Z",
-                    "updated_at": "2026-01-01T12:00:00Z",
-                }
-            ]
-        }
+    model_config = examples(
+        {
+            "id": 1,
+            "name": "yong-glyphs",
+            "description": "永 from 73 font designs",
+            "n_shapes": 73,
+            "created_at": "2026-01-01T12:00:00Z",
+            "updated_at": "2026-01-01T12:00:00Z",
+        },
     )
 
     id: int
@@ -135,11 +128,7 @@ class ShapeJSON(BaseModel):
     ``max_coordinate``.
     """
 
-    model_config = ConfigDict(
-        json_schema_extra={
-            "examples": [{"name": "outline-1", "points": example("points")}]
-        }
-    )
+    model_config = examples({"name": "outline-1", "points": example("points")})
 
     name: str | None = Field(default=None, min_length=1, max_length=300, pattern=NO_NUL)
     points: list[InputPoint] = Field(
@@ -168,20 +157,16 @@ class BBox(BaseModel):
 
 
 class ShapeOut(BaseModel):
-    model_config = ConfigDict(
-        json_schema_extra={
-            "examples": [
-                {
-                    "id": 7,
-                    "collection_id": 1,
-                    "name": "fish-1",
-                    "source_format": "json",
-                    "n_points": 91,
-                    "bbox": {"min_x": -1.2, "min_y": -0.8, "max_x": 1.3, "max_y": 0.9},
-                    "created_at": "2026-01-01T12:00:00Z",
-                }
-            ]
-        }
+    model_config = examples(
+        {
+            "id": 7,
+            "collection_id": 1,
+            "name": "fish-1",
+            "source_format": "json",
+            "n_points": 91,
+            "bbox": {"min_x": -1.2, "min_y": -0.8, "max_x": 1.3, "max_y": 0.9},
+            "created_at": "2026-01-01T12:00:00Z",
+        },
     )
 
     id: int
@@ -265,31 +250,27 @@ def _finite_positive(value: float | None) -> float | None:
 
 
 class JobCreate(BaseModel):
-    model_config = ConfigDict(
-        extra="forbid",
-        json_schema_extra={
-            "examples": [
-                {
-                    "collection_id": 1,
-                    "collection_name": "永 from 73 fonts",
-                    "model_shape_id": 7,
-                    "model_name": "yong_song",
-                    "method": "dynamic_tree",
-                    "similarity_threshold": None,
-                    "error_threshold": None,
-                    "compare_direct": True,
-                    "cpd": {"beta": 2.0, "lmbda": 3.0, "w": 0.1, "max_iter": 150, "tol": 1e-5},
-                }
-            ]
+    model_config = examples(
+        {
+            "collection_id": 1,
+            "collection_name": "永 from 73 fonts",
+            "model_shape_id": 7,
+            "model_name": "yong_song",
+            "method": "dynamic_tree",
+            "similarity_threshold": None,
+            "error_threshold": None,
+            "compare_direct": True,
+            "cpd": {"beta": 2.0, "lmbda": 3.0, "w": 0.1, "max_iter": 150, "tol": 1e-5},
         },
+        extra="forbid",
     )
 
     collection_id: DbId
     model_shape_id: DbId | None = Field(
         default=None,
         description="The model shape; it must be in the collection. Required by the "
-        "registration methods; a grouping has no model (null: the collection's first shape "
-        "is recorded).",
+        "registration methods; a grouping has no model (one given is ignored: the job's is "
+        "null).",
     )
     method: Method = Field(
         default=DEFAULT_METHOD,
@@ -401,42 +382,38 @@ class JobLinks(BaseModel):
 
 
 class JobOut(BaseModel):
-    model_config = ConfigDict(
-        json_schema_extra={
-            "examples": [
-                {
-                    "id": 3,
-                    "collection_id": 1,
-                    "model_shape_id": 7,
-                    "method": "dynamic_tree",
-                    "params": {
-                        "similarity_threshold": None,
-                        "error_threshold": None,
-                        "compare_direct": True,
-                        "pose": "upright",
-                        "max_rotation": 30.0,
-                        "pose_source": "default for image collections",
-                        "cpd": {"beta": 2.0, "lmbda": 3.0, "w": 0.1, "max_iter": 150, "tol": 1e-5},
-                    },
-                    "n_shapes": 73,
-                    "status": "running",
-                    "progress": {"stage": "register", "done": 12, "total": 72},
-                    "attempts": 1,
-                    "max_attempts": 3,
-                    "cancel_requested": False,
-                    "error": None,
-                    "created_at": "2026-01-01T12:00:00Z",
-                    "updated_at": "2026-01-01T12:00:05Z",
-                    "started_at": "2026-01-01T12:00:01Z",
-                    "finished_at": None,
-                    "links": {
-                        "self": "/v1/jobs/3",
-                        "result": "/v1/jobs/3/result",
-                        "cancel": "/v1/jobs/3/cancel",
-                    },
-                }
-            ]
-        }
+    model_config = examples(
+        {
+            "id": 3,
+            "collection_id": 1,
+            "model_shape_id": 7,
+            "method": "dynamic_tree",
+            "params": {
+                "similarity_threshold": None,
+                "error_threshold": None,
+                "compare_direct": True,
+                "pose": "upright",
+                "max_rotation": 30.0,
+                "pose_source": "default for image collections",
+                "cpd": {"beta": 2.0, "lmbda": 3.0, "w": 0.1, "max_iter": 150, "tol": 1e-5},
+            },
+            "n_shapes": 73,
+            "status": "running",
+            "progress": {"stage": "register", "done": 12, "total": 72},
+            "attempts": 1,
+            "max_attempts": 3,
+            "cancel_requested": False,
+            "error": None,
+            "created_at": "2026-01-01T12:00:00Z",
+            "updated_at": "2026-01-01T12:00:05Z",
+            "started_at": "2026-01-01T12:00:01Z",
+            "finished_at": None,
+            "links": {
+                "self": "/v1/jobs/3",
+                "result": "/v1/jobs/3/result",
+                "cancel": "/v1/jobs/3/cancel",
+            },
+        },
     )
 
     id: int
@@ -444,9 +421,13 @@ class JobOut(BaseModel):
     collection_name: str | None = Field(
         default=None, description="The collection's name; null once it is deleted."
     )
-    model_shape_id: int
+    model_shape_id: int | None = Field(
+        description="The model shape; null for a grouping, which has no model."
+    )
     model_name: str | None = Field(
-        default=None, description="The model shape's name; null once the shape is deleted."
+        default=None,
+        description="The model shape's name; null once the shape is deleted, and for a "
+        "grouping.",
     )
     method: Method
     params: dict[str, Any] = Field(
@@ -518,9 +499,7 @@ ResultOut = ResultDocument
 
 
 class TransformRequest(BaseModel):
-    model_config = ConfigDict(
-        extra="forbid", json_schema_extra={"examples": [{"points": [[0.0, 0.0], [1.0, 2.0]]}]}
-    )
+    model_config = examples({"points": [[0.0, 0.0], [1.0, 2.0]]}, extra="forbid")
 
     points: Annotated[list[Point], Field(min_length=1)] = Field(
         description="Points in the model shape's coordinates: 1 to {max_points_per_shape} "

@@ -4,9 +4,10 @@ and direct CPD from the root."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from typing import Any
 
+import numpy as np
 from numpy.typing import ArrayLike
 
 from .._executor import Executor
@@ -159,15 +160,13 @@ def build_dynamic_tree(
     ValueError
         On invalid shapes, root, names or thresholds.
     """
-    _check_threshold("similarity_threshold", similarity_threshold)
     _check_threshold("error_threshold", error_threshold)
     if max_candidates < 1:
         raise ValueError(f"max_candidates must be at least 1; got {max_candidates}")
-    working_points = check_working_points(working_points)
-    full = _Collection.prepare(shapes, root, names)
-    start = _TreeStart.prepare(coarse_collection(full, working_points), similarity_threshold,
-                               candidates, cpd, pose, max_rotation, executor, progress)
-    cpd, spec = start.cpd, start.pose
+    run = _Run.prepare(shapes, root, names, working_points, cpd, prealign, pose, max_rotation,
+                       executor, progress)
+    start = run.tree_start(similarity_threshold, candidates)
+    cpd, spec = run.cpd, run.pose
     coll, sim, allowed, sim_rule = start.coll, start.sim, start.allowed, start.rule
     subjects_idx, nodes, results = start.subjects, start.nodes, start.results
     tau_err = error_threshold
@@ -195,15 +194,9 @@ def build_dynamic_tree(
                     for m in start.members_for(s)
                     if (m, s) not in tried and sim_rule.similar(sim, m, s)
                 )[:max_candidates]
-                for d, m in cands:
+                for _, m in cands:
                     tried.add((m, s))
-                    tasks.append(
-                        _RegTask(
-                            subject=s, member=m, layer=layer, similarity=d, q=nodes[m].q,
-                            y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
-                            prealign=prealign, pose=spec, spacing2=coll.spacing2[s],
-                        )
-                    )
+                    tasks.append(run.task(sim, m, s, layer, nodes[m].q))
             if tasks or not bridge():
                 break
         if not tasks:
@@ -255,9 +248,9 @@ def build_dynamic_tree(
                         progress)
     if polish:
         _polish_subjects(coll, results, cpd, executor, progress)
-    direct = _direct_results(coll, sim, cpd, prealign, executor, progress, compare_direct)
-    result = _collection_result(
-        "dynamic_tree", coll, sim, [results[s] for s in subjects_idx], direct, sim_rule,
+    return run.finish(
+        "dynamic_tree", [results[s] for s in subjects_idx], sim, sim_rule,
+        compare_direct=compare_direct,
         thresholds={
             "error": tau_err,
             "error_rule": "explicit" if error_threshold is not None
@@ -266,9 +259,8 @@ def build_dynamic_tree(
             "fold_check": fold_check,
             "polish": f"layer >= {POLISH_MIN_LAYER}" if polish else "off",
         },
-        options=_options_dict(cpd, prealign, max_candidates, spec),
+        max_candidates=max_candidates,
     )
-    return at_stored_resolution(result, full, coll, cpd, working_points, executor, progress)
 
 
 @_owns_executor
@@ -317,22 +309,20 @@ def build_static_tree(
     ValueError
         On invalid shapes, root, names or thresholds.
     """
-    _check_threshold("similarity_threshold", similarity_threshold)
     del error_threshold
-    working_points = check_working_points(working_points)
-    full = _Collection.prepare(shapes, root, names)
-    start = _TreeStart.prepare(coarse_collection(full, working_points), similarity_threshold,
-                               candidates, cpd, pose, max_rotation, executor, progress)
-    cpd, spec = start.cpd, start.pose
-    coll, sim, allowed, sim_rule = start.coll, start.sim, start.allowed, start.rule
-    subjects_idx, nodes, results = start.subjects, start.nodes, start.results
+    run = _Run.prepare(shapes, root, names, working_points, cpd, prealign, pose, max_rotation,
+                       executor, progress)
+    start = run.tree_start(similarity_threshold, candidates)
+    coll, sim, sim_rule, nodes, results = (start.coll, start.sim, start.rule, start.nodes,
+                                           start.results)
     # 1. the tree, from the similarity alone
     parent: dict[int, int] = {}
     layers: list[list[int]] = [[root]]
-    waiting = set(subjects_idx)
+    waiting = set(start.subjects)
     while waiting and layers[-1]:
         frontier = layers[-1]
-        _ensure_frontier(sim, frontier, waiting, allowed, executor, progress, len(layers) + 1)
+        _ensure_frontier(sim, frontier, waiting, start.allowed, executor, progress,
+                         len(layers) + 1)
         new = []
         for s in sorted(waiting):
             cands = [(float(sim.D[m, s]), m) for m in frontier if sim_rule.similar(sim, m, s)]
@@ -343,13 +333,7 @@ def build_static_tree(
         layers.append(new)
     # 2. CPD along the edges, a layer at a time
     for depth, members in enumerate(layers[1:], start=2):
-        tasks = [
-            _RegTask(subject=s, member=parent[s], layer=depth,
-                     similarity=float(sim.D[parent[s], s]), q=nodes[parent[s]].q,
-                     y=coll.normed[s], starts=_starts(sim, parent[s], s),
-                     cpd=cpd, prealign=prealign, pose=spec, spacing2=coll.spacing2[s])
-            for s in members
-        ]
+        tasks = [run.task(sim, parent[s], s, depth, nodes[parent[s]].q) for s in members]
         for out in _run_tasks(tasks, executor, progress, f"layer {depth}"):
             res, node = _subject_from_outcome(coll, out, nodes[out.member])
             res.reason = f"static edge from {coll.names[out.member]}"
@@ -357,16 +341,11 @@ def build_static_tree(
             nodes[out.subject] = node
     for s in waiting:
         results[s].reason = "not reached: no similar shape on a path from the root"
-    direct = _direct_results(coll, sim, cpd, prealign, executor, progress, compare_direct)
-    result = _collection_result(
-        "static_tree", coll, sim, [results[s] for s in subjects_idx], direct, sim_rule,
-        thresholds={
-            "error": None,
-            "error_rule": "none: the static tree does not reject",
-        },
-        options=_options_dict(cpd, prealign, 1, spec),
+    return run.finish(
+        "static_tree", [results[s] for s in start.subjects], sim, sim_rule,
+        compare_direct=compare_direct,
+        thresholds={"error": None, "error_rule": "none: the static tree does not reject"},
     )
-    return at_stored_resolution(result, full, coll, cpd, working_points, executor, progress)
 
 
 def _collection_result(
@@ -396,36 +375,100 @@ def _collection_result(
     )
 
 
-def _direct_results(
-    coll: _Collection,
-    sim: Similarity,
-    cpd: CPDOptions,
-    prealign: bool,
-    executor: Executor | None,
-    progress: ProgressCallback | None,
-    compare: bool = True,
-) -> list[SubjectResult] | None:
-    """Direct CPD from the root to every subject (None unless ``compare``)."""
-    if not compare:
-        return None
-    r = coll.root
-    subjects_idx = [k for k in range(coll.n) if k != r]
-    if prealign:
-        sim.ensure([(r, s) for s in subjects_idx], executor=executor, progress=progress,
-                   stage="similarity direct")
-    tasks = [
-        _RegTask(subject=s, member=r, layer=2, similarity=float(sim.D[r, s]),
-                 q=coll.normed[r], y=coll.normed[s], starts=_starts(sim, r, s),
-                 cpd=cpd, prealign=prealign, pose=sim.pose, spacing2=coll.spacing2[s])
-        for s in subjects_idx
-    ]
-    root_node = coll.root_node()
-    out_by_subject = {}
-    for out in _run_tasks(tasks, executor, progress, "direct"):
-        res, _ = _subject_from_outcome(coll, out, root_node)
-        res.reason = "direct CPD from the root"
-        out_by_subject[out.subject] = res
-    return [out_by_subject[s] for s in subjects_idx]
+@dataclass(frozen=True)
+class _Run:
+    """One method call's arguments that every method shares, checked: the collection at
+    the stored (`full`) and the working (`coll`) resolution, CPD's options, the pose rule
+    and where the registrations run."""
+
+    full: _Collection
+    coll: _Collection
+    working_points: int | None
+    cpd: CPDOptions
+    prealign: bool
+    pose: PoseSpec
+    executor: Executor | None
+    progress: ProgressCallback | None
+
+    @classmethod
+    def prepare(
+        cls,
+        shapes: Sequence[ArrayLike],
+        root: int,
+        names: Sequence[str] | None,
+        working_points: int | None,
+        cpd: CPDOptions | None,
+        prealign: bool,
+        pose: str | None,
+        max_rotation: float | None,
+        executor: Executor | None,
+        progress: ProgressCallback | None,
+    ) -> _Run:
+        """Check the arguments (ValueError) and prepare the collection."""
+        working_points = check_working_points(working_points)
+        full = _Collection.prepare(shapes, root, names)
+        spec = PoseSpec.resolve(pose, max_rotation)
+        return cls(full=full, coll=coarse_collection(full, working_points),
+                   working_points=working_points, cpd=cpd if cpd is not None else CPDOptions(),
+                   prealign=prealign, pose=spec, executor=executor, progress=progress)
+
+    def tree_start(self, similarity_threshold: float | None,
+                   candidates: int | None) -> _TreeStart:
+        """What a tree method starts from (ValueError on an invalid threshold)."""
+        _check_threshold("similarity_threshold", similarity_threshold)
+        return _TreeStart.prepare(self.coll, similarity_threshold, candidates, self.cpd,
+                                  self.pose.mode, self.pose.max_rotation, self.executor,
+                                  self.progress)
+
+    def task(self, sim: Similarity, member: int, subject: int, layer: int,
+             q: np.ndarray) -> _RegTask:
+        """The registration of the model as warped onto `member` (`q`) to `subject`."""
+        return _RegTask(
+            subject=subject, member=member, layer=layer,
+            similarity=float(sim.D[member, subject]), q=q, y=self.coll.normed[subject],
+            starts=_starts(sim, member, subject), cpd=self.cpd, prealign=self.prealign,
+            pose=self.pose, spacing2=self.coll.spacing2[subject],
+        )
+
+    def direct(self, sim: Similarity, compare: bool = True) -> list[SubjectResult] | None:
+        """Direct CPD from the root to every subject (None unless ``compare``)."""
+        if not compare:
+            return None
+        coll, r = self.coll, self.coll.root
+        subjects_idx = [k for k in range(coll.n) if k != r]
+        if self.prealign:
+            sim.ensure([(r, s) for s in subjects_idx], executor=self.executor,
+                       progress=self.progress, stage="similarity direct")
+        tasks = [self.task(sim, r, s, 2, coll.normed[r]) for s in subjects_idx]
+        root_node = coll.root_node()
+        out_by_subject = {}
+        for out in _run_tasks(tasks, self.executor, self.progress, "direct"):
+            res, _ = _subject_from_outcome(coll, out, root_node)
+            res.reason = "direct CPD from the root"
+            out_by_subject[out.subject] = res
+        return [out_by_subject[s] for s in subjects_idx]
+
+    def finish(
+        self,
+        method: str,
+        subjects: list[SubjectResult],
+        sim: Similarity,
+        rule: _SimilarityRule | None,
+        *,
+        compare_direct: bool,
+        thresholds: dict[str, Any],
+        max_candidates: int = 1,
+    ) -> CollectionResult:
+        """The method's result (with direct CPD's when ``compare_direct``), at the stored
+        resolution."""
+        direct = self.direct(sim, compare_direct)
+        result = _collection_result(
+            method, self.coll, sim, subjects, direct, rule,
+            thresholds=thresholds,
+            options=_options_dict(self.cpd, self.prealign, max_candidates, self.pose),
+        )
+        return at_stored_resolution(result, self.full, self.coll, self.cpd,
+                                    self.working_points, self.executor, self.progress)
 
 
 @_owns_executor
@@ -454,20 +497,12 @@ def register_direct(
 
     Parameters
     ----------
-    shapes : sequence of array_like, shape (n_i, 2)
-        The collection, in the user's coordinates; each shape is size-normalised first.
-    root : int
-        Index of the model shape.
+    shapes, root, cpd, pose, max_rotation, names, working_points, executor, progress
+        As for :func:`build_dynamic_tree`.
     similarity_threshold, error_threshold, compare_direct
         Ignored; accepted so that the three methods take the same arguments.
-    cpd : CPDOptions, optional
     prealign : bool
         Pose handling as in :func:`build_dynamic_tree`; False for plain CPD.
-    pose, max_rotation, working_points
-        As for :func:`build_dynamic_tree`.
-    names : sequence of str, optional
-    executor : Executor, optional
-    progress : callable(stage, done, total), optional
 
     Returns
     -------
@@ -480,17 +515,10 @@ def register_direct(
         On invalid shapes, root or names.
     """
     del similarity_threshold, error_threshold, compare_direct
-    cpd = cpd if cpd is not None else CPDOptions()
-    spec = PoseSpec.resolve(pose, max_rotation)
-    working_points = check_working_points(working_points)
-    full = _Collection.prepare(shapes, root, names)
-    coll = coarse_collection(full, working_points)
-    sim = Similarity.empty(coll.normed, pose=spec)
-    subjects = _direct_results(coll, sim, cpd, prealign, executor, progress)
+    run = _Run.prepare(shapes, root, names, working_points, cpd, prealign, pose, max_rotation,
+                       executor, progress)
+    sim = Similarity.empty(run.coll.normed, pose=run.pose)
+    subjects = run.direct(sim)
     assert subjects is not None
-    result = _collection_result(
-        "direct", coll, sim, subjects, None, None,
-        thresholds={"similarity": None, "error": None, "error_rule": "none"},
-        options=_options_dict(cpd, prealign, 1, spec),
-    )
-    return at_stored_resolution(result, full, coll, cpd, working_points, executor, progress)
+    return run.finish("direct", subjects, sim, None, compare_direct=False,
+                      thresholds={"similarity": None, "error": None, "error_rule": "none"})

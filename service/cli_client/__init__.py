@@ -40,12 +40,8 @@ from typing import TYPE_CHECKING
 from service.cli_client._common import (
     COMMANDS,
     DEFAULT_URL,
-    EXIT_CONNECTION,
-    EXIT_FAILED,
-    EXIT_INTERRUPTED,
-    EXIT_OK,
-    EXIT_USAGE,
     CLIError,
+    Exit,
     _check_url,
     _fail,
     describe_error,
@@ -78,17 +74,13 @@ if TYPE_CHECKING:
 __all__ = [
     "COMMANDS",
     "DEFAULT_URL",
-    "EXIT_CONNECTION",
-    "EXIT_FAILED",
-    "EXIT_INTERRUPTED",
-    "EXIT_OK",
-    "EXIT_USAGE",
     "HANDLERS",
     "IMAGE_MODES",
     "METHODS",
     "POSES",
     "SUBJECT_SORTS",
     "CLIError",
+    "Exit",
     "Progress",
     "add_commands",
     "add_connection_options",
@@ -135,29 +127,29 @@ def main(args: argparse.Namespace) -> int:
     except CLIError as e:
         return _fail(str(e), e.code)
     except KeyboardInterrupt:
-        return _fail("interrupted", EXIT_INTERRUPTED)
+        return _fail("interrupted", Exit.INTERRUPTED)
     except BrokenPipeError:  # e.g. `regtree results ... | head`: stop quietly
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
-        return EXIT_FAILED
+        return Exit.FAILED
     except RegtreeConnectionError as e:
         return _fail(
-            f"{e} (is the service running there? set --url or REGTREE_URL)", EXIT_CONNECTION
+            f"{e} (is the service running there? set --url or REGTREE_URL)", Exit.CONNECTION
         )
     except RegtreeTimeout as e:
-        return _fail(f"{e} [service at {url}]", EXIT_CONNECTION)
+        return _fail(f"{e} [service at {url}]", Exit.CONNECTION)
     except JobFailed as e:
-        return _fail(str(e), EXIT_FAILED)
+        return _fail(str(e), Exit.FAILED)
     except RegtreeError as e:
         message = describe_error(e)
         if isinstance(e, Unauthorized):
             message += " (give the key with --api-key or REGTREE_API_KEY)"
-        return _fail(message, EXIT_FAILED)
+        return _fail(message, Exit.FAILED)
     except Exception as e:
         import httpx
 
         if isinstance(e, httpx.HTTPError):  # e.g. a scheme httpx does not speak
-            return _fail(f"cannot talk to {url}: {e}", EXIT_CONNECTION)
+            return _fail(f"cannot talk to {url}: {e}", Exit.CONNECTION)
         raise
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 import sys
 from collections.abc import Sequence
+from enum import IntEnum
 from typing import TYPE_CHECKING, Any, TextIO
 
 if TYPE_CHECKING:
@@ -12,11 +13,16 @@ if TYPE_CHECKING:
 
 COMMANDS = ("upload", "run", "watch", "results", "cancel", "export", "similarity", "group")
 
-EXIT_OK = 0
-EXIT_FAILED = 1
-EXIT_USAGE = 2
-EXIT_CONNECTION = 3
-EXIT_INTERRUPTED = 130
+
+
+class Exit(IntEnum):
+    """The client commands' exit codes."""
+
+    OK = 0
+    FAILED = 1
+    USAGE = 2  # argparse's too
+    CONNECTION = 3
+    INTERRUPTED = 130  # 128 + SIGINT
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 
@@ -24,7 +30,7 @@ DEFAULT_URL = "http://127.0.0.1:8000"
 class CLIError(Exception):
     """An expected failure: printed as one ``regtree: error:`` line, exit ``code``."""
 
-    def __init__(self, message: str, code: int = EXIT_FAILED) -> None:
+    def __init__(self, message: str, code: int = Exit.FAILED) -> None:
         super().__init__(message)
         self.code = code
 
@@ -34,7 +40,7 @@ def _check_url(url: str) -> None:
     if not re.match(r"^https?://[^/\s:]+", url):
         raise CLIError(
             f"--url must look like http://HOST:PORT (got {url!r}; default $REGTREE_URL)",
-            EXIT_USAGE,
+            Exit.USAGE,
         )
 
 
@@ -83,11 +89,11 @@ def _pick(kind: str, value: str, items: Sequence[Any], *, where: str = "") -> An
         what = f"named {value!r}"
         if value.strip().isdigit():
             what += f" or with id {int(value)}"
-        raise CLIError(f"no {kind} {what}{where}{hint}", EXIT_FAILED)
+        raise CLIError(f"no {kind} {what}{where}{hint}", Exit.FAILED)
     ids = ", ".join(f"id {item.id} ({item.name!r})" for item in matches)
     raise CLIError(
         f"{value!r} is ambiguous: {len(matches)} {kind}s{where} match ({ids}); give the id",
-        EXIT_USAGE,
+        Exit.USAGE,
     )
 
 

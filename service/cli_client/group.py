@@ -9,7 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from service.cli_client._common import EXIT_OK, _out, find_collection
+from service.cli_client._common import Exit, _out, find_collection
 
 if TYPE_CHECKING:
     from service.client import RegtreeClient
@@ -48,13 +48,13 @@ def cmd_group(args: argparse.Namespace, rt: RegtreeClient) -> int:
                             max_rotation=args.max_rotation)
     if not args.wait:
         _out(str(job.id))
-        return EXIT_OK
+        return Exit.OK
     if not args.json:
         _out(f"job {job.id}: grouping collection {collection.name!r} (id {collection.id}, "
              f"{job.n_shapes or collection.n_shapes} shapes)")
     code = watch_job(rt, job.id, poll=args.poll, cancel_on_interrupt=args.cancel_on_interrupt,
                      out=sys.stderr if args.json else None)
-    if code != EXIT_OK:
+    if code != Exit.OK:
         return code
     doc = rt.groups(job.id)
     if args.gallery:
@@ -63,9 +63,9 @@ def cmd_group(args: argparse.Namespace, rt: RegtreeClient) -> int:
         rt.group_picture(job.id, "dendrogram", args.dendrogram)
     if args.json:
         _out(json.dumps(doc.model_dump(mode="json")))
-        return EXIT_OK
+        return Exit.OK
     _out(groups_table(doc.model_dump(mode="json")))
-    return EXIT_OK
+    return Exit.OK
 
 
 def groups_table(doc: dict[str, Any]) -> str:

@@ -29,6 +29,13 @@ from service.cli_client._common import COMMANDS, DEFAULT_URL
 
 N = TypeVar("N", int, float)
 
+#: ``regtree run``'s options that it passes on as ``RegtreeClient.start_job``'s keyword
+#: arguments of the same name.
+RUN_JOB_OPTIONS = (
+    "method", "similarity_threshold", "error_threshold", "pose", "max_rotation",
+    "compare_direct", "working_points", "callback_url",
+)
+
 # --- argument parsing (argparse only) ----------------------------------------------------
 
 
@@ -152,9 +159,13 @@ def add_connection_options(parser: argparse.ArgumentParser, *, suppress: bool) -
 def add_commands(sub: Any) -> None:
     """Register the client commands on ``regtree``'s subparsers action."""
 
-    def command(name: str, **kwargs: Any) -> argparse.ArgumentParser:
+    def command(name: str, *, job: bool = False, **kwargs: Any) -> argparse.ArgumentParser:
+        """A client command with the connection options (and, with ``job``, the JOB it
+        acts on)."""
         parser: argparse.ArgumentParser = sub.add_parser(name, **kwargs)
         add_connection_options(parser, suppress=True)
+        if job:
+            parser.add_argument("job", metavar="JOB", type=_job_id)
         return parser
 
     upload = command(
@@ -165,36 +176,19 @@ def add_commands(sub: Any) -> None:
         "name is the file name without its extension.",
     )
     upload.add_argument("folder", metavar="DIR", type=Path)
-    upload.add_argument(
-        "--collection",
-        required=True,
-        metavar="NAME",
-        help="the collection's name (or id); it must exist unless --create",
-    )
-    upload.add_argument(
-        "--create",
-        action="store_true",
-        help="create the collection (refused if one with this name exists)",
-    )
+    upload.add_argument("--collection", required=True, metavar="NAME",
+                        help="the collection's name (or id); it must exist unless --create")
+    upload.add_argument("--create", action="store_true",
+                        help="create the collection (refused if one with this name exists)")
     upload.add_argument("--description", default="", help="with --create: its description")
     upload.add_argument("--pattern", default="*", metavar="GLOB", help="file names (default *)")
     upload.add_argument("--recursive", action="store_true", help="also look in subfolders")
+    upload.add_argument("--mode", choices=IMAGE_MODES, default=DEFAULT_IMAGE_MODE,
+                        help=f"how images become points (default {DEFAULT_IMAGE_MODE})")
+    upload.add_argument("--target-points", type=_positive_int, metavar="N",
+                        help="at most N points per image (default: the service's)")
     upload.add_argument(
-        "--mode",
-        choices=IMAGE_MODES,
-        default=DEFAULT_IMAGE_MODE,
-        help=f"how images become points (default {DEFAULT_IMAGE_MODE})",
-    )
-    upload.add_argument(
-        "--target-points",
-        type=_positive_int,
-        metavar="N",
-        help="at most N points per image (default: the service's)",
-    )
-    upload.add_argument(
-        "--on-conflict",
-        choices=ON_CONFLICT_POLICIES,
-        default=DEFAULT_ON_CONFLICT,
+        "--on-conflict", choices=ON_CONFLICT_POLICIES, default=DEFAULT_ON_CONFLICT,
         help="when the collection already holds a shape of a file's name: refuse (default: "
         "nothing of that batch is stored, so a folder uploaded twice is not doubled), replace "
         "it, or keep both",
@@ -214,18 +208,10 @@ def add_commands(sub: Any) -> None:
         "--model", required=True, metavar="SHAPE_NAME|ID", help="the model (root) shape"
     )
     run.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD)
-    run.add_argument(
-        "--similarity-threshold",
-        type=_positive_float,
-        metavar="X",
-        help="largest similarity distance D for a tree edge (default: automatic)",
-    )
-    run.add_argument(
-        "--error-threshold",
-        type=_positive_float,
-        metavar="X",
-        help="largest registration error e to accept (default: automatic)",
-    )
+    for flag, largest in (("--similarity-threshold", "similarity distance D for a tree edge"),
+                          ("--error-threshold", "registration error e to accept")):
+        run.add_argument(flag, type=_positive_float, metavar="X",
+                         help=f"largest {largest} (default: automatic)")
     run.add_argument(
         "--pose",
         choices=POSES,
@@ -236,51 +222,40 @@ def add_commands(sub: Any) -> None:
         "Default: the service's, upright if every shape of the collection was uploaded as an "
         "image, else rotation",
     )
+    run.add_argument("--max-rotation", type=float, metavar="DEG",
+                     help="with --pose upright (or alone, which means upright): consider only "
+                     "rotations within +-DEG degrees of the uploaded shapes (default 30)")
     run.add_argument(
-        "--max-rotation",
-        type=float,
-        metavar="DEG",
-        help="with --pose upright (or alone, which means upright): consider only rotations "
-        "within +-DEG degrees of the uploaded shapes (default 30)",
-    )
-    run.add_argument(
-        "--compare-direct",
-        action=argparse.BooleanOptionalAction,
+        "--compare-direct", action=argparse.BooleanOptionalAction,
         default=DEFAULT_COMPARE_DIRECT,
         help="also register every subject directly from the model, for comparison (doubles "
         "the registrations; default: off, as on every surface)",
     )
     run.add_argument(
-        "--working-points",
-        type=_working_points,
-        default=DEFAULT_WORKING_POINTS,
-        metavar="N",
+        "--working-points", type=_working_points, default=DEFAULT_WORKING_POINTS, metavar="N",
         help="decide the tree with every shape subsampled to at most N points, then register "
         "each edge once at the stored resolution (the result is at the stored resolution); "
         f"0 decides at the stored resolution (default: {DEFAULT_WORKING_POINTS})",
     )
-    run.add_argument(
-        "--callback-url",
-        metavar="URL",
-        help="POST a signed JSON notice (job id, state, result URL) to URL when the job ends; "
-        "the server must allow its host (setting callback_allowed_hosts)",
-    )
+    run.add_argument("--callback-url", metavar="URL",
+                     help="POST a signed JSON notice (job id, state, result URL) to URL when "
+                     "the job ends; the server must allow its host (setting "
+                     "callback_allowed_hosts)")
     run.add_argument("--wait", action="store_true", help="follow the job until it ends")
     run.add_argument("-q", "--quiet", action="store_true", help="print only the job id")
     _watch_options(run)
 
     watch = command(
-        "watch",
+        "watch", job=True,
         help="follow a job's progress until it ends",
         description="Show the job's stage and done/total until it ends (a live bar on a "
         "terminal, one line per change otherwise). Exit 0 if it succeeded, 1 if it failed or "
         "was cancelled, 130 on Ctrl-C (the job keeps running unless --cancel-on-interrupt).",
     )
-    watch.add_argument("job", metavar="JOB", type=_job_id)
     _watch_options(watch)
 
     results = command(
-        "results",
+        "results", job=True,
         help="print a job's result; download it and draw its pictures",
         description="Print the summary table and one line per subject (layer, parent, e, "
         "direct e, confidence, status: tree, leaf for a low-confidence leaf, or unattached). "
@@ -290,79 +265,41 @@ def add_commands(sub: Any) -> None:
         "and order the subject lines and the subject pictures (the service does it); "
         "result.json, the tree and the summary always cover every subject.",
     )
-    results.add_argument("job", metavar="JOB", type=_job_id)
     results.add_argument(
         "--out", type=Path, metavar="DIR", help="write the result and its pictures here"
     )
-    results.add_argument(
-        "--subjects",
-        type=_subjects_choice,
-        default="all",
-        metavar="all|attached|N",
-        help="which subject pictures to draw: all (default), attached ones, or the first N "
-        "of the subject lines (0: none)",
-    )
-    results.add_argument(
-        "--sort",
-        type=_subject_sort,
-        default=None,
-        metavar="KEY",
-        help="order of the subjects: position (default, the job's shape order), confidence, "
-        "error, or descending with a leading - (-confidence, -error); subjects without the "
-        "value come last",
-    )
-    results.add_argument(
-        "--min-confidence",
-        type=_confidence,
-        default=None,
-        metavar="X",
-        help="only subjects whose confidence is at least X (0 to 1); leaves out unattached ones",
-    )
+    results.add_argument("--subjects", type=_subjects_choice, default="all",
+                         metavar="all|attached|N",
+                         help="which subject pictures to draw: all (default), attached ones, "
+                         "or the first N of the subject lines (0: none)")
+    results.add_argument("--sort", type=_subject_sort, default=None, metavar="KEY",
+                         help="order of the subjects: position (default, the job's shape "
+                         "order), confidence, error, or descending with a leading - "
+                         "(-confidence, -error); subjects without the value come last")
+    results.add_argument("--min-confidence", type=_confidence, default=None, metavar="X",
+                         help="only subjects whose confidence is at least X (0 to 1); leaves "
+                         "out unattached ones")
     leaves = results.add_mutually_exclusive_group()
-    leaves.add_argument(
-        "--only-leaves",
-        dest="leaf",
-        action="store_const",
-        const=True,
-        default=None,
-        help="only the low-confidence leaves",
-    )
-    leaves.add_argument(
-        "--no-leaves",
-        dest="leaf",
-        action="store_const",
-        const=False,
-        help="leave out the low-confidence leaves",
-    )
-    results.add_argument(
-        "--format",
-        choices=("png", "svg"),
-        default="png",
-        help="format of the subject pictures (default png)",
-    )
-    results.add_argument(
-        "--y-up",
-        action="store_true",
-        help="draw subjects with y growing upwards (default: downwards, as in images)",
-    )
+    leaves.add_argument("--only-leaves", dest="leaf", action="store_const", const=True,
+                        default=None, help="only the low-confidence leaves")
+    leaves.add_argument("--no-leaves", dest="leaf", action="store_const", const=False,
+                        help="leave out the low-confidence leaves")
+    results.add_argument("--format", choices=("png", "svg"), default="png",
+                         help="format of the subject pictures (default png)")
+    results.add_argument("--y-up", action="store_true", help="draw subjects with y growing "
+                         "upwards (default: downwards, as in images)")
+    results.add_argument("--csv", action="store_true", help="print the subjects as CSV (one "
+                         "row per subject) instead of the tables")
 
-    results.add_argument(
-        "--csv",
-        action="store_true",
-        help="print the subjects as CSV (one row per subject) instead of the tables",
-    )
-
-    cancel = command("cancel", help="cancel a queued or running job")
-    cancel.add_argument("job", metavar="JOB", type=_job_id)
+    command("cancel", job=True, help="cancel a queued or running job")
 
     export = command(
-        "export",
+        "export", job=True,
         help="download a whole job as one ZIP (JSON, CSV, similarity, pictures)",
         description="Write the job's ZIP: result.json (full), result.csv, similarity.json, "
         "job.json, tree.svg, tree.png, summary.png and, with --subject-pictures, one overlay "
         "per subject.",
     )
-    export.add_argument("job", metavar="JOB", type=_job_id)
     export.add_argument(
         "--out", type=Path, metavar="FILE", help="where to write it (default job-JOB.zip)"
     )
@@ -371,12 +308,11 @@ def add_commands(sub: Any) -> None:
     )
 
     similarity = command(
-        "similarity",
+        "similarity", job=True,
         help="print each shape's nearest shapes by the similarity D the job computed",
         description="For every shape of the job, the K shapes with the smallest D onto it "
         "(eq. 9; the direction the tree uses, member onto subject).",
     )
-    similarity.add_argument("job", metavar="JOB", type=_job_id)
     similarity.add_argument(
         "--k", type=_positive_int, default=3, metavar="K", help="nearest shapes (default 3)"
     )

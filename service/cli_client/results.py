@@ -19,9 +19,8 @@ if TYPE_CHECKING:
     from service.client import JobStatus, RegtreeClient
 
 from service.cli_client._common import (
-    EXIT_FAILED,
-    EXIT_OK,
     CLIError,
+    Exit,
     _cell,
     _fail,
     _num,
@@ -169,7 +168,7 @@ def cmd_results(args: argparse.Namespace, rt: RegtreeClient) -> int:
     if args.csv:
         sys.stdout.write(rt.result_csv(args.job, **query))
         sys.stdout.flush()
-        return EXIT_OK
+        return Exit.OK
     doc = rt.result_document(args.job, full=out is not None)
     # the subject lines (and pictures): chosen and ordered by the service
     listed = rt.result_document(args.job, **query)["subjects"] if query else doc["subjects"]
@@ -177,7 +176,7 @@ def cmd_results(args: argparse.Namespace, rt: RegtreeClient) -> int:
         for line in summary_table(doc):
             _out(line)
         _print_subjects(doc, listed, query)
-        return EXIT_OK
+        return Exit.OK
     return _write_results(args, rt, job, doc, listed, query, out)
 
 
@@ -216,7 +215,7 @@ def _write_results(
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(data)
         except OSError as e:
-            raise CLIError(f"cannot write {path}: {e.strerror or e}", EXIT_FAILED) from e
+            raise CLIError(f"cannot write {path}: {e.strerror or e}", Exit.FAILED) from e
         written.append(path)
 
     write(out / "result.json", json.dumps(doc, indent=1, ensure_ascii=False).encode("utf-8"))
@@ -274,8 +273,8 @@ def _write_results(
     if problems:
         for problem in problems:
             print(f"regtree: warning: not drawn: {problem}", file=sys.stderr)
-        return _fail(f"{len(problems)} picture(s) could not be drawn", EXIT_FAILED)
-    return EXIT_OK
+        return _fail(f"{len(problems)} picture(s) could not be drawn", Exit.FAILED)
+    return Exit.OK
 
 
 def cmd_export(args: argparse.Namespace, rt: RegtreeClient) -> int:
@@ -284,9 +283,9 @@ def cmd_export(args: argparse.Namespace, rt: RegtreeClient) -> int:
     try:
         out.write_bytes(data)
     except OSError as e:
-        raise CLIError(f"cannot write {out}: {e.strerror or e}", EXIT_FAILED) from e
+        raise CLIError(f"cannot write {out}: {e.strerror or e}", Exit.FAILED) from e
     _out(f"wrote {out} ({len(data)} bytes)")
-    return EXIT_OK
+    return Exit.OK
 
 
 def cmd_similarity(args: argparse.Namespace, rt: RegtreeClient) -> int:
@@ -299,4 +298,4 @@ def cmd_similarity(args: argparse.Namespace, rt: RegtreeClient) -> int:
     for sid in sim.shape_ids:
         near = ", ".join(f"{names.get(o, o)} {d:.4g}" for o, d in sim.nearest.get(sid, []))
         _out(f"{sid:>8}  {_cell(names[sid], width)}  {near or '-'}")
-    return EXIT_OK
+    return Exit.OK

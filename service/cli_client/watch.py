@@ -15,18 +15,15 @@ if TYPE_CHECKING:
     from service.client import RegtreeClient
 
 from service.cli_client._common import (
-    EXIT_CONNECTION,
-    EXIT_FAILED,
-    EXIT_INTERRUPTED,
-    EXIT_OK,
-    EXIT_USAGE,
     CLIError,
+    Exit,
     _fail,
     _out,
     describe_error,
     find_collection,
     find_shape,
 )
+from service.cli_client.parser import RUN_JOB_OPTIONS
 from service.progress import Progress, outcome_line
 
 # --- upload ------------------------------------------------------------------------------
@@ -38,7 +35,7 @@ def _shape_files(folder: Path, pattern: str, recursive: bool) -> list[Path]:
     try:
         return find_shape_files(folder, pattern=pattern, recursive=recursive)
     except FileNotFoundError as exc:
-        raise CLIError(str(exc), EXIT_USAGE) from None
+        raise CLIError(str(exc), Exit.USAGE) from None
 
 
 def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
@@ -52,7 +49,7 @@ def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
                 f"a collection named {args.collection!r} exists already (id "
                 f"{existing[0].id}, {existing[0].n_shapes} shapes); leave out --create to add "
                 "shapes to it",
-                EXIT_FAILED,
+                Exit.FAILED,
             )
         collection = rt.create_collection(args.collection, args.description)
         _out(f"created collection {collection.name!r} (id {collection.id})")
@@ -83,7 +80,7 @@ def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
             on_batch=on_batch,
         )
     except RegtreeError as e:
-        code = EXIT_FAILED if e.status is not None else EXIT_CONNECTION
+        code = Exit.FAILED if e.status is not None else Exit.CONNECTION
         message = describe_error(e) if e.status is not None else f"{e}"
         if e.type == ProblemType.NAME_CONFLICT:
             message += "; to upload anyway: --on-conflict replace or --on-conflict keep"
@@ -96,7 +93,7 @@ def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
         raise CLIError(
             f"interrupted; {uploaded} file(s) of {len(files)} were uploaded to collection "
             f"{collection.name!r} (id {collection.id}) before",
-            EXIT_INTERRUPTED,
+            Exit.INTERRUPTED,
         ) from None
     total = rt.get_collection(collection.id).n_shapes
     _out(
@@ -105,7 +102,7 @@ def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
     )
     if shapes:
         _out(f"next, e.g.: regtree run --collection {collection.id} --model {shapes[0].id} --wait")
-    return EXIT_OK
+    return Exit.OK
 
 
 # --- run and watch -------------------------------------------------------------------------
@@ -127,18 +124,8 @@ def _pose_text(params: Mapping[str, Any]) -> str:
 def cmd_run(args: argparse.Namespace, rt: RegtreeClient) -> int:
     collection = find_collection(rt, args.collection)
     model = find_shape(rt, collection, args.model)
-    job = rt.start_job(
-        collection.id,
-        model.id,
-        method=args.method,
-        similarity_threshold=args.similarity_threshold,
-        error_threshold=args.error_threshold,
-        pose=args.pose,
-        max_rotation=args.max_rotation,
-        compare_direct=args.compare_direct,
-        working_points=args.working_points,
-        callback_url=args.callback_url,
-    )
+    options = {name: getattr(args, name) for name in RUN_JOB_OPTIONS}
+    job = rt.start_job(collection.id, model.id, **options)
     if args.quiet:
         _out(str(job.id))
     else:
@@ -150,7 +137,7 @@ def cmd_run(args: argparse.Namespace, rt: RegtreeClient) -> int:
         if not args.wait:
             _out(f"follow it: regtree watch {job.id}")
     if not args.wait:
-        return EXIT_OK
+        return Exit.OK
     return watch_job(rt, job.id, poll=args.poll, cancel_on_interrupt=args.cancel_on_interrupt)
 
 
@@ -189,14 +176,14 @@ def watch_job(
     if state.status != "succeeded":
         _out(outcome_line(state), stream)
         reason = f": {state.error}" if state.error else ""
-        return _fail(f"job {job_id} {state.status}{reason}", EXIT_FAILED)
+        return _fail(f"job {job_id} {state.status}{reason}", Exit.FAILED)
     try:
         summary = rt.result(job_id).summary
     except RegtreeError:  # the job succeeded: say so even if its summary cannot be read
         summary = {}
     _out(outcome_line(state, summary), stream)
     _out(f"pictures and numbers: regtree results {job_id} --out DIR", stream)
-    return EXIT_OK
+    return Exit.OK
 
 
 def _interrupted(rt: RegtreeClient, job_id: int, cancel: bool) -> int:
@@ -206,14 +193,14 @@ def _interrupted(rt: RegtreeClient, job_id: int, cancel: bool) -> int:
         return _fail(
             f"interrupted; job {job_id} keeps running on the server (follow it again with "
             f"`regtree watch {job_id}`, stop it with `regtree cancel {job_id}`)",
-            EXIT_INTERRUPTED,
+            Exit.INTERRUPTED,
         )
     try:
         state = rt.cancel(job_id)
     except Conflict as e:
-        return _fail(f"interrupted; not cancelled: {e.detail}", EXIT_INTERRUPTED)
+        return _fail(f"interrupted; not cancelled: {e.detail}", Exit.INTERRUPTED)
     return _fail(
-        f"interrupted; cancel requested for job {job_id} (now {state.status})", EXIT_INTERRUPTED
+        f"interrupted; cancel requested for job {job_id} (now {state.status})", Exit.INTERRUPTED
     )
 
 
@@ -223,4 +210,4 @@ def cmd_cancel(args: argparse.Namespace, rt: RegtreeClient) -> int:
         _out(f"job {args.job} cancelled")
     else:
         _out(f"job {args.job} {state.status}: cancel requested, it stops at its next report")
-    return EXIT_OK
+    return Exit.OK

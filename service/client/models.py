@@ -102,7 +102,7 @@ class JobStatus:
 
     id: int
     collection_id: int
-    model_shape_id: int
+    model_shape_id: int | None  # None: a job without a model (a grouping)
     method: str
     status: str
     stage: str | None
@@ -134,7 +134,7 @@ class JobStatus:
         return cls(
             id=int(d["id"]),
             collection_id=int(d["collection_id"]),
-            model_shape_id=int(d["model_shape_id"]),
+            model_shape_id=None if d.get("model_shape_id") is None else int(d["model_shape_id"]),
             method=str(d.get("method", "")),
             status=str(d["status"]),
             stage=progress.get("stage"),

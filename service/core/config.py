@@ -7,10 +7,17 @@ operator can see and change them in one place.
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+def _doubling_wait(default: float, before: str, cap: str) -> Any:
+    """A setting: the wait before ``before``, doubling with each further attempt up to the
+    setting named ``cap``."""
+    return Field(default=default, ge=0, description=f"Wait before {before}; it doubles with "
+                 f"each further attempt, up to {cap}.")
 
 
 class Settings(BaseSettings):
@@ -80,11 +87,8 @@ class Settings(BaseSettings):
         description="Attempts a job gets: a transient failure (database busy or locked, a "
         "worker that stopped responding) is retried until this many were used.",
     )
-    retry_backoff_seconds: float = Field(
-        default=5.0,
-        ge=0,
-        description="Wait before the first retry of a job after a transient failure; it "
-        "doubles with each further attempt, up to retry_backoff_max_seconds.",
+    retry_backoff_seconds: float = _doubling_wait(
+        5.0, "the first retry of a job after a transient failure", "retry_backoff_max_seconds"
     )
     retry_backoff_max_seconds: float = Field(default=300.0, ge=0)
     progress_min_interval_seconds: float = Field(default=0.5, ge=0)
@@ -101,11 +105,8 @@ class Settings(BaseSettings):
         "'*.domain' (its subdomains). Empty: callbacks are refused (422).",
     )
     callback_max_attempts: int = Field(default=5, ge=1)
-    callback_backoff_seconds: float = Field(
-        default=10.0,
-        ge=0,
-        description="Wait before the second delivery attempt of a callback; it doubles with "
-        "each further attempt, up to callback_backoff_max_seconds.",
+    callback_backoff_seconds: float = _doubling_wait(
+        10.0, "the second delivery attempt of a callback", "callback_backoff_max_seconds"
     )
     callback_backoff_max_seconds: float = Field(default=600.0, ge=0)
     callback_timeout_seconds: float = Field(default=10.0, gt=0)

@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import math
 import re
-from typing import Any, Literal
+from typing import Any, Literal, Unpack
+
+from pydantic import ConfigDict
 
 from service.core.config import Settings
 
@@ -69,6 +71,11 @@ def bounds(**keywords: str) -> dict[str, Any]:
 
 EXAMPLE_KEY = "x-regtree-example"
 ExampleKind = Literal["points", "batch", "csv", "text"]
+
+
+def examples(*documents: dict[str, Any], **config: Unpack[ConfigDict]) -> ConfigDict:
+    """A model's ``model_config``: ``config`` with ``documents`` as its schema's examples."""
+    return ConfigDict(**config, json_schema_extra={"examples": list(documents)})
 
 
 def example(kind: ExampleKind) -> dict[str, Any]:

@@ -53,6 +53,7 @@ from sqlalchemy import and_, or_, select, update
 from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.orm import Session
 
+from service.contract.names import GROUPING_METHOD
 from service.core.config import Settings
 from service.db import Database, lock_first
 from service.jobs import callbacks
@@ -108,7 +109,7 @@ class JobSpec:
     (whether a coarse-to-fine job has a stored-resolution stage)."""
 
     collection_id: int
-    model_shape_id: int
+    model_shape_id: int | None  # None: a job without a model (a grouping)
     method: str
     params_for: Callable[[list[str], list[int]], dict[str, Any]]
     callback_url: str | None = None
@@ -183,10 +184,12 @@ class JobQueue:
         with self._writing(session) as s:
             if s.get(Collection, spec.collection_id) is None:
                 raise JobRefused(f"collection {spec.collection_id} does not exist")
-            model = s.get(Shape, spec.model_shape_id)
-            if model is None:
+            if spec.model_shape_id is None and spec.method != GROUPING_METHOD:
+                raise JobRefused(f"model_shape_id is required by method {spec.method}")
+            model = None if spec.model_shape_id is None else s.get(Shape, spec.model_shape_id)
+            if spec.model_shape_id is not None and model is None:
                 raise JobRefused(f"model shape {spec.model_shape_id} does not exist")
-            if model.collection_id != spec.collection_id:
+            if model is not None and model.collection_id != spec.collection_id:
                 raise JobRefused(
                     f"model shape {spec.model_shape_id} belongs to collection "
                     f"{model.collection_id}, not to collection {spec.collection_id}"
@@ -197,9 +200,11 @@ class JobQueue:
                 .order_by(Shape.id)
             ).all()
             if len(rows) < 2:
+                needs = ("the model and at least one other shape" if model is not None
+                         else "at least two shapes")
                 raise JobRefused(
                     f"collection {spec.collection_id} has {len(rows)} shape(s); a job "
-                    "needs the model and at least one other shape"
+                    f"needs {needs}"
                 )
             job = Job(
                 collection_id=spec.collection_id,

@@ -334,7 +334,8 @@ def run_claimed(
         return _failed(queue, claim, exc, log)
 
     grouping = method == GROUPING_METHOD
-    if model_id not in shape_ids and not grouping:  # a grouping's model is recorded only
+    root = shape_ids.index(model_id) if model_id in shape_ids else None
+    if root is None and not grouping:  # a grouping has no model
         return queue.fail(claim, f"model shape {model_id} was deleted before the job ran")
     if len(shape_ids) < 2:
         return queue.fail(claim, "fewer than 2 shapes are left in the collection")
@@ -355,11 +356,12 @@ def run_claimed(
                 outcome = queue.complete(claim, json_safe(document), [],
                                          progress=control.latest)
                 return _finished(outcome, log, started)
+            assert root is not None
             doc = run_registration(
                 method,
                 shapes,
                 names,
-                shape_ids.index(model_id),
+                root,
                 params,
                 executor=executor,
                 progress=control.progress,

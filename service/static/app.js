@@ -252,8 +252,8 @@ function renderFacts() {
   const r = state.result;
   const items = [
     fact("collection", c ? `${c.name} (#${c.id})` : `#${job.collection_id}`),
-    // a grouping has no model (the job records the collection's first shape)
-    job.method === "grouping" ? null
+    // a grouping has no model (its model_shape_id is null)
+    job.model_shape_id == null ? null
       : fact("model shape", `${job.model_name ?? nameOf(job.model_shape_id)} (#${job.model_shape_id})`),
     fact("shapes", String(job.n_shapes)),
     fact("created", fmtTime(job.created_at)),

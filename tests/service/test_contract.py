@@ -47,6 +47,20 @@ def test_the_surfaces_take_the_vocabulary_from_the_contract() -> None:
             assert spelled not in text, f"{path.relative_to(REPO)} restates {names}"
 
 
+def test_regtree_run_passes_its_options_to_start_job_by_name() -> None:
+    import inspect
+
+    from service.cli import _parser
+    from service.cli_client.parser import RUN_JOB_OPTIONS
+    from service.client import RegtreeClient
+
+    start_job = inspect.signature(RegtreeClient.start_job).parameters
+    args = _parser().parse_args(["run", "--collection", "c", "--model", "m"])
+    for name in RUN_JOB_OPTIONS:
+        assert start_job[name].kind is inspect.Parameter.KEYWORD_ONLY, name
+        assert hasattr(args, name), name
+
+
 def test_every_problem_type_in_the_service_is_declared() -> None:
     declared = {t.value for t in ProblemType}
     used = {

@@ -53,6 +53,7 @@ def test_a_grouping_job_groups_uploaded_scans_by_mould(grouped, client: httpx.Cl
     job = grouped["job"]
     assert job["status"] == "succeeded", job
     assert job["method"] == "grouping"
+    assert job["model_shape_id"] is None and job["model_name"] is None  # no model
     assert job["progress"]["stage"] in ("fields", "alignment", "pairs")
     doc = client.get(f"/v1/jobs/{job['id']}/groups").json()
     ids, truth = grouped["ids"], grouped["truth"]
@@ -75,6 +76,27 @@ def test_a_grouping_has_no_registration_result_and_a_registration_no_groups(
     problem = assert_problem(client.get(f"/v1/jobs/{job['id']}/result"), 409)
     assert problem["type"] == "/problems/not-a-registration"
     assert f"/v1/jobs/{job['id']}/groups" in problem["detail"]
+    for export in ("export.zip", "result.csv"):
+        problem = assert_problem(client.get(f"/v1/jobs/{job['id']}/{export}"), 409)
+        assert problem["type"] == "/problems/not-a-registration"
+
+
+def test_a_grouping_given_a_model_still_has_none(grouped, client: httpx.Client):
+    r = client.post("/v1/jobs", json={"collection_id": grouped["cid"], "method": "grouping",
+                                      "model_shape_id": grouped["ids"][0]})
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert job["model_shape_id"] is None and job["model_name"] is None
+    client.post(f"/v1/jobs/{job['id']}/cancel")
+    listed = client.get("/v1/jobs", params={"collection_id": grouped["cid"]}).json()["items"]
+    assert {j["id"]: j["model_shape_id"] for j in listed}[job["id"]] is None
+
+
+def test_a_registration_job_keeps_its_model(grouped, client: httpx.Client):
+    job = submit_job(client, grouped["cid"], grouped["ids"][1], method="direct",
+                     pose="as_given")
+    client.post(f"/v1/jobs/{job['id']}/cancel")
+    assert job["model_shape_id"] == grouped["ids"][1] and job["model_name"] == "m0_1"
 
 
 @pytest.mark.parametrize("picture", ["gallery.png", "dendrogram.png"])
@@ -109,7 +131,7 @@ def test_an_empty_collection_cannot_be_grouped(client: httpx.Client):
     cid = create_collection(client, "empty")
     problem = assert_problem(client.post("/v1/jobs", json={"collection_id": cid,
                                                            "method": "grouping"}), 422)
-    assert "no shapes" in problem["detail"]
+    assert "0 shape(s); a job needs at least two shapes" in problem["detail"]
 
 
 def test_a_registration_job_has_no_groups(grouped, client: httpx.Client):
@@ -129,6 +151,7 @@ def test_the_client_starts_a_grouping_and_reads_its_groups_and_pictures(grouped,
 
     with RegtreeClient(service.base_url) as rt:
         job = rt.wait(rt.start_grouping(grouped["cid"], threshold=10.0).id, timeout=240)
+        assert job.model_shape_id is None and rt.get_job(job.id).model_shape_id is None
         doc = rt.groups(job.id)
         assert doc.n_groups == 1 and doc.threshold == 10.0
         assert doc.threshold_source == "given"

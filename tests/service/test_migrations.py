@@ -41,7 +41,7 @@ def _cli(tmp_path: Path, url: str, *args: str) -> str:
 
 
 #: The newest migration (migrations/versions).
-HEAD = "0005"
+HEAD = "0006"
 
 
 def assert_migration_roundtrip(tmp_path: Path, url: str) -> None:
@@ -143,3 +143,55 @@ def test_0003_upgrades_a_database_with_jobs(tmp_path: Path) -> None:
         assert [(c.job_id, c.attempt) for c in claimed if c] == [(5, 2), (6, 1)]
     finally:
         db.dispose()
+
+
+def test_0006_a_job_without_a_model_down_and_up(tmp_path: Path) -> None:
+    """At 0006 a grouping job stores no model; downgrading to 0005 records its collection's
+    first shape (the column is NOT NULL there again), upgrading keeps that shape; a job
+    whose collection has lost its shapes gets the first of its own."""
+    from sqlalchemy import text
+
+    from service import migrate
+    from service.core.config import Settings
+
+    settings = Settings(database_url=f"sqlite:///{tmp_path / 'm6.sqlite'}")
+    migrate.upgrade(settings)
+    engine = create_engine(settings.database_url)
+    job_sql = text(
+        "INSERT INTO jobs (collection_id, model_shape_id, shape_ids, method, params, status,"
+        " progress_done, progress_total, attempts, max_attempts, cancel_requested, created_at,"
+        " updated_at) VALUES (:c, :m, :ids, :method, '{}', 'queued', 0, 0, 0, 3, 0, :t, :t)"
+    )
+    try:
+        with engine.begin() as connection:
+            t = "2026-12-01 00:00:00"
+            for name in ("kept", "emptied"):
+                connection.execute(
+                    text("INSERT INTO collections (name, description, created_at, updated_at) "
+                         "VALUES (:n, '', :t, :t)"), {"n": name, "t": t})
+            for sid in (3, 4):
+                connection.execute(
+                    text("INSERT INTO shapes (id, collection_id, name, source_format, n_points,"
+                         " min_x, min_y, max_x, max_y, points_npy, created_at)"
+                         " VALUES (:id, 1, :n, 'txt', 0, 0, 0, 0, 0, x'', :t)"),
+                    {"id": sid, "n": f"s{sid}", "t": t})
+            rows = [(1, None, "[3, 4]", "grouping"), (2, None, "[8, 9]", "grouping"),
+                    (1, 4, "[3, 4]", "direct")]
+            for c, m, ids, method in rows:
+                connection.execute(job_sql, {"c": c, "m": m, "ids": ids, "method": method,
+                                             "t": t})
+        read = text("SELECT model_shape_id FROM jobs ORDER BY id")
+        with engine.connect() as connection:
+            assert [r[0] for r in connection.execute(read)] == [None, None, 4]
+        assert _cli(tmp_path, settings.database_url, "downgrade", "0005") == "0005"
+        with engine.connect() as connection:
+            assert [r[0] for r in connection.execute(read)] == [3, 8, 4]
+            nullable = {c["name"]: c["nullable"] for c in inspect(connection).get_columns("jobs")}
+            assert nullable["model_shape_id"] is False
+        assert _cli(tmp_path, settings.database_url, "upgrade") == HEAD
+        with engine.connect() as connection:
+            assert [r[0] for r in connection.execute(read)] == [3, 8, 4]
+            nullable = {c["name"]: c["nullable"] for c in inspect(connection).get_columns("jobs")}
+            assert nullable["model_shape_id"] is True
+    finally:
+        engine.dispose()

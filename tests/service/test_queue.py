@@ -434,3 +434,28 @@ def test_runner_retries_when_the_database_is_locked(
     assert abs(_backoff(job) - 30.0) < 1
     with db.read() as session:
         assert session.get(Result, 1) is None
+
+
+def test_enqueue_needs_a_model_for_a_registration_not_for_a_grouping(db: Database) -> None:
+    from service.jobs.queue import JobRefused, JobSpec
+    from service.models import Shape
+
+    with db.write() as s:
+        collection = Collection(name="c")
+        s.add(collection)
+        s.flush()
+        for name in ("a", "b"):
+            s.add(Shape(collection_id=collection.id, name=name, source_format="txt",
+                        n_points=0, min_x=0, min_y=0, max_x=0, max_y=0, points_npy=b""))
+        cid = collection.id
+    q = queue(db)
+
+    def spec(model: int | None, method: str) -> JobSpec:
+        return JobSpec(collection_id=cid, model_shape_id=model, method=method,
+                       params_for=lambda formats, points: {})
+
+    with pytest.raises(JobRefused, match="model_shape_id is required by method direct"):
+        q.enqueue(spec(None, "direct"))
+    grouping = q.enqueue(spec(None, "grouping"))
+    with db.read() as s:
+        assert s.get(Job, grouping.id).model_shape_id is None

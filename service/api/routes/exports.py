@@ -219,6 +219,11 @@ def _pictures(
     return files
 
 
+SubjectPicturesQuery = Annotated[
+    bool, Query(description="Also draw every subject's overlay (one PNG per subject).")
+]
+
+
 @operation(
     router.get, "/{job_id}/export.zip",
     "A whole job as one ZIP: JSON, CSV and pictures", (404, 409, 422),
@@ -233,11 +238,7 @@ def _pictures(
     "`subjects/<shape_id>-<name>.png` (the model warped onto each subject; slower).",
 )
 def get_export_zip(
-    job_id: DbId,
-    db: DbDep,
-    subject_pictures: Annotated[
-        bool, Query(description="Also draw every subject's overlay (one PNG per subject).")
-    ] = False,
+    job_id: DbId, db: DbDep, subject_pictures: SubjectPicturesQuery = False
 ) -> Response:
     from service.api.routes.jobs import job_out
 

@@ -38,7 +38,7 @@ def job_outs(session: Session, jobs: Sequence[Job]) -> list[JobOut]:
     """The jobs as the API shows them, with their collection's and model shape's names (two
     queries for the whole list; a name is null once its collection or shape is deleted)."""
     collection_ids = {j.collection_id for j in jobs}
-    shape_ids = {j.model_shape_id for j in jobs}
+    shape_ids = {j.model_shape_id for j in jobs if j.model_shape_id is not None}
     collections: dict[int, str] = {}
     shapes: dict[int, str] = {}
     if collection_ids:
@@ -48,7 +48,9 @@ def job_outs(session: Session, jobs: Sequence[Job]) -> list[JobOut]:
         query = select(Shape.id, Shape.name).where(Shape.id.in_(shape_ids))
         shapes = {i: name for i, name in session.execute(query).all()}
     return [
-        _job_out(j, collections.get(j.collection_id), shapes.get(j.model_shape_id)) for j in jobs
+        _job_out(j, collections.get(j.collection_id),
+                 None if j.model_shape_id is None else shapes.get(j.model_shape_id))
+        for j in jobs
     ]
 
 
@@ -152,20 +154,6 @@ def _params(body: JobCreate, formats: list[str], points: list[int]) -> dict[str,
     }
 
 
-def _model_shape_id(session: Session, body: JobCreate) -> int:
-    """The model asked for, or for a grouping without one the collection's first shape
-    (recorded only: a grouping has no model)."""
-    if body.model_shape_id is not None:
-        return body.model_shape_id
-    first = session.scalar(
-        select(func.min(Shape.id)).where(Shape.collection_id == body.collection_id)
-    )
-    if first is None:
-        raise _unprocessable(f"collection {body.collection_id} does not exist or holds no "
-                             "shapes to group")
-    return int(first)
-
-
 def _unprocessable(detail: str, type_: str = ProblemType.INVALID_JOB) -> ProblemError:
     return ProblemError(422, detail, type_=type_)
 
@@ -206,7 +194,8 @@ def create_job(
     with db.write() as session:
         spec = JobSpec(
             collection_id=body.collection_id,
-            model_shape_id=_model_shape_id(session, body),
+            # a grouping has no model: null, whatever the request said
+            model_shape_id=None if body.method == GROUPING_METHOD else body.model_shape_id,
             method=body.method,
             params_for=lambda formats, points: _params(body, formats, points),
             callback_url=body.callback_url,

@@ -164,6 +164,11 @@ def result_document(
     return document
 
 
+FullQuery = Annotated[
+    bool, Query(description="Include warped points, correspondences and transforms.")
+]
+
+
 @operation(
     router.get, "/{job_id}/result", "Read a job's result", (404, 409, 422),
     response_model=ResultDocument, response_model_exclude_unset=True,
@@ -172,9 +177,7 @@ def result_document(
 def get_result(
     job_id: DbId,
     db: DbDep,
-    full: Annotated[
-        bool, Query(description="Include warped points, correspondences and transforms.")
-    ] = False,
+    full: FullQuery = False,
     min_confidence: MinConfidenceQuery = None,
     leaf: LeafQuery = None,
     sort: SortQuery = "position",
