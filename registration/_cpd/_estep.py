@@ -7,6 +7,7 @@ Both return the sums the M-step needs (``P1``, ``Pt1``, ``P X``) and the objecti
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -15,6 +16,7 @@ import scipy.sparse
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from ._boxfgt import BOX_WIDTHS, BoxGrid, box_rank, box_work
 from ._fgt import FGT_MAX_RANK, ChebGrid, bounding_box, fgt_ranks
 from ._field import _BLOCK_ELEMS, FloatArray, _gauss_kernel
 
@@ -23,11 +25,22 @@ from ._field import _BLOCK_ELEMS, FloatArray, _gauss_kernel
 #: at sigma 0.04-0.22, 2400-41000 grid nodes: larger grids use the BLAS better).
 FGT_NODE_COST = 2.5
 FGT_NODE_POWER = 0.56
+#: Cost of the box-grid E-step (:mod:`._boxfgt`) in the same units: per point and node of
+#: a box (``p^2``), and per node-to-node multiply-add (``(pairs + rows * boxes) p^3``), for
+#: its four weight columns together (fitted on fish contours of 2000-8000 points at sigma
+#: 0.005-0.2: predictions within 0.5-1.5x of the measured CPU time).
+BOX_POINT_COST = 0.12
+BOX_NODE_COST = 0.15
 #: Cost of one pair of the float32 dense E-step relative to float64 (measured).
 DENSE_PAIR_COST_F32 = 0.6
 #: Cost of one pair of the truncated E-step relative to the float64 dense E-step (measured
 #: CPU time at 4000 points: 19-27 ns against 15 ns, and 9.4 ns for the float32 dense one).
 TRUNCATED_PAIR_COST = 1.5
+#: Building the truncated E-step's neighbour list (a k-d tree query at the larger radius,
+#: a sort, the CSR index) costs about 6 evaluations of the list (measured at 2000-8000
+#: points), and a list lasts about 3 iterations while sigma shrinks: the estimated cost
+#: of an iteration that must rebuild it is taken this many times higher.
+TRUNCATION_BUILD_COST = 2.0
 #: The truncated E-step's neighbour list holds at most this many pairs (memory: ~40 bytes
 #: each); beyond, the grid or dense E-step runs.
 TRUNCATION_MAX_PAIRS = 6_000_000
@@ -147,13 +160,40 @@ class _EStep:
         """The dense E-step's sums through two Chebyshev-grid Gauss transforms
         (:mod:`._fgt`): the column sums of the kernel at the subject points, then ``P1`` and
         ``P X`` at the centroids from the weights ``1 / den`` and ``x / den``."""
-        m, n, x = self.m, self.n, self.x
-        sigma = math.sqrt(sigma2)
-        c = _outlier_const(sigma2, self.w, m, n)
-        grid = ChebGrid(*bounding_box(t, x), sigma)
+        grid = ChebGrid(*bounding_box(t, self.x), math.sqrt(sigma2))
         tx, ty = grid.interp(t)
-        xx, xy = grid.interp(x)
-        colsum = grid.gather(xx, xy, grid.spread(tx, ty, np.ones((m, 1))))[:, 0]
+        xx, xy = grid.interp(self.x)
+        return self._transformed(
+            t, sigma2, lambda q: grid.gather(xx, xy, grid.spread(tx, ty, q)),
+            lambda q: grid.gather(tx, ty, grid.spread(xx, xy, q)))
+
+    def box_cost(self, t: FloatArray, sigma2: float, bound: float) -> float | None:
+        """Estimated cost of :meth:`boxgrid` in dense pairs; None if its grid is too large
+        or its cost exceeds ``bound`` (checked first from the per-point part alone)."""
+        per_point = (self.m + self.n) * BOX_POINT_COST * box_rank(BOX_WIDTHS) ** 2
+        if per_point >= bound:
+            return None
+        work = box_work(*bounding_box(t, self.x), math.sqrt(sigma2), t, self.x)
+        if work is None:
+            return None
+        return (self.m + self.n) * BOX_POINT_COST * work[0] + BOX_NODE_COST * work[1]
+
+    def boxgrid(self, t: FloatArray, sigma2: float) -> _EStepOut:
+        """The same sums as :meth:`grid` through the box-wise transform
+        (:mod:`._boxfgt`): Chebyshev nodes only in the boxes the points occupy."""
+        grid = BoxGrid(*bounding_box(t, self.x), math.sqrt(sigma2), t, self.x)
+        lt, lx = grid.interp(t), grid.interp(self.x)
+        return self._transformed(t, sigma2, lambda q: grid.gather(lx, grid.spread(lt, q)),
+                                 lambda q: grid.gather(lt, grid.spread(lx, q)))
+
+    def _transformed(self, t: FloatArray, sigma2: float,
+                     to_x: Callable[[FloatArray], FloatArray],
+                     to_t: Callable[[FloatArray], FloatArray]) -> _EStepOut:
+        """The E-step from two Gauss transforms: ``to_x(q)`` sums weights ``q`` (M, k) at
+        the centroids onto the subject points, ``to_t`` the reverse."""
+        m, n, x = self.m, self.n, self.x
+        c = _outlier_const(sigma2, self.w, m, n)
+        colsum = to_x(np.ones((m, 1)))[:, 0]
         np.maximum(colsum, 0.0, out=colsum)
         den = colsum + c
         np.maximum(den, _DEN_FLOOR, out=den)
@@ -161,7 +201,7 @@ class _EStep:
         q = np.empty((n, 3))
         q[:, 0] = inv
         q[:, 1:] = x * inv[:, None]
-        acc = grid.gather(tx, ty, grid.spread(xx, xy, q))
+        acc = to_t(q)
         nll = -float(np.sum(np.log(den))) + n * math.log(sigma2)
         return _EStepOut(np.ascontiguousarray(acc[:, 0]), colsum * inv,
                          np.ascontiguousarray(acc[:, 1:]), nll, 0)
@@ -345,22 +385,36 @@ def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float
 def run_estep(estep: _EStep, t: FloatArray, sigma2: float, truncate: bool | None,
               gauss_grid: bool | None, sample: NDArray[np.intp]) -> _EStepOut:
     """One E-step by the cheapest method allowed: truncated (``truncate``), grid
-    (``gauss_grid``) or dense; ``None`` lets the estimated cost decide, ``True`` forces a
-    method where it applies (truncation first), ``False`` rules it out."""
+    (``gauss_grid``: the whole-box grid or the box-wise one) or dense; ``None`` lets the
+    estimated cost decide, ``True`` forces a method where it applies (truncation first),
+    ``False`` rules it out."""
     m, n = estep.m, estep.n
     dense_cost = m * n * (DENSE_PAIR_COST_F32 if estep.dtype == np.float32 else 1.0)
     grid_cost = estep.grid_cost(t, sigma2) if gauss_grid is not False else None
+    best = min(dense_cost, math.inf if grid_cost is None else grid_cost)
+    box_cost: float | None = None
+    # the box transform's error is absolute (per unit weight): without an outlier constant
+    # a subject point far from every centroid has a denominator it cannot resolve
+    box_checked = gauss_grid is False or estep.w <= 0
     if truncate is not False and (estep.w > 0 or truncate):
         r = estep.radius(t, sigma2)
         use = bool(truncate) or estep._list_valid(t, r)
         if not use and not gauss_grid:
             dens = estep.density(t, TRUNCATION_SKIN * r, sample)
-            use = dens < estep.max_density and dens * m * n < TRUNCATION_MAX_PAIRS and (
-                grid_cost is None or TRUNCATED_PAIR_COST * dens * m * n < grid_cost)
+            cost = TRUNCATED_PAIR_COST * TRUNCATION_BUILD_COST * dens * m * n
+            use = dens < estep.max_density and dens * m * n < TRUNCATION_MAX_PAIRS
+            if use and cost < best:
+                box_cost, box_checked = estep.box_cost(t, sigma2, cost), True
+            use = use and cost < best and (box_cost is None or cost < box_cost)
         if use:
             out = estep.truncated(t, sigma2, r)
             if out is not None:
                 return out
+    if not box_checked:
+        box_cost = estep.box_cost(t, sigma2, math.inf if gauss_grid else best)
+    if box_cost is not None and (gauss_grid or box_cost < dense_cost) and (
+            grid_cost is None or box_cost < grid_cost):
+        return estep.boxgrid(t, sigma2)
     if grid_cost is not None and (gauss_grid or grid_cost < dense_cost):
         return estep.grid(t, sigma2)
     return estep.dense(t, sigma2)
