@@ -122,7 +122,8 @@ def test_box_run_matches_dense(pair: tuple[np.ndarray, np.ndarray], dense_run: n
 
 
 @pytest.mark.parametrize(("dtype", "rel"), [("float64", 1e-8), ("float32", 1e-5)])
-def test_truncated_estep_matches_dense(dtype: str, rel: float) -> None:
+def test_truncated_estep_matches_dense(dtype: str, rel: float,
+                                       monkeypatch: pytest.MonkeyPatch) -> None:
     x, t = curve(500, 5), curve(450, 6, wobble=0.05)
     s2 = 0.03**2
     est = _EStep(x, len(t), 0.1, dtype)
@@ -136,6 +137,13 @@ def test_truncated_estep_matches_dense(dtype: str, rel: float) -> None:
     got = est.truncated(moved, s2, est.radius(moved, s2))
     assert got is not None
     close(got, dense_sums(moved, x, s2, 0.1), rel)
+    # sigma halves: the loose list is pruned to the new radius (no new search), still exact
+    before = est._pj
+    monkeypatch.setattr(_estep, "near_pairs", None)  # a search would fail
+    got = est.truncated(moved, s2 / 4, est.radius(moved, s2 / 4))
+    assert got is not None and est._pj is not None and before is not None
+    assert len(est._pj) < len(before)
+    close(got, dense_sums(moved, x, s2 / 4, 0.1), rel)
 
 
 @pytest.mark.parametrize("beta", [2.0, 0.5])
