@@ -13,7 +13,8 @@ iteration (wall clock), "E cpu" the same in this process's CPU time (BLAS runs o
 thread, so it is the work done, less sensitive to a loaded machine), "all ms/it" the whole
 run's wall time per iteration (kernel, M-step, final correspondences included), "trunc" how
 many iterations took the truncated (sparse) E-step, "grid" how many the Chebyshev-grid
-Gauss transform, "all cpu" the whole run's CPU time per iteration, "k(all)" its growth.
+Gauss transform over the bounding box, "box" how many the box-wise one (``_boxfgt``),
+"all cpu" the whole run's CPU time per iteration, "k(all)" its growth.
 "dense cpu" is one dense E-step at the initial sigma^2 in CPU ms, the best of 3: what every
 iteration costs without truncation.
 The growth exponents compare each size with the previous one (CPU time ~ n^k); issue 9 asks
@@ -44,13 +45,14 @@ from registration import cpd_nonrigid  # noqa: E402
 from registration._cpd import _estep  # noqa: E402
 from registration._cpd._nonrigid import _blas_limit  # noqa: E402
 
-ESTEP_METHODS = ("dense", "truncated", "grid", "radius", "density", "_list_valid", "grid_cost")
+ESTEP_METHODS = ("dense", "truncated", "grid", "radius", "density", "_list_valid", "grid_cost",
+                 "boxgrid", "box_cost")
 
 
 @contextmanager
 def timed_estep() -> Iterator[dict[str, float]]:
     """Time every call of the E-step's methods while the block runs."""
-    spent = {"seconds": 0.0, "cpu": 0.0, "truncated": 0, "grid": 0}
+    spent = {"seconds": 0.0, "cpu": 0.0, "truncated": 0, "grid": 0, "boxgrid": 0}
     originals = {name: getattr(_estep._EStep, name) for name in ESTEP_METHODS}
 
     def wrap(name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -61,7 +63,7 @@ def timed_estep() -> Iterator[dict[str, float]]:
             finally:
                 spent["seconds"] += time.perf_counter() - t
                 spent["cpu"] += time.process_time() - c
-            if name in ("truncated", "grid") and out is not None:
+            if name in ("truncated", "grid", "boxgrid") and out is not None:
                 spent[name] += 1
             return out
         return timed
@@ -106,7 +108,7 @@ def main() -> None:
     print(f"CPD E-step per iteration, tol=0, {args.iters} iterations, beta={BETA}, "
           f"lambda={LMBDA}, w={W}")
     header = (f"{'dtype':8} {'points':>6} {'E ms/it':>8} {'E cpu':>8} {'all ms/it':>9} "
-              f"{'all cpu':>8} {'E share':>7} {'trunc':>7} {'grid':>4} {'dense cpu':>9} "
+              f"{'all cpu':>8} {'E share':>7} {'trunc':>7} {'grid':>4} {'box':>4} {'dense cpu':>9} "
               f"{'k(E cpu)':>8} {'k(all)':>6} {'k(dense)':>8} {'gt err %':>8}")
     for dtype in args.dtypes:
         print(header)
@@ -134,6 +136,7 @@ def main() -> None:
                   f"{total / res.iterations * 1e3:>9.2f} {all_cpu * 1e3:>8.2f} "
                   f"{spent['seconds'] / total:>7.0%} "
                   f"{spent['truncated']:>3}/{res.iterations:<3} {spent['grid']:>4} "
+                  f"{spent['boxgrid']:>4} "
                   f"{dense * 1e3:>9.2f} {k_it:>8} {k_all:>6} {k_dense:>8} {err:>8.3f}")
             prev = (size, cpu_it, dense, all_cpu)
     print(f"data: {source}")

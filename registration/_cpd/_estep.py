@@ -7,6 +7,7 @@ Both return the sums the M-step needs (``P1``, ``Pt1``, ``P X``) and the objecti
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -15,6 +16,7 @@ import scipy.sparse
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from ._boxfgt import BOX_WIDTHS, BoxGrid, box_rank, box_work
 from ._fgt import FGT_MAX_RANK, ChebGrid, bounding_box, fgt_ranks
 from ._field import _BLOCK_ELEMS, FloatArray, _gauss_kernel
 
@@ -23,20 +25,35 @@ from ._field import _BLOCK_ELEMS, FloatArray, _gauss_kernel
 #: at sigma 0.04-0.22, 2400-41000 grid nodes: larger grids use the BLAS better).
 FGT_NODE_COST = 2.5
 FGT_NODE_POWER = 0.56
+#: Cost of the box-grid E-step (:mod:`._boxfgt`) in the same units: per point and node of
+#: a box (``p^2``), and per node-to-node multiply-add (``(pairs + rows * boxes) p^3``), for
+#: its four weight columns together (fitted on fish contours of 2000-8000 points at sigma
+#: 0.005-0.2: predictions within 0.5-1.5x of the measured CPU time).
+BOX_POINT_COST = 0.12
+BOX_NODE_COST = 0.15
 #: Cost of one pair of the float32 dense E-step relative to float64 (measured).
 DENSE_PAIR_COST_F32 = 0.6
 #: Cost of one pair of the truncated E-step relative to the float64 dense E-step (measured
 #: CPU time at 4000 points: 19-27 ns against 15 ns, and 9.4 ns for the float32 dense one).
 TRUNCATED_PAIR_COST = 1.5
+#: Building the truncated E-step's neighbour list (a k-d tree query at the larger radius,
+#: a sort, the CSR index) costs about 6-9 evaluations of the list (measured at 2000-8000
+#: points), and a list lasts several iterations (pruned, not rebuilt, as sigma shrinks):
+#: the estimated cost of an iteration that must build it is taken this many times higher
+#: (3 against 2: the switch from the box E-step at 8000 points moves from sigma ~0.018
+#: to ~0.01, where the list is half as long; 0.59 -> 0.45 s CPU for that build).
+TRUNCATION_BUILD_COST = 3.0
 #: The truncated E-step's neighbour list holds at most this many pairs (memory: ~40 bytes
 #: each); beyond, the grid or dense E-step runs.
 TRUNCATION_MAX_PAIRS = 6_000_000
 #: Relative bound on every posterior changed by the truncated E-step.
 TRUNCATION_EPS = 1e-10
 #: The truncated E-step's neighbour list is built with this multiple of the radius, so it
-#: can be reused while the centroids move by less than the difference.
-TRUNCATION_SKIN = 1.3
-#: ... and rebuilt when its radius exceeds this multiple of the current radius.
+#: can be reused while the centroids move by less than the difference (1.3 -> 1.15: 1.32x
+#: the pairs within the radius evaluated instead of 1.69x, for a few more rebuilds at the
+#: smallest sigma; 8000 points: 7.75 -> 6.53 s CPU for the whole run).
+TRUNCATION_SKIN = 1.15
+#: ... and pruned (or rebuilt) when its radius exceeds this multiple of the current one.
 TRUNCATION_SHRINK = 1.8
 _DEN_FLOOR = 1e-300
 #: The final correspondence pass is dense up to this many (model, subject) pairs.
@@ -147,13 +164,40 @@ class _EStep:
         """The dense E-step's sums through two Chebyshev-grid Gauss transforms
         (:mod:`._fgt`): the column sums of the kernel at the subject points, then ``P1`` and
         ``P X`` at the centroids from the weights ``1 / den`` and ``x / den``."""
-        m, n, x = self.m, self.n, self.x
-        sigma = math.sqrt(sigma2)
-        c = _outlier_const(sigma2, self.w, m, n)
-        grid = ChebGrid(*bounding_box(t, x), sigma)
+        grid = ChebGrid(*bounding_box(t, self.x), math.sqrt(sigma2))
         tx, ty = grid.interp(t)
-        xx, xy = grid.interp(x)
-        colsum = grid.gather(xx, xy, grid.spread(tx, ty, np.ones((m, 1))))[:, 0]
+        xx, xy = grid.interp(self.x)
+        return self._transformed(
+            t, sigma2, lambda q: grid.gather(xx, xy, grid.spread(tx, ty, q)),
+            lambda q: grid.gather(tx, ty, grid.spread(xx, xy, q)))
+
+    def box_cost(self, t: FloatArray, sigma2: float, bound: float) -> float | None:
+        """Estimated cost of :meth:`boxgrid` in dense pairs; None if its grid is too large
+        or its cost exceeds ``bound`` (checked first from the per-point part alone)."""
+        per_point = (self.m + self.n) * BOX_POINT_COST * box_rank(BOX_WIDTHS) ** 2
+        if per_point >= bound:
+            return None
+        work = box_work(*bounding_box(t, self.x), math.sqrt(sigma2), t, self.x)
+        if work is None:
+            return None
+        return (self.m + self.n) * BOX_POINT_COST * work[0] + BOX_NODE_COST * work[1]
+
+    def boxgrid(self, t: FloatArray, sigma2: float) -> _EStepOut:
+        """The same sums as :meth:`grid` through the box-wise transform
+        (:mod:`._boxfgt`): Chebyshev nodes only in the boxes the points occupy."""
+        grid = BoxGrid(*bounding_box(t, self.x), math.sqrt(sigma2), t, self.x)
+        lt, lx = grid.interp(t), grid.interp(self.x)
+        return self._transformed(t, sigma2, lambda q: grid.gather(lx, grid.spread(lt, q)),
+                                 lambda q: grid.gather(lt, grid.spread(lx, q)))
+
+    def _transformed(self, t: FloatArray, sigma2: float,
+                     to_x: Callable[[FloatArray], FloatArray],
+                     to_t: Callable[[FloatArray], FloatArray]) -> _EStepOut:
+        """The E-step from two Gauss transforms: ``to_x(q)`` sums weights ``q`` (M, k) at
+        the centroids onto the subject points, ``to_t`` the reverse."""
+        m, n, x = self.m, self.n, self.x
+        c = _outlier_const(sigma2, self.w, m, n)
+        colsum = to_x(np.ones((m, 1)))[:, 0]
         np.maximum(colsum, 0.0, out=colsum)
         den = colsum + c
         np.maximum(den, _DEN_FLOOR, out=den)
@@ -161,7 +205,7 @@ class _EStep:
         q = np.empty((n, 3))
         q[:, 0] = inv
         q[:, 1:] = x * inv[:, None]
-        acc = grid.gather(tx, ty, grid.spread(xx, xy, q))
+        acc = to_t(q)
         nll = -float(np.sum(np.log(den))) + n * math.log(sigma2)
         return _EStepOut(np.ascontiguousarray(acc[:, 0]), colsum * inv,
                          np.ascontiguousarray(acc[:, 1:]), nll, 0)
@@ -199,12 +243,13 @@ class _EStep:
         ``r + max_m |t_m - t_build_m| <= r_build``: then every pair now closer than ``r``
         was closer than ``r_build`` at build time (triangle inequality), so it is in the
         list.  Extra pairs in the list are evaluated exactly, which only adds accuracy.
-        A list built for a radius more than ``TRUNCATION_SHRINK * r`` is rebuilt.
-        Returns None (caller falls back to dense) if a rebuilt list holds more than
-        ``max_density`` of all pairs.
+        A list built for a radius more than ``TRUNCATION_SHRINK * r`` is pruned to the pairs
+        now within ``TRUNCATION_SKIN * r`` when the centroids have moved little enough for
+        that to be complete (:meth:`_prune_list`), else rebuilt.  Returns None (caller falls
+        back to dense) if a rebuilt list holds more than ``max_density`` of all pairs.
         """
         m, n = self.m, self.n
-        if not self._list_valid(t, r):
+        if not self._list_valid(t, r) and not self._prune_list(t, TRUNCATION_SKIN * r):
             if not self._build_list(t, TRUNCATION_SKIN * r):
                 return None
         i, j, xj, kmat = self._pi, self._pj, self._xj, self._kmat
@@ -236,13 +281,34 @@ class _EStep:
         return _EStepOut(np.ascontiguousarray(acc[:, 0]), pt1,
                          np.ascontiguousarray(acc[:, 1:]), nll, len(e))
 
+    def _moved(self, t: FloatArray) -> float:
+        assert self._t_build is not None
+        d = t - self._t_build
+        return math.sqrt(float(np.max(np.einsum("ij,ij->i", d, d))))
+
     def _list_valid(self, t: FloatArray, r: float) -> bool:
         if self._pi is None or self._t_build is None:
             return False
-        if self._r_build > TRUNCATION_SHRINK * r:  # list much too loose: rebuild
+        if self._r_build > TRUNCATION_SHRINK * r:  # list much too loose: prune or rebuild
             return False
-        d = t - self._t_build
-        return r + math.sqrt(float(np.max(np.einsum("ij,ij->i", d, d)))) <= self._r_build
+        return r + self._moved(t) <= self._r_build
+
+    def _prune_list(self, t: FloatArray, r_build: float) -> bool:
+        """Shrink a loose list to the pairs now within ``r_build``, without a new search.
+
+        Valid when ``r_build + max_m |t_m - t_build_m| <= `` the list's radius: every pair
+        now within ``r_build`` was within the list's radius at build time (triangle
+        inequality), so it is listed; pairs keep their order (sorted by centroid)."""
+        if self._pi is None or self._t_build is None or self._xj is None:
+            return False
+        if r_build + self._moved(t) > self._r_build:
+            return False
+        dx = np.repeat(t[:, 0], self._counts) - self._xj[0]
+        dy = np.repeat(t[:, 1], self._counts) - self._xj[1]
+        keep = dx * dx + dy * dy <= r_build * r_build
+        assert self._pj is not None
+        self._set_list(self._pi[keep], self._pj[keep], t, r_build)
+        return True
 
     def _build_list(self, t: FloatArray, r_build: float) -> bool:
         cap = None if self.force_truncate else int(
@@ -251,17 +317,20 @@ class _EStep:
         if found is None:
             self._pi = None
             return False
-        self._pi, self._pj, _ = found
-        self._xj = np.ascontiguousarray(self.x[self._pj].T)
-        self._counts = np.bincount(self._pi, minlength=self.m)
+        self._set_list(found[0], found[1], t, r_build)
+        return True
+
+    def _set_list(self, pi: NDArray[np.intp], pj: NDArray[np.intp], t: FloatArray,
+                  r_build: float) -> None:
+        self._pi, self._pj = pi, pj
+        self._xj = np.ascontiguousarray(self.x[pj].T)
+        self._counts = np.bincount(pi, minlength=self.m)
         indptr = np.zeros(self.m + 1, dtype=np.intp)
         np.cumsum(self._counts, out=indptr[1:])
         self._kmat = scipy.sparse.csr_matrix(
-            (np.zeros(len(self._pj), dtype=self.dtype), self._pj, indptr),
-            shape=(self.m, self.n))
+            (np.zeros(len(pj), dtype=self.dtype), pj, indptr), shape=(self.m, self.n))
         self._t_build = t.copy()
         self._r_build = r_build
-        return True
 
 
 def near_pairs(t: FloatArray, x_tree: cKDTree, r: float, cap: int | None
@@ -272,10 +341,10 @@ def near_pairs(t: FloatArray, x_tree: cKDTree, r: float, cap: int | None
     pairs = cKDTree(t).sparse_distance_matrix(x_tree, r, output_type="ndarray")
     if cap is not None and len(pairs) > cap:
         return None
-    i = pairs["i"]
+    i = pairs["i"].astype(np.intp)  # contiguous copies: gathers from them are faster
     order = np.argsort(i.astype(np.uint16) if len(t) < 65536 else i, kind="stable")
-    return (i[order].astype(np.intp), pairs["j"][order].astype(np.intp),
-            np.ascontiguousarray(pairs["v"][order]))
+    return (i[order], pairs["j"].astype(np.intp)[order],
+            np.ascontiguousarray(pairs["v"])[order])
 
 
 def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float
@@ -345,22 +414,36 @@ def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float
 def run_estep(estep: _EStep, t: FloatArray, sigma2: float, truncate: bool | None,
               gauss_grid: bool | None, sample: NDArray[np.intp]) -> _EStepOut:
     """One E-step by the cheapest method allowed: truncated (``truncate``), grid
-    (``gauss_grid``) or dense; ``None`` lets the estimated cost decide, ``True`` forces a
-    method where it applies (truncation first), ``False`` rules it out."""
+    (``gauss_grid``: the whole-box grid or the box-wise one) or dense; ``None`` lets the
+    estimated cost decide, ``True`` forces a method where it applies (truncation first),
+    ``False`` rules it out."""
     m, n = estep.m, estep.n
     dense_cost = m * n * (DENSE_PAIR_COST_F32 if estep.dtype == np.float32 else 1.0)
     grid_cost = estep.grid_cost(t, sigma2) if gauss_grid is not False else None
+    best = min(dense_cost, math.inf if grid_cost is None else grid_cost)
+    box_cost: float | None = None
+    # the box transform's error is absolute (per unit weight): without an outlier constant
+    # a subject point far from every centroid has a denominator it cannot resolve
+    box_checked = gauss_grid is False or estep.w <= 0
     if truncate is not False and (estep.w > 0 or truncate):
         r = estep.radius(t, sigma2)
         use = bool(truncate) or estep._list_valid(t, r)
         if not use and not gauss_grid:
             dens = estep.density(t, TRUNCATION_SKIN * r, sample)
-            use = dens < estep.max_density and dens * m * n < TRUNCATION_MAX_PAIRS and (
-                grid_cost is None or TRUNCATED_PAIR_COST * dens * m * n < grid_cost)
+            cost = TRUNCATED_PAIR_COST * TRUNCATION_BUILD_COST * dens * m * n
+            use = dens < estep.max_density and dens * m * n < TRUNCATION_MAX_PAIRS
+            if use and cost < best:
+                box_cost, box_checked = estep.box_cost(t, sigma2, cost), True
+            use = use and cost < best and (box_cost is None or cost < box_cost)
         if use:
             out = estep.truncated(t, sigma2, r)
             if out is not None:
                 return out
+    if not box_checked:
+        box_cost = estep.box_cost(t, sigma2, math.inf if gauss_grid else best)
+    if box_cost is not None and (gauss_grid or box_cost < dense_cost) and (
+            grid_cost is None or box_cost < grid_cost):
+        return estep.boxgrid(t, sigma2)
     if grid_cost is not None and (gauss_grid or grid_cost < dense_cost):
         return estep.grid(t, sigma2)
     return estep.dense(t, sigma2)

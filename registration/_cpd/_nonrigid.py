@@ -200,9 +200,15 @@ def cpd_nonrigid(
         (``registration._cpd._fgt``), ``O((M + N) r^2)`` with ``r`` nodes per axis growing
         as the bounding box over sigma, so it pays while sigma is wide.  Every kernel value
         is interpolated to about ``1e-10`` absolute (the peak is 1), so the sums ``P1``,
-        ``Pt1``, ``P X`` match the dense ones to ``1e-8`` relative (tests check it).
+        ``Pt1``, ``P X`` match the dense ones to ``1e-8`` relative (tests check it).  Its
+        box-wise form (``registration._cpd._boxfgt``, a one-level FMM: Chebyshev nodes only
+        in boxes of 8 sigma that hold points, each meeting its 8 neighbours; kernel values
+        to ``1e-12``, sums within ``1e-11 sum|q|``) costs ``O((M + N) p^2 + boxes p^3)``
+        with the boxes growing as the contour's length over sigma, not with the points:
+        it takes the middle sigma range (with ``w > 0``).
         ``None``: used on iterations where its estimated cost is below the dense and the
-        truncated E-step's.  ``True``: whenever its grid stays under 400 nodes per axis.
+        truncated E-step's.  ``True``: whenever its grid stays under 400 nodes per axis
+        (or the box-wise grid applies).
     backend : {"native", "pycpd"}, default "native"
         ``"pycpd"`` runs ``pycpd.DeformableRegistration`` (alpha=lmbda, beta, w, tolerance,
         max_iterations, sigma2) on the same normalised data as a reference.  Its stopping

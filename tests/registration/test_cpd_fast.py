@@ -2,8 +2,9 @@
 
 Stated tolerances (also in the docstrings of ``registration._cpd._fgt`` and ``_estep``):
 
-* Chebyshev-grid Gauss transform: every sum within ``1e-9 * sum_j |q_j|`` of the dense one;
-  the E-step sums ``P1``, ``Pt1``, ``P X`` within ``1e-8`` relative.
+* Chebyshev-grid Gauss transform, whole-box (``_fgt``) and box-wise (``_boxfgt``): every sum
+  within ``1e-9 * sum_j |q_j|`` of the dense one; the E-step sums ``P1``, ``Pt1``, ``P X``
+  within ``1e-8`` relative.
 * Pivoted-Cholesky kernel: ``|G - L L^T| <= trace tolerance``; eigen form reproduces ``G``.
 * Truncated E-step (sparse, CSR): sums within ``1e-8`` relative in float64, ``1e-5`` in float32.
 * Sparse final correspondences: the same argmax and maximum as the dense pass.
@@ -18,9 +19,10 @@ import math
 import numpy as np
 import pytest
 
-from registration._cpd import _estep, cpd_nonrigid
+from registration._cpd import _boxfgt, _estep, cpd_nonrigid
+from registration._cpd._boxfgt import BOX_ABS_TOL, box_gauss_transform, box_rank
 from registration._cpd._estep import _EStep, _posterior_max, _posterior_max_dense
-from registration._cpd._fgt import gauss_transform, pivoted_cholesky
+from registration._cpd._fgt import _cheb_nodes, _interp_matrix, gauss_transform, pivoted_cholesky
 from registration._cpd._field import _gauss_kernel
 from registration._cpd._mstep import LOW_RANK_TRACE_TOL, _low_rank_factor
 
@@ -63,8 +65,65 @@ def test_grid_estep_matches_dense(sigma: float, w: float) -> None:
     close(got, dense_sums(t, x, sigma * sigma, w), 1e-8)
 
 
+@pytest.mark.parametrize("widths", [1.0, 2.0, 4.0, 7.0, 8.0])
+def test_box_rank_interpolates_every_shift(widths: float) -> None:
+    """Every 1-D kernel value between a box and any point (inside the box or up to 9
+    sigma away) is interpolated within BOX_ABS_TOL on box_rank nodes (sigma = 1)."""
+    p = box_rank(widths)
+    u = np.linspace(0.0, widths, 601)
+    nodes = (_cheb_nodes(p) + 1.0) * 0.5 * widths
+    v = np.linspace(-9.0, widths + 9.0, 1201)
+    lmat = _interp_matrix(u / widths * 2.0 - 1.0, p)
+    exact = np.exp(-0.5 * (u[:, None] - v[None, :]) ** 2)
+    approx = lmat @ np.exp(-0.5 * (nodes[:, None] - v[None, :]) ** 2)
+    assert np.max(np.abs(approx - exact)) <= BOX_ABS_TOL
+
+
+@pytest.mark.parametrize("sigma", [0.5, 0.12, 0.04, 0.01])
+def test_box_gauss_transform_matches_dense(sigma: float) -> None:
+    rng = np.random.default_rng(1)
+    src, tgt = curve(600, 1), curve(500, 2, wobble=0.1) * 1.1
+    src = np.vstack([src, [[3.0, 2.5]]])  # a lone source box far from every target
+    q = rng.standard_normal((601, 3))
+    got = box_gauss_transform(src, q, tgt, sigma)
+    want = _gauss_kernel(tgt, src, sigma) @ q
+    assert np.max(np.abs(got - want)) <= 1e-11 * float(np.max(np.sum(np.abs(q), axis=0)))
+
+
+@pytest.mark.parametrize(("sigma", "w"), [(0.3, 0.0), (0.3, 0.1), (0.08, 0.1), (0.02, 0.1),
+                                           (0.005, 0.1)])
+def test_box_estep_matches_dense(sigma: float, w: float) -> None:
+    """Down to small sigma with an outlier weight (every denominator >= its constant; the
+    choice in run_estep uses the box E-step only then)."""
+    x, t = curve(400, 3), curve(350, 4, wobble=0.15)
+    got = _EStep(x, len(t), w, "float64").boxgrid(t, sigma * sigma)
+    close(got, dense_sums(t, x, sigma * sigma, w), 1e-8)
+
+
+def test_box_run_matches_dense(pair: tuple[np.ndarray, np.ndarray], dense_run: np.ndarray,
+                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """A whole run with the box-wise E-step on every iteration it applies to."""
+    calls = []
+    box = _EStep.boxgrid
+
+    def counted(self: _EStep, t: np.ndarray, s2: float) -> _estep._EStepOut:
+        calls.append(s2)
+        return box(self, t, s2)
+
+    monkeypatch.setattr(_EStep, "grid_cost", lambda self, t, s2: None)
+    monkeypatch.setattr(_EStep, "boxgrid", counted)
+    monkeypatch.setattr(_boxfgt, "BOX_MAX_OCCUPIED", 10**9)
+    model, subject = pair
+    res = cpd_nonrigid(model, subject, tol=0.0, max_iter=60, gauss_grid=True, truncate=False,
+                       low_rank=False)
+    assert len(calls) == 60
+    scale = float(np.sqrt(np.mean(np.sum((subject - subject.mean(0)) ** 2, axis=1))))
+    assert np.max(np.abs(res.warped - dense_run)) < 1e-6 * scale
+
+
 @pytest.mark.parametrize(("dtype", "rel"), [("float64", 1e-8), ("float32", 1e-5)])
-def test_truncated_estep_matches_dense(dtype: str, rel: float) -> None:
+def test_truncated_estep_matches_dense(dtype: str, rel: float,
+                                       monkeypatch: pytest.MonkeyPatch) -> None:
     x, t = curve(500, 5), curve(450, 6, wobble=0.05)
     s2 = 0.03**2
     est = _EStep(x, len(t), 0.1, dtype)
@@ -78,6 +137,13 @@ def test_truncated_estep_matches_dense(dtype: str, rel: float) -> None:
     got = est.truncated(moved, s2, est.radius(moved, s2))
     assert got is not None
     close(got, dense_sums(moved, x, s2, 0.1), rel)
+    # sigma halves: the loose list is pruned to the new radius (no new search), still exact
+    before = est._pj
+    monkeypatch.setattr(_estep, "near_pairs", None)  # a search would fail
+    got = est.truncated(moved, s2 / 4, est.radius(moved, s2 / 4))
+    assert got is not None and est._pj is not None and before is not None
+    assert len(est._pj) < len(before)
+    close(got, dense_sums(moved, x, s2 / 4, 0.1), rel)
 
 
 @pytest.mark.parametrize("beta", [2.0, 0.5])
