@@ -12,7 +12,22 @@ its time:
   (:func:`registration.synthetic.chained_family`, 4 chains x 5): a small coarse-to-fine job;
 - ``yong40``: the first 40 永 edge glyphs of ``../shared/data/glyphs_yong/points`` at their
   stored resolution (about 1000-2300 points), pose upright +-30 deg as for glyph images
-  (skipped, and said so, when the data is missing).
+  (skipped, and said so, when the data is missing);
+- ``mpeg7-horse``, ``mpeg7-camel``, ``mpeg7-bat``, ``mpeg7-deer`` (not in the default list):
+  one MPEG-7 class of ``../shared/data/mpeg7`` (20 shapes, resampled to 400 points, root
+  ``<class>-1``, every orientation as section 0.2 ran them), classes whose trees stop with
+  subjects waiting: where the ``leaves`` stages have work (skipped when the data is missing);
+- ``mixed`` (not in the default list, no data needed): two generated families of unlike
+  outlines in one collection (:func:`mixed_family`), whose other family's shapes wait for
+  ``leaves``.
+
+``--grouping 50,100,200`` times a ``grouping`` job's stages instead (``group_instances``
+with a local process pool, the service's defaults): generated impressions of 40 procedural
+moulds x 5 (``bench_grouping.stroke_moulds``, each scan through the service's image
+ingestion), the first 10, 20 and 40 moulds; printed: each stage's seconds and share, the time
+before the first event and after the last one, and how each stage's time scales with the
+number of instances, fitted as ``stage / fields ~ n ** c`` (ratios within one run, so that
+the machine's load changes between runs do not enter; ``fields`` is one task per instance).
 
 A stage lasts from its first event to the next stage's first event (the last one to the
 method's return); the time before the first event goes to the first stage. Stages are
@@ -24,6 +39,8 @@ direct CPD (a job that does not compare), and the share ``service/progress.py`` 
 (:func:`service.progress.phase_weights`, from the largest shape's points).
 
     .venv/bin/python bench/bench_progress.py [--sets demo,chains800,yong40] [--json PATH]
+    .venv/bin/python bench/bench_progress.py --sets mpeg7-horse,mpeg7-camel,mixed
+    .venv/bin/python bench/bench_progress.py --sets none --grouping 50,100,200
 
 (``REGTREE_DATA=/path/to/shared/data`` when the data is not at ``../shared/data``.)
 """
@@ -40,13 +57,20 @@ from typing import Any
 
 import numpy as np
 
-from registration import LocalProcessExecutor, build_dynamic_tree
-from registration.synthetic import chained_family
+from registration import (
+    LocalProcessExecutor,
+    SerialExecutor,
+    build_dynamic_tree,
+    group_instances,
+    resample,
+)
+from registration.synthetic import chained_family, deformation_chains
 from service.progress import phase_weights
 
 DATA = Path(os.environ.get("REGTREE_DATA",
                            Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 GLYPHS = DATA / "glyphs_yong"
+MPEG7 = DATA / "mpeg7"
 
 WORKING_POINTS = 400  # the default working resolution
 GROUPS = ["similarity", "layers", "leaves", "refine", "polish", "direct", "full resolution",
@@ -78,7 +102,32 @@ def load_set(name: str) -> tuple[list[np.ndarray], dict[str, Any]] | None:
             print(f"yong40: skipped, {GLYPHS} is missing")
             return None
         return [np.loadtxt(f).reshape(-1, 2) for f in files], {"max_rotation": 30.0}
+    if name.startswith("mpeg7-"):
+        cls = name.removeprefix("mpeg7-")
+        found = sorted((MPEG7 / cls).glob(f"{cls}-*.npy"), key=lambda p: int(p.stem.split("-")[-1]))
+        if not found:
+            print(f"{name}: skipped, {MPEG7 / cls} is missing")
+            return None
+        return [resample(np.load(f), WORKING_POINTS) for f in found], {}
+    if name == "mixed":
+        return mixed_family(), {}
     raise SystemExit(f"unknown set {name!r}")
+
+
+def star(points: int = 2000, arms: int = 5) -> np.ndarray:
+    """A densely sampled star outline (unlike :func:`chained_family`'s blob)."""
+    t = np.linspace(0, 2 * np.pi, points, endpoint=False)
+    r = 1.0 + 0.45 * np.cos(arms * t)
+    return np.c_[r * np.cos(t), r * np.sin(t)]
+
+
+def mixed_family() -> list[np.ndarray]:
+    """20 shapes of two classes: a chained family (root first, 10 subjects) and 9 warped
+    stars, which no shape of the first class registers onto well."""
+    first = chained_family(n_chains=2, chain_length=5, n_points=WORKING_POINTS, seed=2)
+    stars = deformation_chains(star(), n_chains=3, chain_length=3, n_points=WORKING_POINTS,
+                               seed=2)
+    return list(first.shapes) + list(stars.shapes)
 
 
 def measure(shapes: list[np.ndarray], options: dict[str, Any]) -> dict[str, Any]:
@@ -114,6 +163,102 @@ def measure(shapes: list[np.ndarray], options: dict[str, Any]) -> dict[str, Any]
             "points": [int(min(len(s) for s in shapes)), int(max(len(s) for s in shapes))]}
 
 
+GROUPING_STAGES = ["fields", "alignment", "pairs"]
+
+
+def grouping_scans(moulds: int, impressions: int = 5, seed: int = 0) -> list[np.ndarray]:
+    """`impressions` generated scans of each of `moulds` procedural moulds, as points,
+    mould by mould (the first k moulds' scans are the first k x `impressions`)."""
+    from bench_grouping import stroke_moulds, to_points
+
+    from registration.impressions import impression_set
+
+    shapes, _ = impression_set(stroke_moulds(moulds, seed), impressions, to_points=to_points,
+                               seed=seed)
+    return shapes
+
+
+def measure_grouping(shapes: list[np.ndarray], serial: bool, **options: Any) -> dict[str, Any]:
+    """Seconds of each grouping stage (a stage from its first event to the next stage's),
+    and before the first event and after the last one, in one ``group_instances`` run:
+    with `serial`, all in this process and timed by its CPU time (``time.process_time``,
+    which other processes' load does not change); else with a local process pool (the
+    service's executor) and timed by the wall clock."""
+    clock = time.process_time if serial else time.perf_counter
+    events: list[tuple[float, str, int, int]] = []
+    executor = SerialExecutor() if serial else LocalProcessExecutor()
+    try:
+        t0 = clock()
+        result = group_instances(shapes, executor=executor, **options,
+                                 progress=lambda s, d, t: events.append((clock(), s, d, t)))
+        t1 = clock()
+    finally:
+        if isinstance(executor, LocalProcessExecutor):
+            executor.close()
+    first: dict[str, float] = {}
+    totals: dict[str, int] = {}
+    for t, stage, _, total in events:
+        first.setdefault(stage, t)
+        totals[stage] = total
+    order = sorted(first, key=first.__getitem__)
+    seconds = {stage: (first[order[k + 1]] if k + 1 < len(order) else events[-1][0])
+               - first[stage] for k, stage in enumerate(order)}
+    # as the percentage sees them: the time before the first event with the first stage,
+    # after the last one with the last (which it shows at the 99% cap)
+    seconds[order[0]] += events[0][0] - t0
+    seconds[order[-1]] += t1 - events[-1][0]
+    return {"seconds_total": t1 - t0, "before": events[0][0] - t0, "after": t1 - events[-1][0],
+            "seconds": seconds, "totals": totals, "groups": result.n_groups}
+
+
+def fit_exponent(ns: list[int], values: list[float]) -> float:
+    """c of ``values ~ n ** c``, least squares in logs."""
+    return float(np.polyfit(np.log(ns), np.log(np.maximum(values, 1e-9)), 1)[0])
+
+
+def _grouping_rows(title: str, runs: dict[int, dict[str, Any]]) -> None:
+    print(f"  {title}")
+    print(f"  {'n':>4s} {'total s':>8s} {'before':>7s} " + " ".join(
+        f"{g + ' s':>12s} {'share':>6s}" for g in GROUPING_STAGES)
+        + f" {'after':>7s} {'ms/pair':>7s}")
+    for n, m in runs.items():
+        sec = m["seconds"]
+        cells = [f"{sec.get(g, 0.0):12.2f} {100 * sec.get(g, 0.0) / m['seconds_total']:5.1f}%"
+                 for g in GROUPING_STAGES]
+        per_pair = 1000 * sec.get("pairs", 0.0) / max(m["totals"].get("pairs", 1), 1)
+        print(f"  {n:4d} {m['seconds_total']:8.2f} {m['before']:7.3f} " + " ".join(cells)
+              + f" {m['after']:7.3f} {per_pair:7.1f}")
+
+
+def grouping_report(sizes: list[int], options: dict[str, Any], processes: int
+                    ) -> dict[str, Any]:
+    moulds = max(sizes) // 5
+    t = time.perf_counter()
+    scans = grouping_scans(moulds)
+    print(f"\ngrouping: {len(scans)} generated scans of {moulds} moulds "
+          f"({np.mean([len(x) for x in scans]):.0f} points), made in "
+          f"{time.perf_counter() - t:.1f} s; options {options or 'default'}")
+    cpu = {n: measure_grouping(scans[:n], True, **options) for n in sizes}
+    pool = {n: measure_grouping(scans[:n], False, **options) for n in sizes}
+    _grouping_rows("CPU seconds, serial executor (load-independent):", cpu)
+    _grouping_rows("wall seconds, local process pool (the service's; shares the loaded "
+                   "machine):", pool)
+    print(f"  shares for a pool of {processes} (CPU, pairs / {processes}):")
+    for n, m in cpu.items():
+        sec = {g: m["seconds"][g] / (processes if g == "pairs" else 1) for g in GROUPING_STAGES}
+        whole = sum(sec.values())
+        print(f"  {n:4d} " + " ".join(f"{g} {100 * v / whole:5.1f}%" for g, v in sec.items()))
+    ns = sorted(cpu)
+    if len(ns) > 1:
+        print("  scaling, CPU stage / fields ~ n ** c (fields ~ n): " + ", ".join(
+            f"{g} c={fit_exponent(ns, [cpu[n]['seconds'][g] / cpu[n]['seconds']['fields'] for n in ns]):+.2f}"  # noqa: E501
+            for g in GROUPING_STAGES[1:]))
+        print("  pairs per instance: " + ", ".join(
+            f"{n} {cpu[n]['totals']['pairs'] / n:.1f}" for n in ns))
+    return {"cpu": {str(n): m for n, m in cpu.items()},
+            "pool": {str(n): m for n, m in pool.items()}}
+
+
 def shares(seconds: dict[str, float], without_direct: bool = False) -> dict[str, float]:
     keep = {g: s for g, s in seconds.items()
             if not (without_direct and g in ("direct", "direct full resolution"))}
@@ -125,9 +270,21 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sets", default="demo,chains800,yong40")
     parser.add_argument("--json", type=Path)
+    parser.add_argument("--grouping", default="",
+                        help="instance counts of grouping runs, e.g. 50,100,200")
+    parser.add_argument("--grouping-max-rotation", type=float, default=None)
+    parser.add_argument("--processes", type=int, default=2,
+                        help="pool size the grouping shares are shown for")
     args = parser.parse_args()
     report: dict[str, Any] = {}
+    if args.grouping:
+        options = ({} if args.grouping_max_rotation is None
+                   else {"max_rotation": args.grouping_max_rotation})
+        report["grouping"] = grouping_report([int(n) for n in args.grouping.split(",")],
+                                             options, args.processes)
     for name in args.sets.split(","):
+        if name == "none":
+            continue
         loaded = load_set(name)
         if loaded is None:
             continue

@@ -252,6 +252,8 @@ def common_frame(fields: Sequence[FloatArray], *, rounds: int = 2,
         starts += [_rotation(s * d) for d in steps for s in (1, -1)]
     params = [_IDENTITY] * len(fields)
     total = rounds * len(fields)
+    if progress is not None:
+        progress(0, total)
     for rnd in range(rounds):
         template = np.median(np.stack(out), axis=0)
         for k, f in enumerate(fields):

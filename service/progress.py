@@ -8,7 +8,9 @@ others. A tree job runs, in order: ``similarity``; the tree's layers (``similari
 N``, ``layer N`` for N = 2, 3, ...); ``similarity leaves``, ``leaves``; ``refine``;
 ``polish``; when it compares, ``similarity direct``, ``direct``; and when it decides at a
 working resolution below its shapes' (coarse to fine), ``full resolution`` and ``direct
-full resolution``, which count subjects. Stages with nothing to do are not reported.
+full resolution``, which count subjects. Stages with nothing to do are not reported. A
+``grouping`` job runs ``fields`` (instances), ``alignment`` (alignments to the median field)
+and ``pairs`` (pairs aligned to each other).
 
 The overall percentage places the stage within the whole run with the share of time each
 phase took in measured runs (:data:`PHASE_WEIGHTS`, bench/bench_progress.py, bench/RESULTS.md
@@ -30,6 +32,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any, TextIO
 
+from service.contract.names import GROUPING_METHOD
+
 if TYPE_CHECKING:
     from service.client import JobStatus
 
@@ -50,6 +54,13 @@ PHASE_WEIGHTS = {
     "direct": 0.19,
     "full resolution": 0.07,
     "direct full resolution": 0.048,
+}
+#: A grouping job's phases, as shares of its run (measured, bench/bench_progress.py
+#: ``--grouping``; bench/RESULTS.md section 5.3).
+GROUPING_WEIGHTS = {
+    "fields": 0.2,
+    "alignment": 0.4,
+    "pairs": 0.4,
 }
 #: How the stored-resolution weights grow with ``max_points / working_points``: measured
 #: 1.65 (tree) and 1.3 (direct) between ratios 2 and 5.6 with one warm-started CPD per
@@ -96,9 +107,14 @@ def left(seconds: float) -> str:
     return clock(math.ceil(seconds))
 
 
-def stage_unit(stage: str | None) -> str:
-    """What a stage counts: pairs of shapes for similarity stages, subjects at the stored
-    resolution, else registrations."""
+_GROUPING_UNITS = {"fields": "instances", "alignment": "alignments", "pairs": "pairs"}
+
+
+def stage_unit(stage: str | None, method: str | None = None) -> str:
+    """What a stage counts: for a grouping, instances, alignments or pairs; pairs of shapes
+    for similarity stages, subjects at the stored resolution, else registrations."""
+    if method == GROUPING_METHOD and stage in _GROUPING_UNITS:
+        return _GROUPING_UNITS[stage]
     if (stage or "").startswith("similarity"):
         return "pairs"
     return "subjects" if (stage or "").endswith("full resolution") else "registrations"
@@ -107,6 +123,8 @@ def stage_unit(stage: str | None) -> str:
 def phase_of(stage: str, method: str = "dynamic_tree") -> str | None:
     """The phase a stage of a job of `method` belongs to (see :data:`PHASE_WEIGHTS`); None
     for one not known."""
+    if method == GROUPING_METHOD:
+        return stage if stage in GROUPING_WEIGHTS else None
     if _LAYER.fullmatch(stage) or stage.startswith("similarity layer "):
         return "layers"
     if method == "direct" and stage == "full resolution":
@@ -130,6 +148,8 @@ def phase_weights(
     working_points: int | None = None,
 ) -> dict[str, float]:
     """The phases a job runs, in order, each with its share of the run (summing to 1)."""
+    if method == GROUPING_METHOD:
+        return dict(GROUPING_WEIGHTS)
     if method == "direct":
         phases = ["direct"] + (["direct full resolution"] if coarse_to_fine else [])
     else:
@@ -282,7 +302,7 @@ def progress_text(state: JobStatus) -> str:
     if state.stage:
         text += f" {state.stage}"
     if state.total:
-        text += f" {state.done}/{state.total} {stage_unit(state.stage)}"
+        text += f" {state.done}/{state.total} {stage_unit(state.stage, state.method)}"
         text += f" ({100 * state.done // state.total}%)"
     return text
 
@@ -330,6 +350,8 @@ class Progress:
                         seconds_left(self._fraction, time.monotonic() - self._run_started))
 
     def _subjects(self, state: JobStatus) -> str:
+        if state.method == GROUPING_METHOD:  # every shape is an instance to group
+            return f"{state.n_shapes} instances" if state.n_shapes else ""
         return f"{state.n_shapes - 1} subjects" if state.n_shapes > 1 else ""
 
     @staticmethod
@@ -361,7 +383,7 @@ class Progress:
         head = f"job {self.job_id} {state.status}"
         if state.cancel_requested and not state.finished:
             head += " (cancel requested)"
-        if state.n_shapes > 1:
+        if self._subjects(state):
             head += f" · {self._subjects(state)}"
         if state.stage:
             head += f" · {state.stage}"
