@@ -130,17 +130,26 @@ def mixed_family() -> list[np.ndarray]:
     return list(first.shapes) + list(stars.shapes)
 
 
-def measure(shapes: list[np.ndarray], options: dict[str, Any]) -> dict[str, Any]:
+def measure(shapes: list[np.ndarray], options: dict[str, Any], serial: bool = False
+            ) -> dict[str, Any]:
+    """Seconds of each stage of one tree run: with a local process pool and the wall clock,
+    or with `serial`, all in this process and its CPU time (``time.process_time``, which
+    other processes' load does not change)."""
     events: list[tuple[float, str, int, int]] = []
+    clock = time.process_time if serial else time.perf_counter
 
     def record(stage: str, done: int, total: int) -> None:
-        events.append((time.perf_counter(), stage, done, total))
+        events.append((clock(), stage, done, total))
 
-    with LocalProcessExecutor() as executor:
-        t0 = time.perf_counter()
+    executor = SerialExecutor() if serial else LocalProcessExecutor()
+    try:
+        t0 = clock()
         result = build_dynamic_tree(shapes, 0, compare_direct=True, executor=executor,
                                     progress=record, **options)
-        t1 = time.perf_counter()
+        t1 = clock()
+    finally:
+        if isinstance(executor, LocalProcessExecutor):
+            executor.close()
     starts: list[tuple[float, str]] = []
     for t, stage, _, _ in events:
         if not starts or starts[-1][1] != stage:
@@ -160,6 +169,7 @@ def measure(shapes: list[np.ndarray], options: dict[str, Any]) -> dict[str, Any]
     return {"wall": t1 - t0, "seconds": seconds, "stage_seconds": stage_seconds,
             "stage_totals": totals, "layer_registrations": layer_regs,
             "subjects": len(shapes) - 1, "attached": summary.get("attached"),
+            "leaves": summary.get("leaves", 0),
             "points": [int(min(len(s) for s in shapes)), int(max(len(s) for s in shapes))]}
 
 
@@ -273,6 +283,8 @@ def main() -> None:
     parser.add_argument("--grouping", default="",
                         help="instance counts of grouping runs, e.g. 50,100,200")
     parser.add_argument("--grouping-max-rotation", type=float, default=None)
+    parser.add_argument("--serial", action="store_true",
+                        help="tree sets: CPU time of a serial run instead of a pool's wall time")
     parser.add_argument("--processes", type=int, default=2,
                         help="pool size the grouping shares are shown for")
     args = parser.parse_args()
@@ -289,10 +301,11 @@ def main() -> None:
         if loaded is None:
             continue
         shapes, options = loaded
-        m = measure(shapes, options)
+        m = measure(shapes, options, serial=args.serial)
         report[name] = m
         print(f"\n{name}: {m['subjects']} subjects, {m['points'][0]}-{m['points'][1]} points, "
-              f"{m['attached']} attached, {m['wall']:.1f} s")
+              f"{m['attached']} attached ({m['leaves']} as leaves), {m['wall']:.1f} s "
+              f"{'CPU, serial' if args.serial else 'wall, pool'}")
         with_d, without_d = shares(m["seconds"]), shares(m["seconds"], without_direct=True)
         model = phase_weights("dynamic_tree", compare_direct=True,
                               coarse_to_fine=m["points"][1] > WORKING_POINTS,

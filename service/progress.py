@@ -55,13 +55,21 @@ PHASE_WEIGHTS = {
     "full resolution": 0.07,
     "direct full resolution": 0.048,
 }
-#: A grouping job's phases, as shares of its run (measured, bench/bench_progress.py
-#: ``--grouping``; bench/RESULTS.md section 5.3).
+#: A grouping job's phases, as shares of its run: the mean wall-clock shares of nine runs
+#: with the service's process pool, 50, 100 and 200 generated impressions three times each
+#: (bench/bench_progress.py ``--grouping``; bench/RESULTS.md section 5.3). Every stage's
+#: time grows as the instances (8-9 pairs aligned per instance at every size; no trend of
+#: the shares with n beyond the load's noise), so the shares do not depend on n.
 GROUPING_WEIGHTS = {
-    "fields": 0.2,
-    "alignment": 0.4,
-    "pairs": 0.4,
+    "fields": 0.09,
+    "alignment": 0.15,
+    "pairs": 0.76,
 }
+#: With ``max_rotation`` the first alignment round also starts from rotations in 10 degree
+#: steps both ways, 3 iterations each, against 2 rounds of 8 iterations without: the
+#: alignment costs ``1 + ROTATION_START_COST x starts`` as much (2.3x at 30 degrees;
+#: measured 2.4x in CPU time, bench/RESULTS.md section 5.3).
+ROTATION_START_COST = 3 / 16
 #: How the stored-resolution weights grow with ``max_points / working_points``: measured
 #: 1.65 (tree) and 1.3 (direct) between ratios 2 and 5.6 with one warm-started CPD per
 #: subject and its near-linear E-step (bench/RESULTS.md section 5.2; 2.2 and 1.8 when the
@@ -143,13 +151,26 @@ def stored_resolution_stage(params: dict[str, Any]) -> bool:
     return most is None or int(most) > int(working)
 
 
+def grouping_weights(max_rotation: float | None = None) -> dict[str, float]:
+    """A grouping's phases with their shares (summing to 1); with `max_rotation` (degrees)
+    the alignment tries ``1 + 2 x floor(max_rotation / 10)`` starting rotations (when
+    that is more than one)."""
+    raw = dict(GROUPING_WEIGHTS)
+    steps = int(float(max_rotation or 0) // 10)
+    if steps:
+        raw["alignment"] *= 1 + ROTATION_START_COST * (1 + 2 * steps)
+    total = sum(raw.values())
+    return {p: w / total for p, w in raw.items()}
+
+
 def phase_weights(
     method: str, *, compare_direct: bool, coarse_to_fine: bool, max_points: int | None = None,
-    working_points: int | None = None,
+    working_points: int | None = None, max_rotation: float | None = None,
 ) -> dict[str, float]:
-    """The phases a job runs, in order, each with its share of the run (summing to 1)."""
+    """The phases a job runs, in order, each with its share of the run (summing to 1);
+    `max_rotation` counts for a grouping only."""
     if method == GROUPING_METHOD:
-        return dict(GROUPING_WEIGHTS)
+        return grouping_weights(max_rotation)
     if method == "direct":
         phases = ["direct"] + (["direct full resolution"] if coarse_to_fine else [])
     else:
@@ -194,19 +215,21 @@ def overall_fraction(
     method: str, stage: str | None, done: int, total: int, *, compare_direct: bool,
     coarse_to_fine: bool = False, max_points: int | None = None,
     working_points: int | None = None, subjects: int = 0, before: int = 0,
+    max_rotation: float | None = None,
 ) -> float | None:
     """The estimated share of a running job that is done, from its current stage; None for
     a stage this does not know. `coarse_to_fine`: the job ends with the stored-resolution
     stages; `max_points`, `working_points`: the most points of its shapes and the working
     resolution (the weight of those stages grows with their ratio); `subjects`: how many
     subjects it has; `before`: the registrations done in the tree's earlier layers
-    (``layer N`` stages before this one)."""
+    (``layer N`` stages before this one); `max_rotation`: a grouping's (its alignment tries
+    more starting rotations)."""
     if not stage:
         return 0.0
     phase = phase_of(stage, method)
     weights = phase_weights(method, compare_direct=compare_direct and method != "direct",
                             coarse_to_fine=coarse_to_fine, max_points=max_points,
-                            working_points=working_points)
+                            working_points=working_points, max_rotation=max_rotation)
     if phase not in weights:
         return None
     f = min(1.0, done / total) if total > 0 else 0.0
@@ -271,6 +294,7 @@ class FractionTracker:
             working_points=params.get("working_points"),
             subjects=self.subjects,
             before=sum(t for s, t in self._layers.items() if s != stage),
+            max_rotation=params.get("max_rotation"),
         )
         if fraction is None and not self.fraction:
             return None

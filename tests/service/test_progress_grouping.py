@@ -23,6 +23,8 @@ from service.progress import (
     MIN_FRACTION_FOR_ETA,
     FractionTracker,
     Progress,
+    grouping_weights,
+    overall_fraction,
     phase_of,
     phase_weights,
 )
@@ -90,6 +92,24 @@ def test_progress_events_of_a_real_grouping_job(monkeypatch: pytest.MonkeyPatch)
     assert progress.estimate(_status("succeeded", *events[-1], n)).fraction == 1.0
 
 
+def test_grouping_weights_follow_the_rotations_tried() -> None:
+    """The alignment weighs more when it tries starting rotations (``max_rotation``), the
+    shares sum to 1, and a registration's ``max_rotation`` changes nothing of a tree's."""
+    plain, turned = grouping_weights(None), grouping_weights(30.0)
+    assert list(plain) == list(turned) == ["fields", "alignment", "pairs"]
+    assert sum(plain.values()) == pytest.approx(1) and sum(turned.values()) == pytest.approx(1)
+    assert turned["alignment"] / turned["fields"] == pytest.approx(
+        2.3125 * plain["alignment"] / plain["fields"])
+    assert grouping_weights(5.0) == plain  # no 10 degree step: one start, as without
+    # the end of the alignment is where the pairs begin
+    end = overall_fraction("grouping", "alignment", 60, 60, compare_direct=False,
+                           max_rotation=30.0)  # fmt: skip
+    assert end == pytest.approx(turned["fields"] + turned["alignment"])
+    assert phase_weights("dynamic_tree", compare_direct=True, coarse_to_fine=False,
+                         max_rotation=30.0) == phase_weights(
+        "dynamic_tree", compare_direct=True, coarse_to_fine=False)
+
+
 def _status(status: str, stage: str, done: int, total: int, n: int) -> JobStatus:
     return JobStatus.from_json({
         "id": 1, "collection_id": 1, "model_shape_id": 1, "method": "grouping",
@@ -104,24 +124,25 @@ def _status(status: str, stage: str, done: int, total: int, n: int) -> JobStatus
 def _poll(client: httpx.Client, job_id: int, timeout: float = 180) -> list[dict[str, Any]]:
     """Every distinct state of a job from submission to its end, as fast as it changes."""
     states: list[dict[str, Any]] = []
+    keys: list[tuple[Any, ...]] = []  # seconds_left changes with the clock alone
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         state = client.get(f"/v1/jobs/{job_id}").raise_for_status().json()
         p = state["progress"]
         key = (state["status"], p["stage"], p["done"], p["total"], p["fraction"])
-        if not states or key != states[-1][0]:
-            states.append((key, state))
+        if not keys or key != keys[-1]:
+            states.append(state)
+            keys.append(key)
         if state["status"] in ("succeeded", "failed", "cancelled"):
-            return [s for _, s in states]
+            return states
         time.sleep(0.01)
     raise AssertionError(f"job {job_id} did not end: {states[-1:]}")
 
 
-def test_grouping_progress_over_http(service: Any) -> None:
-    """A grouping job of scans uploaded as PNGs, polled over HTTP: the job's ``progress``
-    carries the worker's overall ``fraction`` (never going back, 1 at the end) and
-    ``seconds_left`` once a few percent are done; ``regtree watch`` prints the instances,
-    the stage with its unit and an overall percentage reaching 100%."""
+@pytest.fixture(scope="module")
+def polled(service: Any) -> tuple[list[dict[str, Any]], dict[str, Any], Any]:
+    """A grouping job of scans uploaded as PNGs, every state of it polled over HTTP, its
+    groups document, and the service."""
     files = [("files", (f"p{k}.png", b, "image/png")) for k, b in enumerate(_scans(11))]
     with service.client() as client:
         cid = create_collection(client, "grouping progress")
@@ -132,8 +153,19 @@ def test_grouping_progress_over_http(service: Any) -> None:
         assert job.status_code == 202, job.text
         states = _poll(client, job.json()["id"])
         doc = client.get(f"/v1/jobs/{job.json()['id']}/groups").raise_for_status().json()
-    n = len(files)
     assert states[-1]["status"] == "succeeded", states[-1]
+    assert states[-1]["n_shapes"] == len(files)
+    return states, doc, service
+
+
+def test_grouping_progress_over_http(
+    polled: tuple[list[dict[str, Any]], dict[str, Any], Any],
+) -> None:
+    """The job's ``progress`` carries the worker's overall ``fraction`` (never going back, 1
+    at the end) and ``seconds_left`` once a few percent are done; ``regtree watch`` prints
+    the instances, the stage with its unit and an overall percentage reaching 100%."""
+    states, doc, _ = polled
+    n = states[-1]["n_shapes"]
     running = [s for s in states if s["status"] == "running" and s["progress"]["stage"]]
     assert running, states
     totals = {"fields": n, "alignment": 2 * n, "pairs": doc["pairs_computed"]}
@@ -161,3 +193,36 @@ def test_grouping_progress_over_http(service: Any) -> None:
         m = re.search(r" running (fields|alignment|pairs) \d+/\d+ (\w+) ", line)
         if m:
             assert m[2] == units[m[1]], line
+
+
+def test_the_results_page_shows_a_running_grouping_s_progress(
+    polled: tuple[list[dict[str, Any]], dict[str, Any], Any], tmp_path: Any,
+) -> None:
+    """The results page, in Chromium, given a running state the grouping job really had
+    (replayed for the job's URL): its bar at the overall fraction, the text with the
+    overall percentage and the time left, as ``regtree watch`` shows them."""
+    from urllib.parse import urlparse
+
+    from playwright.sync_api import expect
+
+    from tests.service.test_page_browser import open_browser
+
+    states, _, service = polled
+    job_id = int(states[0]["id"])
+    shown = max((s for s in states if s["status"] == "running"
+                 and s["progress"]["seconds_left"] is not None),
+                key=lambda s: s["progress"]["fraction"])  # fmt: skip
+    p = shown["progress"]
+    with open_browser(tmp_path) as browser:
+        page = browser.page
+        page.route(lambda url: urlparse(url).path == f"/v1/jobs/{job_id}",
+                   lambda route: route.fulfill(json=shown))
+        page.goto(f"{service.base_url}/ui#/jobs/{job_id}")
+        bar = page.locator("#ui-job-progressbar")
+        expect(bar).to_be_visible(timeout=60_000)
+        text = page.locator("#ui-job-progresstext")
+        expect(text).to_contain_text(f"{p['stage']} {p['done']}/{p['total']}")
+        expect(text).to_contain_text(f"overall {int(100 * p['fraction'])}%")
+        expect(text).to_contain_text("left")
+        assert bar.evaluate("b => b.value") == pytest.approx(p["fraction"])
+        assert browser.errors == []
