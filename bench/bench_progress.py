@@ -17,29 +17,39 @@ its time:
   one MPEG-7 class of ``../shared/data/mpeg7`` (20 shapes, resampled to 400 points, root
   ``<class>-1``, every orientation as section 0.2 ran them), classes whose trees stop with
   subjects waiting: where the ``leaves`` stages have work (skipped when the data is missing);
+- ``mpeg7-mixed`` (not in the default list): the first 5 shapes of each of the 8 MPEG-7
+  classes, 40 shapes at 400 points, root ``fish-1``: a tree that spends its bridging budget
+  and leaves the rest to ``leaves``;
 - ``mixed`` (not in the default list, no data needed): two generated families of unlike
   outlines in one collection (:func:`mixed_family`), whose other family's shapes wait for
   ``leaves``.
 
-``--grouping 50,100,200`` times a ``grouping`` job's stages instead (``group_instances``
-with a local process pool, the service's defaults): generated impressions of 40 procedural
-moulds x 5 (``bench_grouping.stroke_moulds``, each scan through the service's image
-ingestion), the first 10, 20 and 40 moulds; printed: each stage's seconds and share, the time
-before the first event and after the last one, and how each stage's time scales with the
-number of instances, fitted as ``stage / fields ~ n ** c`` (ratios within one run, so that
-the machine's load changes between runs do not enter; ``fields`` is one task per instance).
+``--grouping 50,100,200`` times a ``grouping`` job's stages instead (``group_instances``,
+the service's defaults): generated impressions of 40 procedural moulds x 5
+(``bench_grouping.stroke_moulds``, each scan through the service's image ingestion), the
+first 10, 20 and 40 moulds, each run twice: serially, timed by this process's CPU time
+(which other processes' load does not change), and with a local process pool (the service's
+executor), timed by the wall clock. Printed: each stage's seconds and share, the time
+before the first event and after the last one, the shares the CPU times give for a pool of
+``--processes``, and how each stage's CPU time scales with the number of instances, fitted
+as ``stage / fields ~ n ** c`` (``fields`` is one step per instance).
 
 A stage lasts from its first event to the next stage's first event (the last one to the
 method's return); the time before the first event goes to the first stage. Stages are
 grouped as ``service/progress.py`` weighs them: similarity (the first all-pairs stage),
-layers (``layer N`` and ``similarity layer N``), leaves (``similarity leaves``, ``leaves``),
-refine, polish, direct (``similarity direct``, ``direct``), full resolution and direct full
-resolution. Printed: seconds and share of each group, the shares of the groups without
-direct CPD (a job that does not compare), and the share ``service/progress.py`` gives each
-(:func:`service.progress.phase_weights`, from the largest shape's points).
+layers (``layer N`` and ``similarity layer N``), leaves (``similarity leaves``, ``leaves``;
+``service/progress.py`` counts them with the layers, and the line "layers + leaves" shows
+their sum as a share of the decisions, similarity to direct), refine, polish, direct
+(``similarity direct``, ``direct``), full resolution and direct full resolution. Printed:
+seconds and share of each group, the shares of the groups without direct CPD (a job that
+does not compare), and the share ``service/progress.py`` gives each
+(:func:`service.progress.phase_weights`, from the largest shape's points). ``--serial``
+times a tree set serially by CPU time; ``--similarity-threshold D`` gives the tree an
+explicit threshold (no bridging: a stalled tree leaves its waiting subjects to ``leaves``).
 
     .venv/bin/python bench/bench_progress.py [--sets demo,chains800,yong40] [--json PATH]
-    .venv/bin/python bench/bench_progress.py --sets mpeg7-horse,mpeg7-camel,mixed
+    .venv/bin/python bench/bench_progress.py --sets mpeg7-horse,mpeg7-camel,mixed \
+        [--similarity-threshold 0.015] [--serial]
     .venv/bin/python bench/bench_progress.py --sets none --grouping 50,100,200
 
 (``REGTREE_DATA=/path/to/shared/data`` when the data is not at ``../shared/data``.)
@@ -65,12 +75,13 @@ from registration import (
     resample,
 )
 from registration.synthetic import chained_family, deformation_chains
-from service.progress import phase_weights
+from service.progress import PHASE_WEIGHTS, phase_weights
 
 DATA = Path(os.environ.get("REGTREE_DATA",
                            Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 GLYPHS = DATA / "glyphs_yong"
 MPEG7 = DATA / "mpeg7"
+MPEG7_CLASSES = ["fish", "lmfish", "flatfish", "horse", "bird", "bat", "camel", "deer"]
 
 WORKING_POINTS = 400  # the default working resolution
 GROUPS = ["similarity", "layers", "leaves", "refine", "polish", "direct", "full resolution",
@@ -102,6 +113,13 @@ def load_set(name: str) -> tuple[list[np.ndarray], dict[str, Any]] | None:
             print(f"yong40: skipped, {GLYPHS} is missing")
             return None
         return [np.loadtxt(f).reshape(-1, 2) for f in files], {"max_rotation": 30.0}
+    if name == "mpeg7-mixed":
+        found = [f for cls in MPEG7_CLASSES for f in sorted(
+            (MPEG7 / cls).glob(f"{cls}-*.npy"), key=lambda p: int(p.stem.split("-")[-1]))[:5]]
+        if len(found) < 5 * len(MPEG7_CLASSES):
+            print(f"{name}: skipped, {MPEG7} is missing or incomplete")
+            return None
+        return [resample(np.load(f), WORKING_POINTS) for f in found], {}
     if name.startswith("mpeg7-"):
         cls = name.removeprefix("mpeg7-")
         found = sorted((MPEG7 / cls).glob(f"{cls}-*.npy"), key=lambda p: int(p.stem.split("-")[-1]))
@@ -283,6 +301,9 @@ def main() -> None:
     parser.add_argument("--grouping", default="",
                         help="instance counts of grouping runs, e.g. 50,100,200")
     parser.add_argument("--grouping-max-rotation", type=float, default=None)
+    parser.add_argument("--similarity-threshold", type=float, default=None,
+                        help="tree sets: an explicit D threshold (no bridging: a stalled "
+                        "tree leaves its waiting subjects to the leaves stage)")
     parser.add_argument("--serial", action="store_true",
                         help="tree sets: CPU time of a serial run instead of a pool's wall time")
     parser.add_argument("--processes", type=int, default=2,
@@ -301,6 +322,8 @@ def main() -> None:
         if loaded is None:
             continue
         shapes, options = loaded
+        if args.similarity_threshold is not None:
+            options = {**options, "similarity_threshold": args.similarity_threshold}
         m = measure(shapes, options, serial=args.serial)
         report[name] = m
         print(f"\n{name}: {m['subjects']} subjects, {m['points'][0]}-{m['points'][1]} points, "
@@ -318,8 +341,22 @@ def main() -> None:
                   f"{100 * model.get(g, 0.0):10.1f}%")
         print("  stages (s, last total): " + ", ".join(
             f"{s} {m['stage_seconds'][s]:.2f} s {t}" for s, t in m["stage_totals"].items()))
+        decisions = sum(m["seconds"][g] for g in GROUPS[:6])
+        print(f"  layers + leaves: {100 * (m['seconds']['layers'] + m['seconds']['leaves']) / decisions:.1f}% "  # noqa: E501
+              f"of the decisions (progress.py {100 * PHASE_WEIGHTS['layers'] / sum(PHASE_WEIGHTS[g] for g in GROUPS[:6] if g in PHASE_WEIGHTS):.1f}%)")  # noqa: E501
         print(f"  tree registrations per subject in the layers: "
               f"{m['layer_registrations'] / m['subjects']:.2f}")
+        leaf_regs = m["stage_totals"].get("leaves", 0)
+        if leaf_regs:
+            # the leaves' cost per registration against the layers', and their share of the
+            # decisions (similarity to direct) as PHASE_WEIGHTS counts it
+            per_leaf = m["seconds"]["leaves"] / leaf_regs
+            per_layer = m["seconds"]["layers"] / max(m["layer_registrations"], 1)
+            decisions = sum(m["seconds"][g] for g in GROUPS[:6])
+            print(f"  leaves: {leaf_regs} registrations for {m['leaves']} leaves, "
+                  f"{per_leaf:.3f} s each against {per_layer:.3f} s in the layers "
+                  f"({per_leaf / per_layer:.2f}x); {100 * m['seconds']['leaves'] / decisions:.1f}% "
+                  f"of the decisions")
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
 

@@ -367,7 +367,8 @@ class Progress(BaseModel):
         default=None, ge=0.0, le=1.0,
         description="Estimated share of the whole job done (0-1; it never goes back and "
         "reaches 1 when the job succeeds), from the stages run so far weighted by their "
-        "measured cost; null while no stage is known, and for grouping jobs.")
+        "measured cost (a registration's and a grouping's alike); null while no stage is "
+        "known.")
     seconds_left: float | None = Field(
         default=None, ge=0.0,
         description="Estimated seconds until the job ends, from the time it has run and "
