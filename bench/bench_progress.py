@@ -75,7 +75,7 @@ from registration import (
     resample,
 )
 from registration.synthetic import chained_family, deformation_chains
-from service.progress import PHASE_WEIGHTS, phase_weights
+from service.progress import PHASE_WEIGHTS, overall_fraction, phase_weights
 
 DATA = Path(os.environ.get("REGTREE_DATA",
                            Path(__file__).resolve().parents[1].parent / "shared" / "data"))
@@ -353,6 +353,20 @@ def main() -> None:
             per_leaf = m["seconds"]["leaves"] / leaf_regs
             per_layer = m["seconds"]["layers"] / max(m["layer_registrations"], 1)
             decisions = sum(m["seconds"][g] for g in GROUPS[:6])
+            # where service/progress.py places the leaves' start and end, against the share
+            # of the run's time elapsed then
+            totals = m["stage_totals"]
+            layer_regs = m["layer_registrations"]
+            at = [overall_fraction("dynamic_tree", st, d, max(leaf_regs, 1), compare_direct=True,
+                                   subjects=m["subjects"], before=layer_regs)
+                  for st, d in (("similarity leaves", 0), ("leaves", leaf_regs))]
+            whole = sum(m["seconds"].values())
+            true = [(m["seconds"]["similarity"] + m["seconds"]["layers"]) / whole,
+                    (m["seconds"]["similarity"] + m["seconds"]["layers"]
+                     + m["seconds"]["leaves"]) / whole]
+            print(f"  leaves start / end: {100 * true[0]:.1f}% / {100 * true[1]:.1f}% of the run's "
+                  f"time, progress.py {100 * (at[0] or 0):.1f}% / {100 * (at[1] or 0):.1f}% "
+                  f"({len([s for s in totals if s.startswith('layer ')])} layers)")
             print(f"  leaves: {leaf_regs} registrations for {m['leaves']} leaves, "
                   f"{per_leaf:.3f} s each against {per_layer:.3f} s in the layers "
                   f"({per_leaf / per_layer:.2f}x); {100 * m['seconds']['leaves'] / decisions:.1f}% "

@@ -42,9 +42,9 @@ if TYPE_CHECKING:
 #: decisions (similarity to direct) as shares of their sum, the mean over the demo
 #: collection, 20 generated shapes of 800 points and 40 永 edge glyphs. "layers" is the
 #: tree's growth, its leaves included (section 5.3): on MPEG-7 classes the leaves took 0%
-#: of the decisions (bridging had already run their registrations) to 44-56% (an explicit
+#: of the decisions (bridging had already run their registrations) to 42-59% (an explicit
 #: similarity threshold: the tree stalls at once), while layers and leaves together took
-#: 55-73% either way; so the leaves advance the layers' count of registrations
+#: 55-76% either way; so the leaves advance the layers' count of registrations
 #: (:data:`LEAF_REGISTRATION_COST`) and weigh what the guessed 0.03 of their own did. The
 #: stored-resolution phases relative to the same sum for shapes as large as the working
 #: resolution; they grow as ``(max_points / working_points) ** 1.5``
@@ -89,10 +89,10 @@ DEFAULT_FINE_RATIO = 4.0
 #: a static tree registers each subject once.
 TREE_REGISTRATIONS_PER_SUBJECT = 2.4
 #: A registration of the ``leaves`` stage counted as this many of the layers' (measured
-#: 0.47-0.86 of a layer registration's wall time within a run, mean 0.64, on four sets
+#: 0.39-0.95 of a layer registration's wall time within a run, mean 0.69, in seven runs
 #: where the leaves ran: they run as one batch, the last layers of a stalled tree one or
-#: two at a time; bench/RESULTS.md section 5.3).
-LEAF_REGISTRATION_COST = 0.65
+#: two at a time, each with its ``similarity layer N``; bench/RESULTS.md section 5.3).
+LEAF_REGISTRATION_COST = 0.7
 #: Within a phase of two stages, the share of its first (the similarity of its pairs).
 SIMILARITY_PART = 0.25
 #: Before this much is done, the time left is not estimated.

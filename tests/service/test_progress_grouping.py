@@ -7,10 +7,8 @@ from __future__ import annotations
 
 import io
 import re
-import time
 from typing import Any
 
-import httpx
 import numpy as np
 import pytest
 
@@ -30,6 +28,7 @@ from service.progress import (
 )
 from tests.service.conftest import create_collection
 from tests.service.test_grouping_api import MOULDS, png
+from tests.service.test_progress_real import _poll
 
 #: Impressions per mould: 2 moulds x 4 = 8 instances.
 PRINTS = 4
@@ -119,24 +118,6 @@ def _status(status: str, stage: str, done: int, total: int, n: int) -> JobStatus
 
 
 # --- over HTTP ------------------------------------------------------------------------------
-
-
-def _poll(client: httpx.Client, job_id: int, timeout: float = 180) -> list[dict[str, Any]]:
-    """Every distinct state of a job from submission to its end, as fast as it changes."""
-    states: list[dict[str, Any]] = []
-    keys: list[tuple[Any, ...]] = []  # seconds_left changes with the clock alone
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        state = client.get(f"/v1/jobs/{job_id}").raise_for_status().json()
-        p = state["progress"]
-        key = (state["status"], p["stage"], p["done"], p["total"], p["fraction"])
-        if not keys or key != keys[-1]:
-            states.append(state)
-            keys.append(key)
-        if state["status"] in ("succeeded", "failed", "cancelled"):
-            return states
-        time.sleep(0.01)
-    raise AssertionError(f"job {job_id} did not end: {states[-1:]}")
 
 
 @pytest.fixture(scope="module")
