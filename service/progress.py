@@ -38,8 +38,8 @@ from service.contract.names import GROUPING_METHOD
 if TYPE_CHECKING:
     from service.client import JobStatus
 
-#: Time per phase, measured (bench/bench_progress.py; bench/RESULTS.md section 5.2). The
-#: decisions (similarity to direct) as shares of their sum, the mean over the demo
+#: Time per phase, measured (bench/bench_progress.py; bench/RESULTS.md sections 5.2, 5.4).
+#: The decisions (similarity to direct) as shares of their sum, the mean over the demo
 #: collection, 20 generated shapes of 800 points and 40 永 edge glyphs. "layers" is the
 #: tree's growth, its leaves included (section 5.3): on MPEG-7 classes the leaves took 0%
 #: of the decisions (bridging had already run their registrations) to 42-59% (an explicit
@@ -51,13 +51,13 @@ if TYPE_CHECKING:
 #: (:data:`FINE_EXPONENT`, :func:`phase_weights`): a CPD at the stored resolution costs
 #: between the points and their product, the decisions run at the working resolution.
 PHASE_WEIGHTS = {
-    "similarity": 0.19,
-    "layers": 0.50,
-    "refine": 0.06,
-    "polish": 0.09,
-    "direct": 0.19,
-    "full resolution": 0.07,
-    "direct full resolution": 0.048,
+    "similarity": 0.15,
+    "layers": 0.41,
+    "refine": 0.05,
+    "polish": 0.22,
+    "direct": 0.17,
+    "full resolution": 0.06,
+    "direct full resolution": 0.038,
 }
 #: A grouping job's phases, as shares of its run: the mean wall-clock shares of nine runs
 #: with the service's process pool, 50, 100 and 200 generated impressions three times each
@@ -77,9 +77,10 @@ ROTATION_START_COST = 3 / 16
 #: How the stored-resolution weights grow with ``max_points / working_points``: measured
 #: 1.65 (tree) and 1.3 (direct) between ratios 2 and 5.6 with one warm-started CPD per
 #: subject and its near-linear E-step (bench/RESULTS.md section 5.2; 2.2 and 1.8 when the
-#: stage ran two CPDs for a polished subject and a quadratic fold check). The tree's weight,
-#: measured 0.05, is taken 1.4x for the one more CPD a polished subject with children now
-#: gets (30 of 72 subjects on the 73 永 glyphs; not measured again).
+#: stage ran two CPDs for a polished subject and a quadratic fold check). Measured again
+#: with the polish from layer 2 and the box-wise E-step (section 5.4, serial CPU): tree
+#: 0.054 / 0.061 and direct 0.039 / 0.037 of the decisions at ratios 2 / 5.6, growth
+#: n^1.6; the weights are their means.
 FINE_EXPONENT = 1.5
 #: The ratio assumed for a job queued before ``max_points`` was recorded.
 DEFAULT_FINE_RATIO = 4.0
