@@ -1,5 +1,6 @@
-"""A final polish of each chained registration: CPD from the root model as warped along
-the chain onto the subject, coarse to fine, so the slide the chain accumulated can relax.
+"""A final polish of each of the tree's registrations: CPD from the root model as warped
+along the subject's chain (at layer 2: its one edge) onto the subject, coarse to fine, so
+the slide the chain accumulated can relax and a single edge's CPD can finish fitting.
 
 Each edge of a tree path registers the root model, as already warped onto the parent,
 onto the child; the error of one link (0.035-0.04 of the subject's size on the 永
