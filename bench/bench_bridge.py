@@ -34,6 +34,7 @@ import numpy as np
 import registration._tree._rules as rules
 from registration import LocalProcessExecutor, build_dynamic_tree
 from registration._executor import Executor
+from registration._pose import PoseSpec
 from registration._tree._collection import _Collection, _TreeStart
 from registration._tree._resolution import DEFAULT_WORKING_POINTS, coarse_collection
 
@@ -53,7 +54,7 @@ def before() -> Iterator[None]:
 
 def rule_figures(shapes: Sequence[np.ndarray], ex: Executor) -> dict[str, object]:
     coll = coarse_collection(_Collection.prepare(shapes, 0, None), DEFAULT_WORKING_POINTS)
-    start = _TreeStart.prepare(coll, None, None, None, None, None, ex, None)
+    start = _TreeStart.prepare(coll, None, None, PoseSpec.resolve(None, None), ex, None)
     new = start.rule
     with before():
         old = rules._SimilarityRule.build(start.sim, None, 0)

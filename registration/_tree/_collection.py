@@ -10,7 +10,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._candidates import candidate_pairs
-from .._cpd import CPDOptions
 from .._executor import Executor
 from .._points import Normalization, mean_spacing2, normalise
 from .._pose import PoseSpec
@@ -156,12 +155,10 @@ def _ensure_frontier(
 
 @dataclass
 class _TreeStart:
-    """What both tree methods start from: the CPD options and pose rule, the prepared
-    collection, the similarity store with the pairs it may hold, the similarity rule, the
-    root's node and a blank result for every subject."""
-
-    cpd: CPDOptions
-    pose: PoseSpec
+    """What both tree methods start from: the prepared collection, the similarity store
+    with the pairs it may hold, the similarity rule, the root's node and a blank result
+    for every subject (the CPD options and the pose rule are the caller's: see
+    ``_Run`` in ``_methods``)."""
 
     coll: _Collection
     sim: Similarity
@@ -185,16 +182,13 @@ class _TreeStart:
         coll: _Collection,
         similarity_threshold: float | None,
         candidates: int | None,
-        cpd: CPDOptions | None,
-        pose: str | None,
-        max_rotation: float | None,
+        pose: PoseSpec,
         executor: Executor | None,
         progress: ProgressCallback | None,
     ) -> _TreeStart:
         root = coll.root
-        spec = PoseSpec.resolve(pose, max_rotation)
         sim, allowed = _prepare_similarity(
-            coll, similarity_threshold, candidates, executor, progress, spec
+            coll, similarity_threshold, candidates, executor, progress, pose
         )
         subjects = [k for k in range(coll.n) if k != root]
         sources: dict[int, list[int]] | None = None
@@ -203,8 +197,7 @@ class _TreeStart:
             for m, s in sorted(allowed):
                 sources.setdefault(s, []).append(m)
         return cls(
-            cpd=cpd if cpd is not None else CPDOptions(), pose=spec, sources=sources,
-            coll=coll, sim=sim, allowed=allowed,
+            sources=sources, coll=coll, sim=sim, allowed=allowed,
             rule=_SimilarityRule.build(sim, similarity_threshold, root), subjects=subjects,
             nodes={root: coll.root_node()},
             results={s: SubjectResult(index=s, name=coll.names[s]) for s in subjects},

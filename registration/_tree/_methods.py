@@ -416,9 +416,8 @@ class _Run:
                    candidates: int | None) -> _TreeStart:
         """What a tree method starts from (ValueError on an invalid threshold)."""
         _check_threshold("similarity_threshold", similarity_threshold)
-        return _TreeStart.prepare(self.coll, similarity_threshold, candidates, self.cpd,
-                                  self.pose.mode, self.pose.max_rotation, self.executor,
-                                  self.progress)
+        return _TreeStart.prepare(self.coll, similarity_threshold, candidates, self.pose,
+                                  self.executor, self.progress)
 
     def task(self, sim: Similarity, member: int, subject: int, layer: int,
              q: np.ndarray) -> _RegTask:

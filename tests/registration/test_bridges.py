@@ -12,6 +12,7 @@ from scipy.sparse.csgraph import breadth_first_order
 
 import registration._tree._rules as rules
 from registration import CPDOptions, SerialExecutor, build_dynamic_tree, build_static_tree
+from registration._pose import PoseSpec
 from registration._tree._collection import _Collection, _TreeStart
 from registration.synthetic import chained_family
 
@@ -58,7 +59,8 @@ def _reached(start: _TreeStart) -> set[int]:
 
 def _start(shapes):
     coll = _Collection.prepare(shapes, 0, None)
-    return _TreeStart.prepare(coll, None, None, FAST_CPD, None, None, SerialExecutor(), None)
+    return _TreeStart.prepare(coll, None, None, PoseSpec.resolve(None, None), SerialExecutor(),
+                              None)
 
 
 def test_tight_groups_are_bridged_and_attached_in_the_tree():
@@ -117,7 +119,8 @@ def test_a_connected_family_gets_exactly_the_result_it_had(monkeypatch):
 def test_an_explicit_threshold_is_never_bridged():
     shapes = clustered(groups=3, copies=5, n_points=30, seed=1)
     coll = _Collection.prepare(shapes, 0, None)
-    start = _TreeStart.prepare(coll, 1e-6, None, FAST_CPD, None, None, SerialExecutor(), None)
+    start = _TreeStart.prepare(coll, 1e-6, None, PoseSpec.resolve(None, None), SerialExecutor(),
+                               None)
     assert start.rule.bridged == {}
     assert "bridged" not in rules._similarity_report(start.rule)
 
