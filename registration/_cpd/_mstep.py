@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
+import scipy.linalg.lapack
 
 from ._estep import _EStepOut
 from ._fgt import pivoted_cholesky
@@ -12,6 +12,8 @@ from ._field import FloatArray
 #: Automatic low-rank: the pivoted Cholesky factor stops once the trace of ``G - L L^T``
 #: (a bound on its spectral norm) is at most this fraction of ``trace(G) = M``.
 LOW_RANK_TRACE_TOL = 1e-12
+_POTRF = scipy.linalg.lapack.dpotrf
+_POTRS = scipy.linalg.lapack.dpotrs
 
 
 def _low_rank_factor(y: FloatArray, beta: float, num_eig: int | None
@@ -53,20 +55,35 @@ def _mstep_dense(g: FloatArray, y: FloatArray, est: _EStepOut, reg: float) -> Fl
 def _spd_solve(a: FloatArray, b: FloatArray) -> FloatArray:
     """Cholesky solve of an SPD system; if rounding made it indefinite (a kernel that is
     numerically rank-deficient next to a vanishing ``lambda sigma^2``, e.g. ``beta`` far
-    larger than the data), add a ridge of ``1e-12 * max(diag)`` and retry."""
-    try:
-        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(a, check_finite=False), b,
-                                      check_finite=False)
-    except np.linalg.LinAlgError:
-        ridge = 1e-12 * float(np.max(np.abs(np.diag(a)))) + np.finfo(np.float64).tiny
-        a = a.copy()
-        a.flat[:: len(a) + 1] += ridge
-        try:
-            return scipy.linalg.cho_solve(scipy.linalg.cho_factor(a, check_finite=False), b,
-                                          check_finite=False)
-        except np.linalg.LinAlgError:
-            out: FloatArray = np.asarray(np.linalg.lstsq(a, b, rcond=None)[0], dtype=np.float64)
-            return out
+    larger than the data), add a ridge of ``1e-12 * max(diag)`` and retry.
+
+    LAPACK's ``potrf``/``potrs`` are called directly: the same routines as
+    ``scipy.linalg.cho_factor``/``cho_solve`` (the same result, bit for bit), without their
+    argument checks, which cost as much as the solve itself on the k x k systems of the
+    low-rank M-step (about 0.4 of 0.8 ms per iteration at 400 points).
+    """
+    x = _cholesky_solve(a, b)
+    if x is not None:
+        return x
+    ridge = 1e-12 * float(np.max(np.abs(np.diag(a)))) + np.finfo(np.float64).tiny
+    a = a.copy()
+    a.flat[:: len(a) + 1] += ridge
+    x = _cholesky_solve(a, b)
+    if x is not None:
+        return x
+    out: FloatArray = np.asarray(np.linalg.lstsq(a, b, rcond=None)[0], dtype=np.float64)
+    return out
+
+
+def _cholesky_solve(a: FloatArray, b: FloatArray) -> FloatArray | None:
+    """``a^-1 b`` by Cholesky, or None when ``a`` is not numerically positive definite."""
+    c, info = _POTRF(a, lower=False, clean=False, overwrite_a=False)
+    if info != 0:
+        return None
+    x, info = _POTRS(c, b, lower=False, overwrite_b=False)
+    if info != 0:
+        return None
+    return np.asarray(x, dtype=np.float64)
 
 
 def _mstep_low_rank(q: FloatArray, lam: FloatArray, y: FloatArray, est: _EStepOut,
