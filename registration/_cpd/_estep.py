@@ -56,6 +56,13 @@ TRUNCATION_SKIN = 1.15
 #: ... and pruned (or rebuilt) when its radius exceeds this multiple of the current one.
 TRUNCATION_SHRINK = 1.8
 _DEN_FLOOR = 1e-300
+#: An E-step method chosen by its estimated cost is reused while sigma^2 stays within this
+#: factor of the sigma^2 it was chosen at. The estimates (a k-d tree count around 64
+#: centroids, the grids' box occupancy) cost about 1 ms per iteration whatever the size:
+#: as much as the whole dense E-step at 400 points. The costs change smoothly with sigma,
+#: so a choice made within this factor is at worst slightly off near a crossover; every
+#: method is exact to its stated tolerance, so only the time can differ.
+ENGINE_REUSE_FACTOR = 1.25
 #: The final correspondence pass is dense up to this many (model, subject) pairs.
 POSTERIOR_DENSE_MAX_PAIRS = 1 << 21
 
@@ -98,6 +105,8 @@ class _EStep:
         self._counts: NDArray[np.intp] = np.zeros(m, dtype=np.intp)
         self._t_build: FloatArray | None = None
         self._r_build = 0.0
+        # the method the estimated costs last chose, and the sigma^2 it was chosen at
+        self.choice: tuple[float, str] | None = None
 
     @property
     def tree_x(self) -> cKDTree:
@@ -416,7 +425,39 @@ def run_estep(estep: _EStep, t: FloatArray, sigma2: float, truncate: bool | None
     """One E-step by the cheapest method allowed: truncated (``truncate``), grid
     (``gauss_grid``: the whole-box grid or the box-wise one) or dense; ``None`` lets the
     estimated cost decide, ``True`` forces a method where it applies (truncation first),
-    ``False`` rules it out."""
+    ``False`` rules it out.
+
+    With both left to the estimate, a choice is reused while ``sigma2`` stays within
+    :data:`ENGINE_REUSE_FACTOR` of the variance it was made at (see there)."""
+    auto = truncate is None and gauss_grid is None
+    if auto and estep.choice is not None:
+        s2_at, engine = estep.choice
+        if s2_at / ENGINE_REUSE_FACTOR <= sigma2 <= s2_at * ENGINE_REUSE_FACTOR:
+            out = _run_engine(estep, engine, t, sigma2)
+            if out is not None:
+                return out
+    engine, out = _choose_estep(estep, t, sigma2, truncate, gauss_grid, sample)
+    if auto:
+        estep.choice = (sigma2, engine)
+    return out
+
+
+def _run_engine(estep: _EStep, engine: str, t: FloatArray, sigma2: float
+                ) -> _EStepOut | None:
+    if engine == "truncated":
+        return estep.truncated(t, sigma2, estep.radius(t, sigma2))
+    if engine == "box":
+        return estep.boxgrid(t, sigma2)
+    if engine == "grid":
+        return estep.grid(t, sigma2)
+    return estep.dense(t, sigma2)
+
+
+def _choose_estep(estep: _EStep, t: FloatArray, sigma2: float, truncate: bool | None,
+                  gauss_grid: bool | None, sample: NDArray[np.intp]
+                  ) -> tuple[str, _EStepOut]:
+    """The E-step by the method the estimated costs (and the caller's rule) pick, and its
+    name."""
     m, n = estep.m, estep.n
     dense_cost = m * n * (DENSE_PAIR_COST_F32 if estep.dtype == np.float32 else 1.0)
     grid_cost = estep.grid_cost(t, sigma2) if gauss_grid is not False else None
@@ -438,12 +479,12 @@ def run_estep(estep: _EStep, t: FloatArray, sigma2: float, truncate: bool | None
         if use:
             out = estep.truncated(t, sigma2, r)
             if out is not None:
-                return out
+                return "truncated", out
     if not box_checked:
         box_cost = estep.box_cost(t, sigma2, math.inf if gauss_grid else best)
     if box_cost is not None and (gauss_grid or box_cost < dense_cost) and (
             grid_cost is None or box_cost < grid_cost):
-        return estep.boxgrid(t, sigma2)
+        return "box", estep.boxgrid(t, sigma2)
     if grid_cost is not None and (gauss_grid or grid_cost < dense_cost):
-        return estep.grid(t, sigma2)
-    return estep.dense(t, sigma2)
+        return "grid", estep.grid(t, sigma2)
+    return "dense", estep.dense(t, sigma2)

@@ -146,6 +146,39 @@ def test_truncated_estep_matches_dense(dtype: str, rel: float,
     close(got, dense_sums(moved, x, s2 / 4, 0.1), rel)
 
 
+def test_estimated_choice_is_reused_while_sigma_stays_close(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A method chosen by the estimated costs runs again without new estimates while
+    sigma^2 stays within ENGINE_REUSE_FACTOR of where it was chosen, and is chosen afresh
+    beyond; either way the sums are the dense ones within the method's tolerance."""
+    x, t = curve(500, 5), curve(450, 6, wobble=0.05)
+    est = _EStep(x, len(t), 0.1, "float64")
+    sample = np.unique(np.linspace(0, len(t) - 1, 64).astype(np.intp))
+    s2 = 0.02**2
+    close(_estep.run_estep(est, t, s2, None, None, sample), dense_sums(t, x, s2, 0.1), 1e-8)
+    assert est.choice is not None and est.choice[0] == s2
+    chosen = est.choice
+
+    def no_estimate(*args: object) -> float:
+        raise AssertionError("estimated again within the reuse factor")
+
+    monkeypatch.setattr(_EStep, "density", no_estimate)
+    monkeypatch.setattr(_EStep, "grid_cost", no_estimate)
+    monkeypatch.setattr(_EStep, "box_cost", no_estimate)
+    near = s2 * 0.9
+    assert near >= s2 / _estep.ENGINE_REUSE_FACTOR
+    close(_estep.run_estep(est, t, near, None, None, sample), dense_sums(t, x, near, 0.1), 1e-8)
+    assert est.choice == chosen
+    monkeypatch.undo()
+    far = s2 * 4 * _estep.ENGINE_REUSE_FACTOR
+    close(_estep.run_estep(est, t, far, None, None, sample), dense_sums(t, x, far, 0.1), 1e-8)
+    assert est.choice is not None and est.choice[0] == far
+    # a method forced by the caller neither reuses nor records a choice
+    forced = _EStep(x, len(t), 0.1, "float64")
+    _estep.run_estep(forced, t, s2, False, False, sample)
+    assert forced.choice is None
+
+
 @pytest.mark.parametrize("beta", [2.0, 0.5])
 def test_pivoted_cholesky_and_eigen_form(beta: float) -> None:
     y = curve(300, 7)
