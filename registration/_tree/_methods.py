@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, Unpack
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -20,10 +20,10 @@ from ._collection import (
     _subject_from_outcome,
     _TreeStart,
 )
+from ._options import MethodOptions, TreeOptions, takes_options
 from ._passes import _attach_leaves, _refine_parents
 from ._polish import POLISH_MIN_LAYER, _polish_subjects
 from ._resolution import (
-    DEFAULT_WORKING_POINTS,
     at_stored_resolution,
     check_working_points,
     coarse_collection,
@@ -51,72 +51,26 @@ from ._tasks import (
 )
 
 
+@takes_options(TreeOptions)
 @_owns_executor
 def build_dynamic_tree(
     shapes: Sequence[ArrayLike],
     root: int = 0,
     *,
-    similarity_threshold: float | None = None,
-    error_threshold: float | None = None,
-    cpd: CPDOptions | None = None,
     max_candidates: int = 3,
-    candidates: int | None = None,
-    prealign: bool = True,
-    pose: str | None = None,
-    max_rotation: float | None = None,
     fold_check: bool = True,
     refine: bool = True,
     polish: bool = True,
-    compare_direct: bool = False,
-    names: Sequence[str] | None = None,
-    working_points: int | None = DEFAULT_WORKING_POINTS,
-    executor: Executor | None = None,
-    progress: ProgressCallback | None = None,
+    **options: Unpack[TreeOptions],
 ) -> CollectionResult:
     """Register the root model to every shape through a dynamic tree (Du et al. 2016).
 
     Parameters
     ----------
-    shapes : sequence of array_like, shape (n_i, 2)
-        The collection, in the user's coordinates; each shape is size-normalised first.
-    root : int
-        Index of the model shape.
-    similarity_threshold : float, optional
-        A subject is similar to a member when ``D[member, subject]`` (eq. 9, normalised
-        shapes) is at most this. Default: automatic, per pair: the largest of CPD's
-        measured capture range (D = 0.01), the D from the subject's 4th nearest shape and
-        the D to the member's 4th nearest shape (see `_SimilarityRule`); a subject no
-        path of such pairs reaches from the root (a collection of tight groups, e.g.
-        several impressions of each design) takes instead its bottleneck D from the
-        root, so the nearest pairs between groups count as similar
-        (``thresholds["bridged"]``: how many subjects).
-    error_threshold : float, optional
-        A registration is accepted when e (eq. 10, normalised shapes) is below this.
-        Default: automatic, ``3 x`` the lower quartile of the second layer's e, and never
-        below half the subject's squared point spacing.
-    cpd : CPDOptions, optional
     max_candidates : int
         When several members are similar to a waiting subject, the `max_candidates`
         most similar (smallest D) members not yet tried for it are tried in one layer
         and the accepted registration with the smallest e is kept.
-    candidates : int, optional
-        Only pairs joining each shape to its `candidates` nearest by a cheap descriptor
-        are considered (and the root to every subject). Default: all pairs for up to 64
-        shapes, 12 nearest beyond.
-    prealign : bool
-        Pose handling: CPD from the pose as given, and also from the similarity's
-        affine-ICP map when that is another pose that fits clearly better (see `pose`).
-        False: CPD from the pose as given only (the paper's plain CPD).
-    pose : {"rotation", "as_given", "upright", "affine"}, optional
-        Which poses may be tried (see :mod:`registration._pose`): any rotation (default),
-        the shapes as given only, rotations within +-`max_rotation` of them, or any affine
-        map including reflections (the paper's ``det(A) != 0``). Outside "affine" the
-        affine ICP never mirrors. The pose as given is always registered; another pose is
-        tried when its D is below 0.6 of the pose as given's and replaces it only when
-        CPD from it reaches less than half the pose as given's e.
-    max_rotation : float, optional
-        Half-width in degrees of the "upright" mode (default 30); given alone, it
-        selects that mode (glyph scans, aligned outlines).
     fold_check : bool
         Also reject registrations whose displacement field folds the model (Jacobian
         determinant <= 0 at a model point): e can be small while correspondences are wrong.
@@ -135,21 +89,6 @@ def build_dynamic_tree(
         CPD per subject. On the ground-truth chains of bench/bench_groundtruth.py it
         lowered the correspondence error on every family (bench/RESULTS.md, 0.00, 0.000
         and 0.0000); False: the tree as built.
-    compare_direct : bool
-        Also run direct CPD from the root on every subject, for comparison.
-    working_points : int or None
-        Decide the tree at this many points per shape, then register each of its edges
-        once at the stored resolution, warm-started from the decision's registration
-        (see :mod:`registration._tree._resolution`). Shapes with at most this many points
-        are used as they are; None or 0 decides at the stored resolution. The result's
-        warped points, correspondences, transforms and e are at the stored resolution; its
-        attempts, thresholds, similarity, confidence and quality checks are the working
-        resolution's (the confidence is calibrated on shapes of a few hundred points).
-    names : sequence of str, optional
-    executor : Executor, optional
-        Where ICP and CPD run; default: serial for small jobs, else a local process pool.
-    progress : callable(stage, done, total), optional
-        Called as work completes; an exception it raises stops the run and propagates.
 
     Returns
     -------
@@ -160,13 +99,14 @@ def build_dynamic_tree(
     ValueError
         On invalid shapes, root, names or thresholds.
     """
+    error_threshold = options["error_threshold"]
     _check_threshold("error_threshold", error_threshold)
     if max_candidates < 1:
         raise ValueError(f"max_candidates must be at least 1; got {max_candidates}")
-    run = _Run.prepare(shapes, root, names, working_points, cpd, prealign, pose, max_rotation,
-                       executor, progress)
-    start = run.tree_start(similarity_threshold, candidates)
-    cpd, spec = run.cpd, run.pose
+    run = _Run.prepare(shapes, root, options)
+    start = run.tree_start(options)
+    cpd, prealign, spec, executor, progress = (run.cpd, run.prealign, run.pose, run.executor,
+                                               run.progress)
     coll, sim, allowed, sim_rule = start.coll, start.sim, start.allowed, start.rule
     subjects_idx, nodes, results = start.subjects, start.nodes, start.results
     tau_err = error_threshold
@@ -250,7 +190,7 @@ def build_dynamic_tree(
         _polish_subjects(coll, results, cpd, executor, progress)
     return run.finish(
         "dynamic_tree", [results[s] for s in subjects_idx], sim, sim_rule,
-        compare_direct=compare_direct,
+        compare_direct=options["compare_direct"],
         thresholds={
             "error": tau_err,
             "error_rule": "explicit" if error_threshold is not None
@@ -263,23 +203,15 @@ def build_dynamic_tree(
     )
 
 
+@takes_options(TreeOptions, ignored={
+    "error_threshold": "Ignored (the static tree rejects nothing); accepted for a uniform "
+                       "interface.",
+})
 @_owns_executor
 def build_static_tree(
     shapes: Sequence[ArrayLike],
     root: int = 0,
-    *,
-    similarity_threshold: float | None = None,
-    error_threshold: float | None = None,
-    cpd: CPDOptions | None = None,
-    candidates: int | None = None,
-    prealign: bool = True,
-    pose: str | None = None,
-    max_rotation: float | None = None,
-    compare_direct: bool = False,
-    names: Sequence[str] | None = None,
-    working_points: int | None = DEFAULT_WORKING_POINTS,
-    executor: Executor | None = None,
-    progress: ProgressCallback | None = None,
+    **options: Unpack[TreeOptions],
 ) -> CollectionResult:
     """The static (heuristic) tree of Du et al. 2015: built once, no rejection.
 
@@ -291,14 +223,6 @@ def build_static_tree(
     similarity graph does not reach from the root are reported unattached (with the
     automatic rule, only those without any computed path from the root).
 
-    Parameters
-    ----------
-    shapes, root, similarity_threshold, candidates, cpd, prealign, pose, max_rotation, names,
-    compare_direct, working_points, executor, progress
-        As for :func:`build_dynamic_tree`.
-    error_threshold : float, optional
-        Ignored (the static tree rejects nothing); accepted for a uniform interface.
-
     Returns
     -------
     CollectionResult
@@ -309,10 +233,9 @@ def build_static_tree(
     ValueError
         On invalid shapes, root, names or thresholds.
     """
-    del error_threshold
-    run = _Run.prepare(shapes, root, names, working_points, cpd, prealign, pose, max_rotation,
-                       executor, progress)
-    start = run.tree_start(similarity_threshold, candidates)
+    run = _Run.prepare(shapes, root, options)
+    start = run.tree_start(options)
+    executor, progress = run.executor, run.progress
     coll, sim, sim_rule, nodes, results = (start.coll, start.sim, start.rule, start.nodes,
                                            start.results)
     # 1. the tree, from the similarity alone
@@ -343,7 +266,7 @@ def build_static_tree(
         results[s].reason = "not reached: no similar shape on a path from the root"
     return run.finish(
         "static_tree", [results[s] for s in start.subjects], sim, sim_rule,
-        compare_direct=compare_direct,
+        compare_direct=options["compare_direct"],
         thresholds={"error": None, "error_rule": "none: the static tree does not reject"},
     )
 
@@ -391,33 +314,24 @@ class _Run:
     progress: ProgressCallback | None
 
     @classmethod
-    def prepare(
-        cls,
-        shapes: Sequence[ArrayLike],
-        root: int,
-        names: Sequence[str] | None,
-        working_points: int | None,
-        cpd: CPDOptions | None,
-        prealign: bool,
-        pose: str | None,
-        max_rotation: float | None,
-        executor: Executor | None,
-        progress: ProgressCallback | None,
-    ) -> _Run:
-        """Check the arguments (ValueError) and prepare the collection."""
-        working_points = check_working_points(working_points)
-        full = _Collection.prepare(shapes, root, names)
-        spec = PoseSpec.resolve(pose, max_rotation)
+    def prepare(cls, shapes: Sequence[ArrayLike], root: int, options: MethodOptions) -> _Run:
+        """Check the arguments (ValueError) and prepare the collection; `options` holds
+        every option (:func:`takes_options` gives the defaults)."""
+        working_points = check_working_points(options["working_points"])
+        full = _Collection.prepare(shapes, root, options["names"])
+        spec = PoseSpec.resolve(options["pose"], options["max_rotation"])
+        cpd = options["cpd"]
         return cls(full=full, coll=coarse_collection(full, working_points),
                    working_points=working_points, cpd=cpd if cpd is not None else CPDOptions(),
-                   prealign=prealign, pose=spec, executor=executor, progress=progress)
+                   prealign=options["prealign"], pose=spec, executor=options["executor"],
+                   progress=options["progress"])
 
-    def tree_start(self, similarity_threshold: float | None,
-                   candidates: int | None) -> _TreeStart:
+    def tree_start(self, options: TreeOptions) -> _TreeStart:
         """What a tree method starts from (ValueError on an invalid threshold)."""
-        _check_threshold("similarity_threshold", similarity_threshold)
-        return _TreeStart.prepare(self.coll, similarity_threshold, candidates, self.pose,
-                                  self.executor, self.progress)
+        _check_threshold("similarity_threshold", options["similarity_threshold"])
+        return _TreeStart.prepare(self.coll, options["similarity_threshold"],
+                                  options["candidates"], self.pose, self.executor,
+                                  self.progress)
 
     def task(self, sim: Similarity, member: int, subject: int, layer: int,
              q: np.ndarray) -> _RegTask:
@@ -470,22 +384,15 @@ class _Run:
                                     self.working_points, self.executor, self.progress)
 
 
+@takes_options(MethodOptions, ignored=dict.fromkeys(
+    ("similarity_threshold", "error_threshold", "compare_direct"),
+    "Ignored; accepted so that the three methods take the same arguments.",
+))
 @_owns_executor
 def register_direct(
     shapes: Sequence[ArrayLike],
     root: int = 0,
-    *,
-    similarity_threshold: float | None = None,
-    error_threshold: float | None = None,
-    cpd: CPDOptions | None = None,
-    prealign: bool = True,
-    pose: str | None = None,
-    max_rotation: float | None = None,
-    compare_direct: bool = False,
-    names: Sequence[str] | None = None,
-    working_points: int | None = DEFAULT_WORKING_POINTS,
-    executor: Executor | None = None,
-    progress: ProgressCallback | None = None,
+    **options: Unpack[MethodOptions],
 ) -> CollectionResult:
     """Direct CPD from the root model to every subject (the paper's baseline).
 
@@ -493,15 +400,6 @@ def register_direct(
     from the pose as given, and from a clearly better other pose when ICP finds one); the
     paper's plain CPD is ``prealign=False``: no pose search of any kind.
     Every subject is at layer 2 with the root as parent.
-
-    Parameters
-    ----------
-    shapes, root, cpd, pose, max_rotation, names, working_points, executor, progress
-        As for :func:`build_dynamic_tree`.
-    similarity_threshold, error_threshold, compare_direct
-        Ignored; accepted so that the three methods take the same arguments.
-    prealign : bool
-        Pose handling as in :func:`build_dynamic_tree`; False for plain CPD.
 
     Returns
     -------
@@ -513,9 +411,7 @@ def register_direct(
     ValueError
         On invalid shapes, root or names.
     """
-    del similarity_threshold, error_threshold, compare_direct
-    run = _Run.prepare(shapes, root, names, working_points, cpd, prealign, pose, max_rotation,
-                       executor, progress)
+    run = _Run.prepare(shapes, root, options)
     sim = Similarity.empty(run.coll.normed, pose=run.pose)
     subjects = run.direct(sim)
     assert subjects is not None

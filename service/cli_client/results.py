@@ -16,7 +16,7 @@ from service.contract.names import (
 )
 
 if TYPE_CHECKING:
-    from service.client import JobStatus, RegtreeClient
+    from service.client import JobStatus, RegtreeClient, SubjectQuery
 
 from service.cli_client._common import (
     CLIError,
@@ -74,9 +74,9 @@ def subjects_table(doc: Mapping[str, Any], subjects: Sequence[Mapping[str, Any]]
     return lines
 
 
-def _subject_query(args: argparse.Namespace) -> dict[str, Any]:
+def _subject_query(args: argparse.Namespace) -> SubjectQuery:
     """The options of ``regtree results`` that the service's result query takes."""
-    query: dict[str, Any] = {}
+    query: SubjectQuery = {}
     if args.sort is not None:
         query["sort"] = args.sort
     if args.min_confidence is not None:

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 from service.client._grouping import Grouping, GroupPicture
 from service.client._http import HttpClient
-from service.client._jobs import JobsAndResults, Pose
+from service.client._jobs import JobsAndResults, Pose, ResultQuery, SubjectQuery
 from service.client._shapes import CollectionsAndShapes
 from service.client.errors import (
     Conflict,
@@ -78,10 +78,12 @@ __all__ = [
     "RegtreeConnectionError",
     "RegtreeError",
     "RegtreeTimeout",
+    "ResultQuery",
     "ServerError",
     "Shape",
     "Similarity",
     "Subject",
+    "SubjectQuery",
     "SubjectSort",
     "Unauthorized",
     "ValidationError",

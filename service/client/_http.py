@@ -20,22 +20,6 @@ from service.client.errors import (
 _RETRY_STATUSES = frozenset({502, 503, 504})
 
 
-def _result_params(
-    full: bool, min_confidence: float | None, sort: str | None, leaf: bool | None
-) -> dict[str, str] | None:
-    """The query of ``GET /v1/jobs/{id}/result``: only what was given."""
-    params: dict[str, str] = {}
-    if full:
-        params["full"] = "true"
-    if min_confidence is not None:
-        params["min_confidence"] = repr(float(min_confidence))
-    if sort is not None:
-        params["sort"] = str(sort)
-    if leaf is not None:
-        params["leaf"] = "true" if leaf else "false"
-    return params or None
-
-
 class HttpClient:
     """Synchronous client for one regtree service.
 

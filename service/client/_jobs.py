@@ -6,12 +6,12 @@ import time
 import uuid
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict, Unpack
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from service.client._http import HttpClient, _result_params
+from service.client._http import HttpClient
 from service.client.errors import JobFailed, RegtreeTimeout
 from service.client.files import _points_list
 from service.client.models import FloatArray, JobResult, JobStatus, Similarity, Subject
@@ -23,6 +23,43 @@ from service.contract.names import (
     PoseName,
     SubjectSort,
 )
+
+
+class SubjectQuery(TypedDict, total=False):
+    """Which subjects a result lists, in which order: the keywords of
+    :meth:`~RegtreeClient.result_csv` (described at :meth:`~RegtreeClient.result`)."""
+
+    min_confidence: float | None
+    sort: SubjectSort | None
+    leaf: bool | None
+
+
+class ResultQuery(SubjectQuery, total=False):
+    """A :class:`SubjectQuery` and ``full``: the keywords of :meth:`~RegtreeClient.result`
+    and :meth:`~RegtreeClient.result_document`."""
+
+    full: bool
+
+
+def _result_params(
+    method: str, query: Mapping[str, Any], accepted: frozenset[str]
+) -> dict[str, str] | None:
+    """The query of ``GET /v1/jobs/{id}/result`` (or ``result.csv``): only what was given;
+    a keyword `method` does not take is a TypeError, as Python raises it."""
+    for name in query:
+        if name not in accepted:
+            raise TypeError(f"{method}() got an unexpected keyword argument {name!r}")
+    params: dict[str, str] = {}
+    if query.get("full"):
+        params["full"] = "true"
+    if (min_confidence := query.get("min_confidence")) is not None:
+        params["min_confidence"] = repr(float(min_confidence))
+    if (sort := query.get("sort")) is not None:
+        params["sort"] = str(sort)
+    if (leaf := query.get("leaf")) is not None:
+        params["leaf"] = "true" if leaf else "false"
+    return params or None
+
 
 #: How the affine pre-alignment may pose a shape: see :meth:`RegtreeClient.start_job`.
 Pose = PoseName
@@ -175,17 +212,11 @@ class JobsAndResults(HttpClient):
 
     # --- results -----------------------------------------------------------------------
 
-    def result(
-        self,
-        job_id: int,
-        *,
-        full: bool = False,
-        min_confidence: float | None = None,
-        sort: SubjectSort | None = None,
-        leaf: bool | None = None,
-    ) -> JobResult:
-        """The job's result. ``full=True`` includes every subject's warped model,
-        correspondences and transform (heavy for big collections; :meth:`subject` reads one).
+    def result(self, job_id: int, **query: Unpack[ResultQuery]) -> JobResult:
+        """The job's result; ``document`` is the JSON as served. The keywords
+        (:class:`ResultQuery`, all optional): ``full=True`` includes every subject's warped
+        model, correspondences and transform (heavy for big collections; :meth:`subject`
+        reads one).
 
         ``min_confidence`` (0 to 1) lists only subjects at least that confident (those
         without a confidence, unattached ones, are left out); ``leaf`` only low-confidence
@@ -197,21 +228,16 @@ class JobsAndResults(HttpClient):
 
         Raises :class:`Conflict` while the job has not succeeded.
         """
-        params = _result_params(full, min_confidence, sort, leaf)
-        return JobResult.from_json(self._get(f"/v1/jobs/{job_id}/result", params=params))
+        return JobResult.from_json(self._result_json(job_id, "result", query))
 
-    def result_document(
-        self,
-        job_id: int,
-        *,
-        full: bool = False,
-        min_confidence: float | None = None,
-        sort: SubjectSort | None = None,
-        leaf: bool | None = None,
-    ) -> dict[str, Any]:
-        """The result JSON as served (what :mod:`service.plots` takes); the options are
-        :meth:`result`'s."""
-        params = _result_params(full, min_confidence, sort, leaf)
+    def result_document(self, job_id: int, **query: Unpack[ResultQuery]) -> dict[str, Any]:
+        """The result JSON as served (what :mod:`service.plots` takes); the keywords
+        (:class:`ResultQuery`) are :meth:`result`'s."""
+        return self._result_json(job_id, "result_document", query)
+
+    def _result_json(self, job_id: int, method: str, query: ResultQuery) -> dict[str, Any]:
+        """``GET /v1/jobs/{id}/result`` with `query` (what `method` was called with)."""
+        params = _result_params(method, query, ResultQuery.__optional_keys__)
         document: dict[str, Any] = self._get(f"/v1/jobs/{job_id}/result", params=params)
         return document
 
@@ -252,17 +278,10 @@ class JobsAndResults(HttpClient):
         params = {"k": str(int(k)), "matrix": "true" if matrix else "false"}
         return Similarity.from_json(self._get(f"/v1/jobs/{job_id}/similarity", params=params))
 
-    def result_csv(
-        self,
-        job_id: int,
-        *,
-        min_confidence: float | None = None,
-        sort: SubjectSort | None = None,
-        leaf: bool | None = None,
-    ) -> str:
-        """The per-subject results as CSV text (one row per subject; the options are
-        :meth:`result`'s)."""
-        params = _result_params(False, min_confidence, sort, leaf)
+    def result_csv(self, job_id: int, **query: Unpack[SubjectQuery]) -> str:
+        """The per-subject results as CSV text (one row per subject); the keywords
+        (:class:`SubjectQuery`) are :meth:`result`'s but ``full``."""
+        params = _result_params("result_csv", query, SubjectQuery.__optional_keys__)
         return self._request(
             "GET", f"/v1/jobs/{job_id}/result.csv", retry=True, params=params
         ).text

@@ -12,12 +12,19 @@ from typing import Any, Literal
 from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from service.core.backoff import CALLBACK_BACKOFF, JOB_BACKOFF, Backoff
 
-def _doubling_wait(default: float, before: str, cap: str) -> Any:
-    """A setting: the wait before ``before``, doubling with each further attempt up to the
-    setting named ``cap``."""
-    return Field(default=default, ge=0, description=f"Wait before {before}; it doubles with "
-                 f"each further attempt, up to {cap}.")
+
+def _doubling_wait(default: Backoff, before: str, cap: str) -> Any:
+    """A backoff's first setting: the wait before ``before``, doubling with each further
+    attempt up to its second, the setting named ``cap`` (:func:`_longest_wait`)."""
+    return Field(default=default.base, ge=0, description=f"Wait before {before}; it doubles "
+                 f"with each further attempt, up to {cap}.")
+
+
+def _longest_wait(default: Backoff) -> Any:
+    """A backoff's second setting: the cap of its doubling wait."""
+    return Field(default=default.cap, ge=0)
 
 
 class Settings(BaseSettings):
@@ -88,9 +95,10 @@ class Settings(BaseSettings):
         "worker that stopped responding) is retried until this many were used.",
     )
     retry_backoff_seconds: float = _doubling_wait(
-        5.0, "the first retry of a job after a transient failure", "retry_backoff_max_seconds"
+        JOB_BACKOFF, "the first retry of a job after a transient failure",
+        "retry_backoff_max_seconds",
     )
-    retry_backoff_max_seconds: float = Field(default=300.0, ge=0)
+    retry_backoff_max_seconds: float = _longest_wait(JOB_BACKOFF)
     progress_min_interval_seconds: float = Field(default=0.5, ge=0)
 
     # --- callbacks (a job's callback_url, called when it ends) -----------------------------
@@ -106,9 +114,10 @@ class Settings(BaseSettings):
     )
     callback_max_attempts: int = Field(default=5, ge=1)
     callback_backoff_seconds: float = _doubling_wait(
-        10.0, "the second delivery attempt of a callback", "callback_backoff_max_seconds"
+        CALLBACK_BACKOFF, "the second delivery attempt of a callback",
+        "callback_backoff_max_seconds",
     )
-    callback_backoff_max_seconds: float = Field(default=600.0, ge=0)
+    callback_backoff_max_seconds: float = _longest_wait(CALLBACK_BACKOFF)
     callback_timeout_seconds: float = Field(default=10.0, gt=0)
     callback_poll_seconds: float = Field(default=1.0, gt=0)
     public_url: str | None = Field(
@@ -150,6 +159,16 @@ class Settings(BaseSettings):
         description="Older switch, kept working: true = `json`, false = `text`; overrides "
         "log_format when set.",
     )
+
+    @property
+    def retry_backoff(self) -> Backoff:
+        """The job queue's wait before retrying a job (retry_backoff_*)."""
+        return Backoff(self.retry_backoff_seconds, self.retry_backoff_max_seconds)
+
+    @property
+    def callback_backoff(self) -> Backoff:
+        """The wait before delivering a callback again (callback_backoff_*)."""
+        return Backoff(self.callback_backoff_seconds, self.callback_backoff_max_seconds)
 
     @property
     def log_style(self) -> str:

@@ -43,9 +43,9 @@ import httpx
 from sqlalchemy import and_, or_, select, update
 from sqlalchemy.orm import Session
 
+from service.core.backoff import CALLBACK_BACKOFF, Backoff
 from service.core.config import Settings
 from service.db import Database, lock_first
-from service.jobs.policy import CALLBACK_BACKOFF, Backoff
 from service.models import (
     CallbackAttempt,
     CallbackDelivery,
@@ -164,9 +164,7 @@ class CallbackPolicy:
     def from_settings(cls, settings: Settings) -> CallbackPolicy:
         return cls(
             max_attempts=settings.callback_max_attempts,
-            backoff=Backoff(
-                settings.callback_backoff_seconds, settings.callback_backoff_max_seconds
-            ),
+            backoff=settings.callback_backoff,
             public_url=settings.public_url,
         )
 

@@ -54,10 +54,10 @@ from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.orm import Session
 
 from service.contract.names import GROUPING_METHOD
+from service.core.backoff import JOB_BACKOFF, Backoff
 from service.core.config import Settings
 from service.db import Database, lock_first
 from service.jobs import callbacks
-from service.jobs.policy import JOB_BACKOFF, Backoff
 from service.models import (
     Collection,
     Job,
@@ -163,7 +163,7 @@ class JobQueue:
             db,
             lease_seconds=settings.worker_lease_seconds,
             max_attempts=settings.max_attempts,
-            backoff=Backoff(settings.retry_backoff_seconds, settings.retry_backoff_max_seconds),
+            backoff=settings.retry_backoff,
             callback_policy=callbacks.CallbackPolicy.from_settings(settings),
         )
 

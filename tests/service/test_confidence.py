@@ -246,6 +246,20 @@ def test_client_passes_sort_and_filter_through() -> None:
     assert subject.quality == {"pose": "none"} and got.leaves == [subject]
 
 
+def test_client_result_queries_refuse_unknown_keywords() -> None:
+    # one query definition (ResultQuery, SubjectQuery) for the three methods; a keyword
+    # outside it is Python's TypeError, before any request
+    def handler(request: httpx.Request) -> httpx.Response:
+        raise AssertionError(f"no request expected: {request.url}")
+
+    with RegtreeClient("http://x", transport=httpx.MockTransport(handler)) as rt:
+        for method, bad in (("result", "min_conf"), ("result_document", "sorted"),
+                            ("result_csv", "full")):
+            with pytest.raises(TypeError, match=rf"^{method}\(\) got an unexpected keyword "
+                                                rf"argument '{bad}'$"):
+                getattr(rt, method)(4, **{bad: True})
+
+
 def test_client_against_the_service(service: Service, jobs: dict[str, Any]) -> None:
     with RegtreeClient(service.base_url) as rt:
         everything = rt.result(jobs["leaves"])

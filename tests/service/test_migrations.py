@@ -87,9 +87,9 @@ def test_0003_upgrades_a_database_with_jobs(tmp_path: Path) -> None:
     from sqlalchemy import text
 
     from service import migrate
+    from service.core.backoff import Backoff
     from service.core.config import Settings
     from service.db import Database
-    from service.jobs.policy import Backoff
     from service.jobs.queue import JobQueue, Outcome
 
     settings = Settings(database_url=f"sqlite:///{tmp_path / 'old.sqlite'}")

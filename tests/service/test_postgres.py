@@ -199,9 +199,9 @@ def test_concurrent_posts_with_one_idempotency_key(pg_service: Callable[..., Ser
 def test_concurrent_workers_claim_each_job_once(pg_url: str) -> None:
     """Many in-process workers racing on PostgreSQL: every job is claimed exactly once."""
     from service import migrate
+    from service.core.backoff import Backoff
     from service.core.config import Settings
     from service.db import Database
-    from service.jobs.policy import Backoff
     from service.jobs.queue import JobQueue, Outcome
     from service.models import Collection
     from tests.service.test_queue import direct_job
@@ -283,10 +283,10 @@ def test_queue_outcomes_retries_and_callbacks(pg_url: str) -> None:
     and callbacks stored with the job's end and delivered (500, then 200) by two racing
     deliverers, each try once."""
     from service import migrate
+    from service.core.backoff import Backoff
     from service.core.config import Settings
     from service.db import Database
     from service.jobs.callbacks import Deliverer
-    from service.jobs.policy import Backoff
     from service.jobs.queue import JobQueue, Outcome
     from service.models import CallbackAttempt, Collection, Job
     from tests.service.test_queue import direct_job

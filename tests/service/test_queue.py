@@ -15,9 +15,9 @@ from sqlalchemy import text
 from sqlalchemy.exc import OperationalError
 
 from service import migrate
+from service.core.backoff import Backoff
 from service.core.config import Settings
 from service.db import Database
-from service.jobs.policy import Backoff
 from service.jobs.queue import JobQueue, Outcome, is_transient
 from service.models import Collection, Job, JobStatus, Result, utcnow
 
@@ -459,3 +459,26 @@ def test_enqueue_needs_a_model_for_a_registration_not_for_a_grouping(db: Databas
     grouping = q.enqueue(spec(None, "grouping"))
     with db.read() as s:
         assert s.get(Job, grouping.id).model_shape_id is None
+
+
+def test_settings_give_each_backoff_whole(db: Database, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A backoff's two settings (its first wait, its cap) are read as one Backoff, with the
+    defaults the queue and the callbacks use without settings."""
+    from service.core.backoff import CALLBACK_BACKOFF, JOB_BACKOFF
+    from service.jobs.callbacks import CallbackPolicy
+
+    defaults = Settings(_env_file=None)  # type: ignore[call-arg]
+    assert defaults.retry_backoff == JOB_BACKOFF == Backoff(5.0, 300.0)
+    assert defaults.callback_backoff == CALLBACK_BACKOFF == Backoff(10.0, 600.0)
+    assert "it doubles with each further attempt, up to retry_backoff_max_seconds" in (
+        Settings.model_fields["retry_backoff_seconds"].description or "")
+    for name, value in (("RETRY_BACKOFF_SECONDS", "2"), ("RETRY_BACKOFF_MAX_SECONDS", "7"),
+                        ("CALLBACK_BACKOFF_SECONDS", "3"),
+                        ("CALLBACK_BACKOFF_MAX_SECONDS", "9")):
+        monkeypatch.setenv(f"REGTREE_{name}", value)
+    settings = Settings(_env_file=None)  # type: ignore[call-arg]
+    assert JobQueue.from_settings(db, settings).backoff == Backoff(2.0, 7.0)
+    assert CallbackPolicy.from_settings(settings).backoff == Backoff(3.0, 9.0)
+    monkeypatch.setenv("REGTREE_CALLBACK_BACKOFF_MAX_SECONDS", "-1")
+    with pytest.raises(ValueError, match="callback_backoff_max_seconds"):
+        Settings(_env_file=None)  # type: ignore[call-arg]

@@ -1,4 +1,6 @@
-"""Retry timing shared by the job queue and the callback deliveries."""
+"""Retry timing shared by the job queue and the callback deliveries: a wait that doubles
+with each failed attempt, up to a cap (the settings ``retry_backoff_*`` and
+``callback_backoff_*``, :attr:`~service.core.config.Settings.retry_backoff`)."""
 
 from __future__ import annotations
 
@@ -21,6 +23,6 @@ class Backoff:
         return float(min(self.cap, self.base * 2.0 ** min(failed_attempts - 1, 60)))
 
 
-#: The settings' defaults (retry_backoff_*, callback_backoff_*).
+#: The defaults of the settings retry_backoff_* and callback_backoff_*.
 JOB_BACKOFF = Backoff(5.0, 300.0)
 CALLBACK_BACKOFF = Backoff(10.0, 600.0)
