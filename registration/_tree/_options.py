@@ -85,8 +85,9 @@ class MethodOptions(TypedDict, total=False):
     working_points: Annotated[int | None, Option(DEFAULT_WORKING_POINTS, "int or None", """
         Decide the tree (direct CPD: each pose) at this many points per shape, then
         register each of its edges once at the stored resolution, warm-started from the
-        decision's registration (see :mod:`registration._tree._resolution`). Shapes with at most this many points
-        are used as they are; None or 0 decides at the stored resolution. The result's
+        decision's registration (see :mod:`registration._tree._resolution`). Shapes
+        with at most this many points are used as they are; None or 0 decides at the
+        stored resolution. The result's
         warped points, correspondences, transforms and e are at the stored resolution; its
         attempts, thresholds, similarity, confidence and quality checks are the working
         resolution's (the confidence is calibrated on shapes of a few hundred points).""")]
