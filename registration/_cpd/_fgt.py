@@ -26,8 +26,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import NDArray
 
-from ._field import FloatArray
+FloatArray = NDArray[np.float64]
 
 #: Absolute error of one interpolated 1-D kernel value (the kernel's peak is 1).
 FGT_ABS_TOL = 1e-10
@@ -42,6 +43,12 @@ def cheb_rank(length_over_sigma: float, extra: int = 0) -> int:
     nodes at 2, 5, 10, 20, 40 widths and 1e-12 needs 18, 28, 44, 78; this formula lies
     between the two at every measured width)."""
     return math.ceil(3.1 * length_over_sigma + 11) + extra
+
+
+def grid_nodes(span: FloatArray, sigma: float, extra: int = 0) -> float:
+    """The nodes of the 2-D grid :func:`cheb_rank` gives a box of sides `span`, as a float
+    (infinite or NaN for such a box, where the rank itself cannot be counted)."""
+    return float(np.prod(np.ceil(3.1 * np.asarray(span) / sigma + 11) + extra))
 
 
 def _cheb_nodes(r: int) -> FloatArray:

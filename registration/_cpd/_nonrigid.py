@@ -18,8 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from .._executor import checkpoint
 from .._points import as_points
 from ._estep import _EStep, _posterior_max, run_estep
-from ._fgt import gauss_transform
-from ._field import FloatArray, NonrigidTransform, _gauss_kernel
+from ._field import FloatArray, NonrigidTransform, _gauss_kernel, kernel_product
 from ._mstep import _low_rank_factor, _mstep_dense, _mstep_low_rank
 from ._options import CPDOptions, check_run_options
 from ._pycpd import _run_pycpd
@@ -391,9 +390,9 @@ def _finish(x: FloatArray, y: FloatArray, *, wmat: FloatArray,
                                   subject_scale=xs)
     # The exact kernel defines the result (with low_rank W lies in span(U), so this equals
     # the internal centroids up to the dropped spectrum); without a dense G, the kernel
-    # product comes from the Chebyshev Gauss transform with 8 nodes per axis above its
-    # 1e-10 rule (about 1e-13 per kernel value).
-    t = y + (g @ wmat if g is not None else gauss_transform(y, wmat, y, beta, extra=8))
+    # product is the transform's own (dense or the Chebyshev Gauss transform, about 1e-13
+    # per kernel value), so ``warped`` is ``transform.apply(model)``.
+    t = y + (g @ wmat if g is not None else kernel_product(y, y, wmat, beta))
     corr, prob = _posterior_max(t, x, s2, w)
     warped = t * xs + xd
     warped.setflags(write=False)

@@ -179,6 +179,40 @@ def test_estimated_choice_is_reused_while_sigma_stays_close(
     assert forced.choice is None
 
 
+@pytest.mark.parametrize("beta", [2.0, 1.0])
+def test_field_kernel_product_by_the_grid_matches_dense(
+        beta: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Many points: the field's kernel product (warp, Jacobian) goes through the Chebyshev
+    grid, every sum within 1e-12 of sum_j |q_j| of the dense product; few points: dense."""
+    from registration._cpd import _field
+    from registration._cpd._field import NonrigidTransform, kernel_product
+
+    cp, z = curve(1200, 3), curve(1100, 4, wobble=0.1) * 1.1
+    q = np.random.default_rng(0).normal(size=(len(cp), 6)) * 50.0
+    want = _gauss_kernel(z, cp, beta) @ q
+    with monkeypatch.context() as mp:
+        mp.setattr(_field, "_gauss_kernel", None)  # the dense product would fail
+        got = kernel_product(z, cp, q, beta)
+        field = NonrigidTransform(cp, q[:, :2], beta, np.zeros(2), 1.0, np.zeros(2), 1.0)
+        warped, jac = field.apply_with_jacobian(z)
+    assert np.max(np.abs(got - want)) <= 1e-12 * np.max(np.abs(q).sum(axis=0))
+    np.testing.assert_allclose(warped, z + want[:, :2], rtol=0, atol=1e-9)
+    # the Jacobian against central differences of the warp
+    h = 1e-6
+    for axis in range(2):
+        d = np.zeros(2)
+        d[axis] = h
+        fd = (field.apply(z + d) - field.apply(z - d)) / (2 * h)
+        np.testing.assert_allclose(jac[:, :, axis], fd, rtol=0, atol=1e-5)
+    small = kernel_product(z[:50], cp[:60], q[:60], beta)  # below the grid's fixed cost
+    np.testing.assert_array_equal(small, _gauss_kernel(z[:50], cp[:60], beta) @ q[:60])
+    # points at infinity, NaN or 1e233 leave no grid to build: dense, as the warp was
+    far = np.vstack([z, [[np.inf, 0.0], [np.nan, 1.0], [1e233, 0.0]]])
+    with np.errstate(all="ignore"):
+        got_far, want_far = kernel_product(far, cp, q, beta), _gauss_kernel(far, cp, beta) @ q
+    np.testing.assert_array_equal(got_far, want_far)
+
+
 @pytest.mark.parametrize("beta", [2.0, 0.5])
 def test_pivoted_cholesky_and_eigen_form(beta: float) -> None:
     y = curve(300, 7)
