@@ -54,8 +54,26 @@ class WorkerProcessDied(RuntimeError):
     """A process of the pool ended while it ran a task (killed, out of memory, crashed)."""
 
 
-def _serve(connection: Connection, inherited: list[Connection]) -> None:
+def _limit_blas_threads(threads: int) -> None:
+    """Keep this process's BLAS to `threads` threads for its whole life.
+
+    A pool runs one process per CPU (by default), each with one task at a time: a BLAS
+    that also starts a thread per CPU in each of them oversubscribes the CPUs, measured
+    5-10x slower than one thread (see ``_cpd._nonrigid.BLAS_THREADS``, which covers CPD
+    itself). Outside CPD, the warps, their Jacobians at the stored resolution, the
+    similarity's ICP and the errors use the BLAS too: 65 ms against 3 ms for the kernel
+    product of one stored-resolution warp on a busy 2-core machine.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional at run time: then the BLAS keeps its own setting
+        return
+    threadpool_limits(limits=threads, user_api="blas")
+
+
+def _serve(connection: Connection, inherited: list[Connection], blas_threads: int) -> None:
     """A pool process: run ``(fn, item)`` tasks until the pipe closes or a ``None`` comes."""
+    _limit_blas_threads(blas_threads)
     # A forked process holds copies of the pool's ends of every pipe: close them, so that
     # this process sees the end of its pipe when the pool's process goes away.
     for other in inherited:
@@ -180,13 +198,15 @@ class LocalProcessExecutor(ClosedOnExit):
             return
         context = _context(self.start_method)
         forked = context.get_start_method() == "fork"
+        # the CPUs shared out between the processes
+        blas_threads = max(1, available_cpus() // self.max_workers)
         try:
             for k in range(self.max_workers):
                 ours, theirs = context.Pipe(duplex=True)
                 inherited = [ours] + [s.connection for s in self._slots] if forked else []
                 process = context.Process(
-                    target=_serve, args=(theirs, inherited), name=f"regtree-task-{k}",
-                    daemon=True
+                    target=_serve, args=(theirs, inherited, blas_threads),
+                    name=f"regtree-task-{k}", daemon=True
                 )
                 process.start()
                 theirs.close()

@@ -90,3 +90,26 @@ def test_terminate_and_close_are_the_protocol_for_every_executor() -> None:
 def test_bad_pool_options(kwargs: dict[str, object], message: str) -> None:
     with pytest.raises(ValueError, match=message):
         LocalProcessExecutor(**kwargs)  # type: ignore[arg-type]
+
+
+def _blas_threads(_: object) -> list[int]:
+    from threadpoolctl import threadpool_info
+
+    return [int(lib["num_threads"]) for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+
+@pytest.mark.parametrize("method", ["fork", "spawn"])
+def test_pool_processes_share_the_cpus_out_for_the_blas(method: str) -> None:
+    """Each process keeps its BLAS to the CPUs divided between the processes: one thread
+    with the default one process per CPU, so the pool does not oversubscribe the machine."""
+    pytest.importorskip("threadpoolctl")
+    from registration._pool import available_cpus
+
+    cpus = available_cpus()
+    for workers in sorted({1, cpus}):
+        with LocalProcessExecutor(max_workers=workers, start_method=method) as ex:
+            found = [threads for _, threads in ex.map_unordered(_blas_threads, range(workers))]
+        want = max(1, cpus // workers)
+        assert found and all(t and max(t) <= want for t in found), (workers, found)
+        if workers == cpus:
+            assert all(max(t) == 1 for t in found)
