@@ -32,10 +32,11 @@ from ._grouping import (
     group_instances,
 )
 from ._icp import AffineICPResult, affine_icp, bidirectional_distance, fit_affine
+from ._pointmap import jacobian_determinants
 from ._points import Normalization, as_points, normalise, resample
 from ._result import Attempt, CollectionResult, SubjectResult, error_statistics
 from ._similarity import ProgressCallback, Similarity, similarity_matrix
-from ._transform import AffineTransform, ChainTransform, jacobian_determinants
+from ._transform import AffineTransform, ChainTransform
 from ._tree import build_dynamic_tree, build_static_tree, register_direct
 
 __all__ = [

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from ._transform import PointTransform, jacobian_matrices
+from ._pointmap import PointTransform, jacobian_matrices
 
 FloatArray = NDArray[np.float64]
 

@@ -47,8 +47,8 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from ._error import registration_error
+from ._pointmap import PointTransform, jacobian_matrices
 from ._points import farthest_point_indices, mean_spacing2
-from ._transform import PointTransform, jacobian_matrices
 
 FloatArray = NDArray[np.float64]
 

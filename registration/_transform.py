@@ -3,24 +3,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._points import Normalization, as_points
+from ._cpd import NonrigidTransform
+from ._inverse import invert_points
+from ._pointmap import PointTransform, central_differences, composed_with_jacobian
+from ._points import Normalization
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["AffineTransform", "ChainTransform", "PointTransform", "jacobian_determinants"]
-
-
-class PointTransform(Protocol):
-    """Anything that maps (n, 2) points to (n, 2) points and serialises to JSON."""
-
-    def apply(self, points: ArrayLike) -> FloatArray: ...
-
-    def to_dict(self) -> dict[str, Any]: ...
+__all__ = ["AffineTransform", "ChainTransform"]
 
 
 @dataclass(frozen=True)
@@ -63,8 +58,6 @@ def _step_from_dict(d: dict[str, Any]) -> PointTransform:
     if kind == "affine":
         return AffineTransform.from_dict(d)
     if kind == "nonrigid":
-        from ._cpd import NonrigidTransform
-
         return NonrigidTransform.from_dict(d)
     raise ValueError(f"unknown transform step type {kind!r}")
 
@@ -130,8 +123,6 @@ class ChainTransform:
         the point; typically it lands within 1e-12) is NaN: e.g. far outside the region the
         warp was fitted on, or where it folds.
         """
-        from ._inverse import invert_points
-
         p = np.asarray(points, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 2:
             raise ValueError(f"points must have shape (n, 2); got {p.shape}")
@@ -153,7 +144,7 @@ class ChainTransform:
         p = np.asarray(points, dtype=np.float64)
         both = composed_with_jacobian(self.steps, self.source.apply(p))
         if both is None:
-            return self.apply(p), _central_differences(self, p)
+            return self.apply(p), central_differences(self, p)
         z, jac = both
         return self.target.invert(z), jac * (self.target.scale / self.source.scale)
 
@@ -188,72 +179,3 @@ class ChainTransform:
             )
         except (KeyError, TypeError) as exc:
             raise ValueError(f"not a serialised ChainTransform: {exc}") from None
-
-
-def jacobian_determinants(
-    transform: PointTransform, points: ArrayLike, *, h: float = 1e-4
-) -> FloatArray:
-    """Determinant of the Jacobian of `transform` at each point (central differences).
-
-    A non-positive value means the map folds (or collapses) the plane there.
-
-    Parameters
-    ----------
-    transform : object with ``apply(points) -> points``
-        Any of the library's transforms (affine, CPD non-rigid, chain).
-    points : array_like, shape (n, 2)
-        Where to evaluate, in the transform's input coordinates.
-    h : float
-        Step of the central differences.
-
-    Returns
-    -------
-    ndarray, shape (n,)
-
-    Raises
-    ------
-    ValueError
-        If `points` is not a finite (n, 2) array or `h` is not positive.
-    """
-    if not h > 0:
-        raise ValueError(f"h must be positive; got {h}")
-    J = jacobian_matrices(transform, as_points(points, name="points", min_points=1), h=h)
-    return J[:, 0, 0] * J[:, 1, 1] - J[:, 1, 0] * J[:, 0, 1]
-
-
-def composed_with_jacobian(steps: tuple[PointTransform, ...], points: ArrayLike
-                           ) -> tuple[FloatArray, FloatArray] | None:
-    """`steps` applied one after the other, and the Jacobians of the whole map (chain
-    rule), when every step gives its own (``apply_with_jacobian``); else None."""
-    if not all(hasattr(s, "apply_with_jacobian") for s in steps):
-        return None
-    p = np.asarray(points, dtype=np.float64)
-    jac = np.broadcast_to(np.eye(2), (len(p), 2, 2)).copy()
-    for step in steps:
-        p, j = step.apply_with_jacobian(p)  # type: ignore[attr-defined]
-        jac = j @ jac
-    return p, jac
-
-
-def jacobian_matrices(transform: PointTransform, points: FloatArray, *, h: float = 1e-4
-                      ) -> FloatArray:
-    """Jacobian matrices, shape (n, 2, 2), of `transform` at (n, 2) `points`:
-    ``J[k, a, b] = d out_a / d x_b`` (no input checks: internal). Exact when the transform
-    gives its own (``apply_with_jacobian``: the library's affine, CPD and composed maps),
-    else by central differences of step `h`."""
-    exact = getattr(transform, "apply_with_jacobian", None)
-    if exact is not None:
-        out: FloatArray = exact(points)[1]
-        return out
-    return _central_differences(transform, points, h)
-
-
-def _central_differences(transform: PointTransform, points: FloatArray, h: float = 1e-4
-                         ) -> FloatArray:
-    ex = np.array([h, 0.0])
-    ey = np.array([0.0, h])
-    out = transform.apply(np.concatenate([points + ex, points - ex, points + ey, points - ey]))
-    n = points.shape[0]
-    dx = (out[:n] - out[n : 2 * n]) / (2 * h)  # d out / dx
-    dy = (out[2 * n : 3 * n] - out[3 * n :]) / (2 * h)  # d out / dy
-    return np.stack([dx, dy], axis=2)

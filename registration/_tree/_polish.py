@@ -30,10 +30,11 @@ from numpy.typing import NDArray
 from .._cpd import CPDOptions, cpd_nonrigid
 from .._error import registration_error
 from .._executor import Executor, owned_executor
+from .._pointmap import PointTransform
 from .._quality import RegistrationQuality, measure_quality
 from .._result import SubjectResult
 from .._similarity import ProgressCallback
-from .._transform import ChainTransform, PointTransform
+from .._transform import ChainTransform
 from ._collection import _Collection
 from ._rules import MIN_CONFIDENCE
 

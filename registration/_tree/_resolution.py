@@ -38,16 +38,11 @@ from numpy.typing import NDArray
 from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid
 from .._error import registration_error
 from .._executor import Executor
+from .._pointmap import PointTransform, composed_with_jacobian, jacobian_determinants
 from .._points import farthest_point_indices, mean_spacing2
 from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
-from .._transform import (
-    AffineTransform,
-    ChainTransform,
-    PointTransform,
-    composed_with_jacobian,
-    jacobian_determinants,
-)
+from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
 from ._tasks import _map_tasks
 

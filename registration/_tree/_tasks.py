@@ -15,10 +15,11 @@ from .._cpd import CPDOptions, cpd_nonrigid
 from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._icp import affine_icp
+from .._pointmap import PointTransform
 from .._pose import PoseSpec, angle_between, rotation_angle
 from .._quality import RegistrationQuality, measure_quality
 from .._similarity import ProgressCallback, Similarity
-from .._transform import AffineTransform, PointTransform
+from .._transform import AffineTransform
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
