@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._points import Normalization
-from ._repr import collection_html, collection_repr, subject_html, subject_repr
+from ._repr import html_table, number_text, points_text, tree_svg
 from ._transform import ChainTransform
 
 FloatArray = NDArray[np.float64]
@@ -112,11 +112,31 @@ class SubjectResult:
         """In the tree: a member, a low-confidence leaf, or the root itself (layer 1)."""
         return self.layer is not None
 
-    def __repr__(self) -> str:
-        return subject_repr(self)
+    def __repr__(self) -> str:  # short: the arrays are not printed
+        where = (
+            f"layer={self.layer}, parent={self.parent}" if self.attached else "unattached"
+        ) + (", leaf" if self.leaf else "")
+        return (
+            f"SubjectResult(index={self.index}, name={self.name!r}, {where}, "
+            f"e={number_text(self.error)}, confidence={number_text(self.confidence)}, "
+            f"warped={points_text(self.warped)}, attempts={len(self.attempts)})"
+        )
 
     def _repr_html_(self) -> str:
-        return subject_html(self)
+        return html_table("SubjectResult", [
+            ("index", self.index),
+            ("name", self.name),
+            ("layer", "unattached" if not self.attached else self.layer),
+            ("parent", self.parent if self.parent is not None else "-"),
+            ("path", " > ".join(map(str, self.path)) or "-"),
+            ("D from parent", number_text(self.similarity)),
+            ("e", number_text(self.error)),
+            ("confidence", number_text(self.confidence)),
+            ("leaf", self.leaf),
+            ("reason", self.reason),
+            ("warped", points_text(self.warped)),
+            ("attempts", len(self.attempts)),
+        ])
 
     def to_dict(self, *, include_points: bool = True) -> dict[str, Any]:
         d: dict[str, Any] = {
@@ -201,11 +221,46 @@ class CollectionResult:
     similarity_pairs: int = 0
     similarity: FloatArray | None = field(default=None, repr=False)
 
-    def __repr__(self) -> str:
-        return collection_repr(self)
+    def __repr__(self) -> str:  # short: the arrays are not printed
+        c = self.summary()
+        deep, every, direct = c["layer_ge_3"], c["all"], c.get("direct")
+        root = self.names[self.root] if 0 <= self.root < len(self.names) else self.root
+        text = (
+            f"CollectionResult(method={self.method!r}, root={self.root} ({root!r}), "
+            f"{c['subjects']} subjects: {c['attached']} attached ({c['leaves']} leaves), "
+            f"{c['unattached']} unattached, depth {c['depth']}; "
+            f"e layer>=3 mean {number_text(deep['mean'])} p95 {number_text(deep['p95'])}, "
+            f"all mean {number_text(every['mean'])}"
+        )
+        if direct is not None:
+            text += f"; direct layer>=3 mean {number_text(direct['layer_ge_3']['mean'])}"
+        return text + ")"
 
     def _repr_html_(self) -> str:
-        return collection_html(self)
+        c = self.summary()
+        deep, every, direct = c["layer_ge_3"], c["all"], c.get("direct")
+        rows: list[tuple[str, Any]] = [
+            ("method", self.method),
+            ("root", f"{self.root}: {self.names[self.root]}"),
+            ("subjects", c["subjects"]),
+            ("attached (leaves)", f"{c['attached']} ({c['leaves']})"),
+            ("unattached", c["unattached"]),
+            ("depth", c["depth"]),
+            ("e at layer >= 3: mean / p95",
+             f"{number_text(deep['mean'])} / {number_text(deep['p95'])}"),
+            ("e, all attached: mean / p95",
+             f"{number_text(every['mean'])} / {number_text(every['p95'])}"),
+        ]
+        if direct is not None:
+            d = direct["layer_ge_3"]
+            rows.append(("direct CPD, layer >= 3: mean / p95",
+                         f"{number_text(d['mean'])} / {number_text(d['p95'])}"))
+        nodes = [(self.root, 1, None, "root")] + [
+            (s.index, s.layer if s.layer is not None else 0, s.parent,
+             "leaf" if s.leaf else ("tree" if s.attached else "unattached"))
+            for s in self.subjects
+        ]
+        return html_table("CollectionResult", rows, after=tree_svg(self.root, self.names, nodes))
 
     def root_subject(self) -> SubjectResult:
         """The model itself as a subject: layer 1, error 0, the identity transform."""

@@ -93,10 +93,9 @@ class ChainTransform:
     steps: tuple[PointTransform, ...]
     path: tuple[int, ...]
 
-    def __repr__(self) -> str:
-        from ._repr import chain_repr
-
-        return chain_repr(self)
+    def __repr__(self) -> str:  # short: the steps' arrays are not printed
+        kinds = ", ".join(type(s).__name__ for s in self.steps) or "identity"
+        return f"ChainTransform(path={self.path}, steps=[{kinds}])"
 
     def apply_normalised(self, points: ArrayLike) -> FloatArray:
         """Apply the steps to points already in normalised coordinates."""

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._repr import number_text, points_text
 from ._fgt import ChebGrid, bounding_box, grid_nodes
 
 FloatArray = NDArray[np.float64]
@@ -187,9 +188,11 @@ class NonrigidTransform:
         return out, jac
 
     def __repr__(self) -> str:  # short: the arrays are not printed
-        from .._repr import nonrigid_repr
-
-        return nonrigid_repr(self)
+        return (
+            f"NonrigidTransform(control_points={points_text(self.control_points)}, "
+            f"beta={number_text(self.beta)}, model_scale={number_text(self.model_scale)}, "
+            f"subject_scale={number_text(self.subject_scale)})"
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable representation (nested lists of floats).

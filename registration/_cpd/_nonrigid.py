@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._executor import checkpoint
 from .._points import as_points
+from .._repr import number_text, points_text
 from ._estep import _EStep, _posterior_max, run_estep
 from ._field import FloatArray, NonrigidTransform, _gauss_kernel, kernel_product
 from ._mstep import _low_rank_factor, _mstep_dense, _mstep_low_rank
@@ -104,9 +105,11 @@ class CPDResult:
     objective: float = float("nan")
 
     def __repr__(self) -> str:  # short: the arrays are not printed
-        from .._repr import cpd_repr
-
-        return cpd_repr(self)
+        return (
+            f"CPDResult(warped={points_text(self.warped)}, iterations={self.iterations}, "
+            f"converged={self.converged}, sigma2={number_text(self.sigma2)}, "
+            f"objective={number_text(self.objective)})"
+        )
 
 
 # ----------------------------------------------------------------------------------------
