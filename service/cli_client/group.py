@@ -5,44 +5,16 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Callable
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from service.cli_client._common import Exit, _out, find_collection
+from service.cli_client.watch import watch_job
 
 if TYPE_CHECKING:
     from service.client import RegtreeClient
 
 
-def add_group_command(command: Callable[..., argparse.ArgumentParser],
-                      positive_float: Callable[[str], float],
-                      watch_options: Callable[[argparse.ArgumentParser], None]) -> None:
-    group = command(
-        "group",
-        help="group a collection's shapes by the mould (type, block) that printed them",
-        description="Queue a grouping job over every shape of the collection, follow it, and "
-        "print the groups: each with its representative and members (shape id, name, "
-        "confidence). With --no-wait, print the job id only.",
-    )
-    group.add_argument("collection", metavar="COLLECTION", help="its name or id")
-    group.add_argument("--threshold", type=positive_float, metavar="X",
-                       help="cut of the average-linkage tree, in units of the shapes' RMS "
-                       "radius (default: automatic, 2x the median nearest distance)")
-    group.add_argument("--max-rotation", type=float, metavar="DEG",
-                       help="the scans may be rotated by up to DEG degrees (default: a few)")
-    group.add_argument("--wait", action=argparse.BooleanOptionalAction, default=True,
-                       help="follow the job and print the groups (default: yes)")
-    group.add_argument("--json", action="store_true", help="print the groups document")
-    group.add_argument("--gallery", type=Path, metavar="PNG", help="also save the gallery")
-    group.add_argument("--dendrogram", type=Path, metavar="PNG",
-                       help="also save the dendrogram")
-    watch_options(group)
-
-
 def cmd_group(args: argparse.Namespace, rt: RegtreeClient) -> int:
-    from service.cli_client.watch import watch_job
-
     collection = find_collection(rt, args.collection)
     job = rt.start_grouping(collection.id, threshold=args.threshold,
                             max_rotation=args.max_rotation)

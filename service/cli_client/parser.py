@@ -317,9 +317,26 @@ def add_commands(sub: Any) -> None:
         "--k", type=_positive_int, default=3, metavar="K", help="nearest shapes (default 3)"
     )
 
-    from service.cli_client.group import add_group_command
-
-    add_group_command(command, _positive_float, _watch_options)
+    group = command(
+        "group",
+        help="group a collection's shapes by the mould (type, block) that printed them",
+        description="Queue a grouping job over every shape of the collection, follow it, and "
+        "print the groups: each with its representative and members (shape id, name, "
+        "confidence). With --no-wait, print the job id only.",
+    )
+    group.add_argument("collection", metavar="COLLECTION", help="its name or id")
+    group.add_argument("--threshold", type=_positive_float, metavar="X",
+                       help="cut of the average-linkage tree, in units of the shapes' RMS "
+                       "radius (default: automatic, 2x the median nearest distance)")
+    group.add_argument("--max-rotation", type=float, metavar="DEG",
+                       help="the scans may be rotated by up to DEG degrees (default: a few)")
+    group.add_argument("--wait", action=argparse.BooleanOptionalAction, default=True,
+                       help="follow the job and print the groups (default: yes)")
+    group.add_argument("--json", action="store_true", help="print the groups document")
+    group.add_argument("--gallery", type=Path, metavar="PNG", help="also save the gallery")
+    group.add_argument("--dendrogram", type=Path, metavar="PNG",
+                       help="also save the dendrogram")
+    _watch_options(group)
 
 
 def _watch_options(parser: argparse.ArgumentParser) -> None:
