@@ -12,6 +12,7 @@
 
 import { $, LIST_POLL_MS, POLL_MS, TERMINAL, api, el, fmtDuration, fmtNum, fmtTime, methodLabel, nameOf, notice, progressText, setupKeyForm, showBlob, state, statusBadge, stopTimers } from "./core.js";
 import * as grouping from "./grouping.js";
+import { clearSearch, setupSearch } from "./search.js";
 import { download, loadOverlay, renderTable, selectSubject, setupTable } from "./subjects.js";
 import { loadTree, resetTreeView, setupTreeView } from "./tree.js";
 
@@ -158,6 +159,7 @@ function closeJob() {
   state.result = null;
   state.selected = null;
   resetTreeView();
+  clearSearch();
   grouping.hide();
   $("ui-job").hidden = true;
   $("ui-welcome").hidden = false;
@@ -298,6 +300,7 @@ async function loadResult(token) {
   renderTable();
   // the tree is asked for first: the service draws one picture at a time
   const tree = loadTree(token);
+  clearSearch();  // a new tree: the search over its shapes starts empty
   loadSummary(token);
   await tree;
   if (token === state.loadToken) selectSubject(state.route.subjectId);
@@ -330,6 +333,7 @@ function start() {
   setupKeyForm(refreshAll);
   setupTable();
   setupTreeView();
+  setupSearch();
   $("ui-job-cancel").addEventListener("click", async () => {
     if (!state.job || !confirm(`Cancel job ${state.job.id}?`)) return;
     try {

@@ -189,6 +189,13 @@ export function nameOf(shapeId) {
   return state.namesById.get(shapeId) ?? `#${shapeId}`;
 }
 
+// --- a subject, as the server states it -----------------------------------------------------
+// a low-confidence leaf is attached (it has a parent and a registration) but is no tree member;
+// the server states `attached` for every subject (service.contract.names.is_attached)
+export const isAttached = (s) => s.attached === true;
+export const isLeaf = (s) => s.leaf === true;
+export const hasNumber = (v) => typeof v === "number" && Number.isFinite(v);
+
 // --- pictures -------------------------------------------------------------------------------
 export function showBlob(img, slot, blob) {
   if (state.objectUrls[slot]) URL.revokeObjectURL(state.objectUrls[slot]);

@@ -1,7 +1,6 @@
 // regtree results page: search by name over the tree's shapes.
 
-import { $, el, nameOf, state } from "./core.js";
-import { isAttached, isLeaf } from "./subjects.js";
+import { $, el, isAttached, isLeaf, nameOf, state } from "./core.js";
 import { openSubject, revealNode, tv } from "./tree.js";
 
 // --- search by name ----------------------------------------------------------------------------

@@ -1,42 +1,15 @@
-// regtree results page: unattached shapes, the subjects table and one subject's panel.
+// regtree results page: the subjects table and one subject's panel.
 
-import { $, api, el, fmtNum, go, nameOf, notice, showBlob, state } from "./core.js";
-import { openSubject, placeLocator, revealNode, tv } from "./tree.js";
+import { $, api, el, fmtNum, go, hasNumber, isAttached, isLeaf, nameOf, notice, showBlob, state } from "./core.js";
+import { placeLocator, revealChip, revealNode, tv } from "./tree.js";
 
-// --- unattached shapes, as buttons under the tree --------------------------------------------
-// a low-confidence leaf is attached (it has a parent and a registration) but is no tree member;
-// the server states `attached` for every subject (service.contract.names.is_attached)
-export const isAttached = (s) => s.attached === true;
-export const isLeaf = (s) => s.leaf === true;
-export const hasNumber = (v) => typeof v === "number" && Number.isFinite(v);
+// --- a subject's status ---------------------------------------------------------------------
 export const STATUS = { tree: "tree member", leaf: "low-confidence leaf", unattached: "unattached" };
 export const statusOf = (s) => s.status; // the server states it: tree, leaf or unattached
 export const statusBadgeOf = (s) => {
   const status = statusOf(s);
   return el("span", { class: `badge ${status}`, "data-status": status, text: STATUS[status] });
 };
-
-export function renderUnattached() {
-  const section = $("ui-unattached");
-  const list = $("ui-unattached-list");
-  const shapes = state.result ? state.result.subjects.filter((s) => !isAttached(s)) : [];
-  section.hidden = !shapes.length;
-  $("ui-unattached-count").textContent = String(shapes.length);
-  list.replaceChildren(...shapes.map((s) => el("li", {},
-    el("button", {
-      type: "button",
-      class: `chip${s.shape_id === state.selected ? " selected" : ""}`,
-      "data-shape-id": String(s.shape_id),
-      title: `${s.name || `shape ${s.shape_id}`} (shape ${s.shape_id})${s.reason ? `: ${s.reason}` : ""}`,
-      text: s.name || `#${s.shape_id}`,
-      onclick: () => openSubject(s.shape_id),
-    }))));
-}
-
-export function revealChip(shapeId) {
-  const chip = $("ui-unattached-list").querySelector(`button[data-shape-id="${shapeId}"]`);
-  if (chip) chip.scrollIntoView({ block: "nearest", inline: "nearest" });
-}
 
 // --- subjects table -------------------------------------------------------------------------
 export function sortValue(s, key) {

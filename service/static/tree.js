@@ -1,10 +1,9 @@
-// regtree results page: the tree picture, with zoom, pan, fit and clickable nodes.
+// regtree results page: the tree picture, with zoom, pan, fit and clickable nodes, and the
+// unattached shapes listed under it.
 
-import { $, api, el, go, nameOf, state } from "./core.js";
-import { clearSearch, setupSearch } from "./search.js";
-import { hasNumber, isLeaf, renderUnattached, revealChip } from "./subjects.js";
+import { $, api, el, go, hasNumber, isAttached, isLeaf, nameOf, state } from "./core.js";
 
-// --- the tree: zoom, pan, fit, search --------------------------------------------------------
+// --- the tree: zoom, pan, fit --------------------------------------------------------------
 // The server draws the tree (tree.svg, matplotlib); the page shows it in a fixed-size box and
 // moves a viewBox over it: zoom with the wheel, the buttons or + and −, pan by dragging or with
 // the arrow keys, 0 fits the whole tree. The picture's "unattached" box is taken out of it and
@@ -120,7 +119,29 @@ export function resetTreeView() {
   delete box.dataset.renderMs;
   delete box.dataset.nodes;
   $("ui-zoom-level").textContent = "";
-  clearSearch();
+}
+
+// --- unattached shapes, as buttons under the tree --------------------------------------------
+export function renderUnattached() {
+  const section = $("ui-unattached");
+  const list = $("ui-unattached-list");
+  const shapes = state.result ? state.result.subjects.filter((s) => !isAttached(s)) : [];
+  section.hidden = !shapes.length;
+  $("ui-unattached-count").textContent = String(shapes.length);
+  list.replaceChildren(...shapes.map((s) => el("li", {},
+    el("button", {
+      type: "button",
+      class: `chip${s.shape_id === state.selected ? " selected" : ""}`,
+      "data-shape-id": String(s.shape_id),
+      title: `${s.name || `shape ${s.shape_id}`} (shape ${s.shape_id})${s.reason ? `: ${s.reason}` : ""}`,
+      text: s.name || `#${s.shape_id}`,
+      onclick: () => openSubject(s.shape_id),
+    }))));
+}
+
+export function revealChip(shapeId) {
+  const chip = $("ui-unattached-list").querySelector(`button[data-shape-id="${shapeId}"]`);
+  if (chip) chip.scrollIntoView({ block: "nearest", inline: "nearest" });
 }
 
 // the box: as wide as its column; as high as the tree at that width, within limits
@@ -430,5 +451,4 @@ export function setupTreeView() {
   $("ui-zoom-out").addEventListener("click", () => zoomBy(1 / 1.4, undefined, undefined, true));
   $("ui-zoom-fit").addEventListener("click", () => zoomFit());
   $("ui-zoom-actual").addEventListener("click", () => zoomActual());
-  setupSearch();
 }
