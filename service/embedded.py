@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import logging
 import multiprocessing
 import os
@@ -142,9 +143,13 @@ def serve(settings: Settings, *, host: str, port: int, workers: int, migrate_db:
     processes = start_workers(settings, workers)
     try:
         with _sigterm_returns():
-            make_server(
+            server = make_server(
                 settings, host, port, on_started=lambda: announce(settings, host, port)
-            ).run()
+            )
+            # The imports and the app live as long as the process: out of the collector's
+            # way, the exit's collections no longer walk them (about a second per stop).
+            gc.freeze()
+            server.run()
     finally:
         stop_workers(processes)
     logger.info("stopped")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import hashlib
 import logging
 from collections.abc import Callable
-from typing import Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.types import DecoratedCallable
@@ -25,7 +25,9 @@ from service import __version__
 from service.api.deps import DbDep
 from service.api.problems import problem_responses
 from service.models import Job
-from service.plots import Rendered
+
+if TYPE_CHECKING:  # matplotlib is imported on the first picture, not when the server starts
+    from service.plots import Rendered
 
 logger = logging.getLogger("regtree.pictures")
 

@@ -140,6 +140,12 @@ class Settings(BaseSettings):
         description="Address of the Dask scheduler (e.g. tcp://scheduler:8786) for "
         "executor=dask.",
     )
+    dask_connect_seconds: float = Field(
+        default=30.0,
+        gt=0,
+        description="With executor=dask, how long a job's attempt waits to reach the scheduler "
+        "before it fails.",
+    )
     dask_no_worker_seconds: float = Field(
         default=60.0,
         gt=0,

@@ -190,6 +190,7 @@ def _executor(settings: Settings, control: JobControl) -> Executor:
         # reassigned by the scheduler; a cluster that cannot run them fails the job.
         return DaskExecutor(
             settings.dask_scheduler, check=control.check, poll_seconds=0.1,
+            connect_seconds=settings.dask_connect_seconds,
             no_worker_seconds=settings.dask_no_worker_seconds,
         )
     # The pool starts its processes inside JobControl, whose heartbeat thread runs: beside

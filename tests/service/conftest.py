@@ -40,11 +40,19 @@ FAST_ENV = {
 }
 
 
+_HANDED_OUT: set[int] = set()
+
+
 def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
+    """A port nothing listens on, and not one given before in this session (a server
+    launched with it may not be listening yet)."""
+    while True:
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port: int = sock.getsockname()[1]
+        if port not in _HANDED_OUT:
+            _HANDED_OUT.add(port)
+            return port
 
 
 def _stop(process: subprocess.Popen[bytes], timeout: float = 20.0) -> None:
@@ -100,10 +108,19 @@ class Service:
         return f"http://127.0.0.1:{self.port}"
 
     def start(self, timeout: float = 60.0) -> Service:
+        return self.launch().wait_healthy(timeout)
+
+    def launch(self) -> Service:
+        """Start ``regtree serve`` without waiting for it: several servers a test needs side
+        by side then start together (each spends seconds on its imports)."""
         self.port = free_port()
         self.server = self._spawn(
             "serve", "--host", "127.0.0.1", "--port", str(self.port), "--workers", str(self.workers)
         )
+        return self
+
+    def wait_healthy(self, timeout: float = 60.0) -> Service:
+        assert self.server is not None, "launch() first"
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.server.poll() is not None:

@@ -183,8 +183,9 @@ def test_callback_of_a_job_cancelled_while_queued_survives_a_restart(
         pending = client.get(f"/v1/jobs/{job['id']}/deliveries").json()
         assert pending["state"] == "pending" and pending["attempts"] == 0
     svc.stop()
-    svc.start()
-    svc.start_worker()
+    svc.launch()
+    svc.start_worker()  # the database is migrated already: both start together
+    svc.wait_healthy()
     with svc.client() as client:
         done = _deliveries(client, job["id"], lambda d: d["state"] == "delivered")
     assert done["attempts"] == 1
@@ -241,8 +242,10 @@ def test_callbacks_give_up_after_max_attempts_cli_and_client(
 def test_callback_hosts_outside_the_setting_are_refused(
     make_service: Callable[..., Service],
 ) -> None:
-    svc = make_service(workers=0, env=CALLBACK_ENV).start()
-    bare = make_service(workers=0).start()  # no secret, no allowed hosts
+    svc = make_service(workers=0, env=CALLBACK_ENV).launch()
+    bare = make_service(workers=0).launch()  # no secret, no allowed hosts
+    svc.wait_healthy()
+    bare.wait_healthy()
     with svc.client() as client, bare.client() as other:
         cid, ids = _collection(client)
         for url, words in [

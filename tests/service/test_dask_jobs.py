@@ -61,7 +61,9 @@ def test_a_job_runs_on_the_cluster(make_service: Callable[..., Service], schedul
 def test_an_unreachable_cluster_fails_the_job_clearly(
     make_service: Callable[..., Service],
 ) -> None:
-    env = {**_env("tcp://127.0.0.1:9"), "REGTREE_MAX_ATTEMPTS": "1"}
+    # the setting, not the 30 s default, bounds the wait for the scheduler
+    env = {**_env("tcp://127.0.0.1:9"), "REGTREE_MAX_ATTEMPTS": "1",
+           "REGTREE_DASK_CONNECT_SECONDS": "2"}
     svc = make_service(workers=1, env=env).start()
     with svc.client() as client:
         cid = create_collection(client, "no-dask")

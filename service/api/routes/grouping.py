@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from functools import partial
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, Request, Response
 from sqlalchemy import select
@@ -21,9 +21,10 @@ from service.api.routes.results import stored_result
 from service.contract.names import GROUPING_METHOD, ProblemType
 from service.contract.result import GroupingDocument
 from service.models import Job, Shape, made_from_image
-from service.plots import Rendered
-from service.plots.grouping import render_dendrogram, render_gallery, render_instance
 from service.schemas import DbId
+
+if TYPE_CHECKING:  # service.plots (matplotlib): imported on the first picture
+    from service.plots import Rendered
 
 router = APIRouter(prefix="/jobs", tags=["grouping"])
 
@@ -80,6 +81,8 @@ def _group_picture(job_id: int, request: Request, db: DbDep, key: tuple[object, 
 def gallery_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None
                 ) -> Response:
     def load(session: Session, document: dict[str, Any]) -> Callable[[], Rendered]:
+        from service.plots.grouping import render_gallery
+
         ids = [int(s) for s in document["shape_ids"]]
         rows = session.scalars(select(Shape).where(Shape.id.in_(ids))).all()
         points = {s.id: s.points for s in rows}
@@ -96,6 +99,8 @@ def gallery_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = N
 )
 def dendrogram_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None
                    ) -> Response:
+    from service.plots.grouping import render_dendrogram
+
     return _group_picture(job_id, request, db, ("dendrogram", width),
                           lambda _session, document: partial(render_dendrogram, document,
                                                              width=width))
@@ -126,6 +131,8 @@ def instance_png(job_id: DbId, shape_id: DbId, request: Request, db: DbDep) -> R
             raise ProblemError(410, f"shape {gone} was deleted after job {job_id} ran; its "
                                "points are needed to draw the comparison",
                                type_=ProblemType.SHAPE_DELETED)
+        from service.plots.grouping import render_instance
+
         y_down = made_from_image(shape.source_format)
         return partial(render_instance, instance, shape.points, rep.points, y_down=y_down)
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from functools import partial
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 from fastapi import APIRouter, Query, Request, Response
 from sqlalchemy.orm import Session
@@ -20,8 +20,10 @@ from service.api.problems import ProblemError
 from service.api.routes.results import _subject, _succeeded_job
 from service.contract.names import ProblemType
 from service.models import Job, Result, ResultSubject, Shape, made_from_image
-from service.plots import Rendered, render_subject, render_summary, render_tree
 from service.schemas import DbId
+
+if TYPE_CHECKING:  # service.plots (matplotlib): imported on the first picture
+    from service.plots import Rendered
 
 router = APIRouter(prefix="/jobs", tags=["pictures"])
 
@@ -47,6 +49,8 @@ def _result_picture(job_id: int, request: Request, db: DbDep, key: tuple[object,
 
 
 def _tree(job_id: int, fmt: str, width: int | None, request: Request, db: DbDep) -> Response:
+    from service.plots import render_tree
+
     return _result_picture(job_id, request, db, ("tree", fmt, width),
                            partial(render_tree, fmt=fmt, width=width))
 
@@ -76,6 +80,8 @@ def tree_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None
     "CPD's e on the same subjects beside it when the job compared with it.",
 )
 def summary_png(job_id: DbId, request: Request, db: DbDep, width: WidthQuery = None) -> Response:
+    from service.plots import render_summary
+
     options: dict[str, Any] = {"width": width} if width else {}
     return _result_picture(job_id, request, db, ("summary", width),
                            partial(render_summary, fmt="png", **options))
@@ -121,6 +127,8 @@ def subject_overlay_png(
         return job, key, (job.method, row, shape, down)
 
     def load(_session: Session, found: _Overlay) -> Callable[[], Rendered]:
+        from service.plots import render_subject
+
         method, row, shape, down = found
         options: dict[str, Any] = {"width": width} if width else {}
         return partial(render_subject, row.document, shape.points, fmt="png", method=method,
