@@ -217,3 +217,29 @@ def test_compare_direct_has_one_default_on_every_surface() -> None:
     assert parser.parse_args(["run", "--collection", "c", "--model", "m"]).compare_direct is False
     args = parser.parse_args(["run", "--collection", "c", "--model", "m", "--compare-direct"])
     assert args.compare_direct is True
+
+
+def test_json_safe_replaces_every_non_finite_float_with_none() -> None:
+    """Scalars, flat lists, points, nested containers and numpy values: each NaN or
+    infinity becomes None (not valid JSON otherwise); everything else is kept."""
+    import math
+
+    import numpy as np
+
+    from service.jobs.document import json_safe
+
+    nan, inf = float("nan"), float("inf")
+    value = {
+        1: nan, "flat": [1.0, nan, -inf, 2.0], "mixed": [1, 2.5, "a", None, inf],
+        "points": [[0.5, 1.5], [nan, 2.0], [3.0, inf]], "ragged": [[1.0, 2.0, nan], [1.0]],
+        "nested": {"t": (1.0, (inf, 2)), "a": np.array([[1.0, np.nan], [2.0, 3.0]])},
+        "g": np.float32(np.inf), "i": np.int64(3), "ok": 4.0,
+    }
+    assert json_safe(value) == {
+        "1": None, "flat": [1.0, None, None, 2.0], "mixed": [1, 2.5, "a", None, None],
+        "points": [[0.5, 1.5], [None, 2.0], [3.0, None]], "ragged": [[1.0, 2.0, None], [1.0]],
+        "nested": {"t": [1.0, [None, 2]], "a": [[1.0, None], [2.0, 3.0]]},
+        "g": None, "i": 3, "ok": 4.0,
+    }
+    big = [[float(k), math.pi] for k in range(1000)] + [[nan, 1.0]]
+    assert json_safe(big)[-1] == [None, 1.0] and json_safe(big)[:-1] == big[:-1]
