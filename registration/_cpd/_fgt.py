@@ -24,6 +24,7 @@ the points while the kernel is wide compared with the data:
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,13 +43,18 @@ def cheb_rank(length_over_sigma: float, extra: int = 0) -> int:
     kernel widths long (measured worst case over the box: 1e-9 needs 14, 22, 38, 66, 128
     nodes at 2, 5, 10, 20, 40 widths and 1e-12 needs 18, 28, 44, 78; this formula lies
     between the two at every measured width)."""
-    return math.ceil(3.1 * length_over_sigma + 11) + extra
+    return int(_rank(length_over_sigma)) + extra
+
+
+def _rank(length_over_sigma: Any) -> Any:
+    """:func:`cheb_rank`'s formula, on a float or an array, as floats."""
+    return np.ceil(3.1 * np.asarray(length_over_sigma) + 11)
 
 
 def grid_nodes(span: FloatArray, sigma: float, extra: int = 0) -> float:
     """The nodes of the 2-D grid :func:`cheb_rank` gives a box of sides `span`, as a float
     (infinite or NaN for such a box, where the rank itself cannot be counted)."""
-    return float(np.prod(np.ceil(3.1 * np.asarray(span) / sigma + 11) + extra))
+    return float(np.prod(_rank(np.asarray(span) / sigma) + extra))
 
 
 def _cheb_nodes(r: int) -> FloatArray:

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._repr import number_text, points_text
-from ._fgt import ChebGrid, bounding_box, grid_nodes
+from ._fgt import bounding_box, gauss_transform, grid_nodes
 
 FloatArray = NDArray[np.float64]
 
@@ -51,7 +51,7 @@ def kernel_product(z: FloatArray, cp: FloatArray, q: FloatArray, beta: float) ->
     """``G(z, cp) @ q`` (``G[i, j] = exp(-|z_i - cp_j|^2 / (2 beta^2))``), shape (K, k).
 
     Dense in blocks of :data:`_BLOCK_ELEMS`, or through the Chebyshev Gauss transform
-    (:class:`._fgt.ChebGrid` with :data:`FIELD_FGT_EXTRA` more nodes) when its estimated
+    (:func:`._fgt.gauss_transform` with :data:`FIELD_FGT_EXTRA` more nodes) when its estimated
     cost is lower: a CPD field's kernel is wide (beta 1-2 on shapes of RMS radius 1), so
     its grid has a few hundred nodes however many points there are.
     """
@@ -60,15 +60,10 @@ def kernel_product(z: FloatArray, cp: FloatArray, q: FloatArray, beta: float) ->
     if k == 0 or m == 0:
         return out
     lo, hi = bounding_box(z, cp)
-    span = np.maximum(hi - lo, 1e-12 * beta)
     # a point at infinity or NaN makes the count so: the dense product keeps such points
-    nodes = grid_nodes(span, beta, FIELD_FGT_EXTRA)
+    nodes = grid_nodes(np.maximum(hi - lo, 1e-12 * beta), beta, FIELD_FGT_EXTRA)
     if FIELD_FGT_NODE_COST * (k + m) * nodes + FIELD_FGT_FIXED < k * m:
-        grid = ChebGrid(lo, hi, beta, FIELD_FGT_EXTRA)
-        lx, ly = grid.interp(cp)
-        conv = grid.spread(lx, ly, q)
-        tx, ty = grid.interp(z)
-        return grid.gather(tx, ty, conv)
+        return gauss_transform(cp, q, z, beta, extra=FIELD_FGT_EXTRA)
     step = max(1, _BLOCK_ELEMS // m)
     for a in range(0, k, step):
         out[a:a + step] = _gauss_kernel(z[a:a + step], cp, beta) @ q
