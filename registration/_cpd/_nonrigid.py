@@ -147,6 +147,7 @@ def cpd_nonrigid(
     backend: Literal["native", "pycpd"] = "native",
     callback: Callable[[int, float, float], None] | None = None,
     init_warped: ArrayLike | None = None,
+    control: ArrayLike | None = None,
 ) -> CPDResult:
     """Non-rigid Coherent Point Drift: move ``model`` onto ``subject``.
 
@@ -228,6 +229,16 @@ def cpd_nonrigid(
         kernel and the regulariser stay those of ``model`` (the field is still model ->
         subject); the first E-step uses these positions and the default initial sigma^2 is
         computed from them instead of from ``model``.  Native backend only.
+    control : array_like of int, optional
+        Indices of the model points the mixture is made of (at least 3, distinct, each in
+        ``[0, M)``): the EM runs on those centroids alone, and the field it fits (whose
+        control points they are) then moves every model point: ``warped``,
+        ``correspondence`` and ``probability`` are for all ``M`` points, the last two from
+        the posterior of all ``M`` warped points at the final sigma^2 (as without
+        ``control``).  Each E-step then costs ``len(control) * N`` pairs instead of
+        ``M * N``: for a model already near its subject (a warm start) a few hundred
+        well-spread points fit the same smooth field as every point.  ``init_warped``
+        stays one row per model point.  Native backend only.
 
     Returns
     -------
@@ -262,17 +273,19 @@ def cpd_nonrigid(
                              max_iter=max_iter, sigma2=sigma2, normalize=normalize,
                              low_rank=low_rank, num_eig=num_eig, dtype=dtype,
                              truncate=truncate, gauss_grid=gauss_grid, backend=backend,
-                             callback=callback, init_warped=init_warped)
+                             callback=callback, init_warped=init_warped, control=control)
 
 
 def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any, w: Any,
                   tol: Any, max_iter: Any, sigma2: Any, normalize: Any, low_rank: Any,
                   num_eig: Any, dtype: Any, truncate: Any, gauss_grid: Any, backend: Any,
                   callback: Callable[[int, float, float], None] | None,
-                  init_warped: ArrayLike | None = None) -> CPDResult:
+                  init_warped: ArrayLike | None = None,
+                  control: ArrayLike | None = None) -> CPDResult:
     y_in = as_points(model, name="model")
     x_in = as_points(subject, name="subject")
-    m, n = len(y_in), len(x_in)
+    idx = _control_indices(control, len(y_in), backend)
+    m, n = (len(y_in) if idx is None else len(idx)), len(x_in)
     CPDOptions(beta=beta, lmbda=lmbda, w=w, max_iter=max_iter, tol=tol, dtype=dtype)
     check_run_options(sigma2, num_eig, backend, low_rank, truncate, normalize, callback, m,
                       gauss_grid)
@@ -286,7 +299,8 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
         xd = x_in.mean(axis=0)
         yd, xs, ys = xd, 1.0, 1.0
     x = (x_in - xd) / xs
-    y = (y_in - yd) / ys
+    y_all = (y_in - yd) / ys
+    y = y_all if idx is None else y_all[idx]
     t0 = y
     if init_warped is not None:
         if backend != "native":
@@ -296,6 +310,8 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
             raise ValueError(f"init_warped must have the model's shape {y_in.shape}; "
                              f"got {w_in.shape}")
         t0 = (w_in - xd) / xs
+        if idx is not None:
+            t0 = t0[idx]
     s2_ref = float(np.mean(np.sum(x * x, axis=1))) if not normalize else 1.0
     if not s2_ref > 0:
         s2_ref = 1.0
@@ -381,13 +397,34 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
             break
 
     return _finish(x, y, wmat=wmat, g=gk, s2=s2, w=w, beta=beta, xd=xd, xs=xs,
-                   yd=yd, ys=ys, iterations=it, converged=converged, objective=objective)
+                   yd=yd, ys=ys, iterations=it, converged=converged, objective=objective,
+                   moved=None if idx is None else y_all)
+
+
+def _control_indices(control: ArrayLike | None, m: int, backend: Any) -> NDArray[np.intp] | None:
+    """``control`` as validated model indices; None for every point."""
+    if control is None:
+        return None
+    if backend != "native":
+        raise ValueError("control needs backend='native'")
+    arr = np.asarray(control)
+    if arr.ndim != 1 or (arr.size and not np.issubdtype(arr.dtype, np.integer)):
+        raise ValueError(f"control must be a 1-D array of integer model indices; got shape "
+                         f"{arr.shape} and dtype {arr.dtype}")
+    if len(arr) < 3:
+        raise ValueError(f"control must name at least 3 model points; got {len(arr)}")
+    if arr.min() < 0 or arr.max() >= m:
+        raise ValueError(f"control indices must lie in [0, {m}) (the model's points); got "
+                         f"{int(arr.min())}..{int(arr.max())}")
+    if len(np.unique(arr)) != len(arr):
+        raise ValueError("control indices must be distinct")
+    return arr.astype(np.intp)
 
 
 def _finish(x: FloatArray, y: FloatArray, *, wmat: FloatArray,
             g: FloatArray | None, s2: float, w: float, beta: float, xd: FloatArray, xs: float,
             yd: FloatArray, ys: float, iterations: int, converged: bool,
-            objective: float) -> CPDResult:
+            objective: float, moved: FloatArray | None = None) -> CPDResult:
     transform = NonrigidTransform(control_points=y, coefficients=wmat, beta=beta,
                                   model_shift=yd, model_scale=ys, subject_shift=xd,
                                   subject_scale=xs)
@@ -395,7 +432,11 @@ def _finish(x: FloatArray, y: FloatArray, *, wmat: FloatArray,
     # the internal centroids up to the dropped spectrum); without a dense G, the kernel
     # product is the transform's own (dense or the Chebyshev Gauss transform, about 1e-13
     # per kernel value), so ``warped`` is ``transform.apply(model)``.
-    t = y + (g @ wmat if g is not None else kernel_product(y, y, wmat, beta))
+    # `moved`: every model point when the field was fitted with control points
+    if moved is not None:
+        t = moved + kernel_product(moved, y, wmat, beta)
+    else:
+        t = y + (g @ wmat if g is not None else kernel_product(y, y, wmat, beta))
     corr, prob = _posterior_max(t, x, s2, w)
     warped = t * xs + xd
     warped.setflags(write=False)

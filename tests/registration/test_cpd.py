@@ -358,6 +358,80 @@ def test_init_warped_starts_from_the_given_positions(pair: Any) -> None:
     assert calls[0] < cold[0]
 
 
+# ----------------------------------------------------------------------------------------
+# control points (control)
+# ----------------------------------------------------------------------------------------
+def test_control_with_every_point_is_the_plain_run(pair: Any) -> None:
+    model, subject, _, _ = pair
+    plain = cpd_nonrigid(model, subject)
+    every = cpd_nonrigid(model, subject, control=np.arange(len(model)))
+    scale = rms_radius(subject)
+    assert every.iterations == plain.iterations
+    assert np.allclose(every.warped, plain.warped, atol=1e-9 * scale)
+    assert np.array_equal(every.correspondence, plain.correspondence)
+
+
+def test_control_points_fit_the_field_that_moves_every_point(pair: Any) -> None:
+    model, subject, truth, perm = pair
+    control = np.arange(0, len(model), 3)  # a third of the points, spread along the curve
+    res = cpd_nonrigid(model, subject, control=control)
+    scale = rms_radius(subject)
+    assert res.warped.shape == model.shape
+    assert res.correspondence.shape == res.probability.shape == (len(model),)
+    # the field is the control points' (the mixture's centroids), and it moves every point
+    assert np.array_equal(res.transform.control_points.shape, (len(control), 2))
+    assert np.allclose(res.transform.apply(model), res.warped, atol=1e-8 * scale)
+    # as close to the truth as the run on every point, points between controls included
+    plain = cpd_nonrigid(model, subject)
+    rms = {name: float(np.sqrt(np.mean(np.sum((r.warped - truth) ** 2, axis=1)))) / scale
+           for name, r in (("control", res), ("plain", plain))}
+    others = np.setdiff1d(np.arange(len(model)), control)
+    between = float(np.sqrt(np.mean(np.sum((res.warped[others] - truth[others]) ** 2,
+                                           axis=1)))) / scale
+    assert rms["control"] < 1.2 * rms["plain"] and between < 1.2 * rms["plain"]
+    # the correspondences of every model point come from the full posterior
+    truth_index = np.argsort(perm)  # subject row of each model point's image
+    hits = {name: float(np.mean(r.correspondence == truth_index))
+            for name, r in (("control", res), ("plain", plain))}
+    assert hits["control"] > 0.8 * hits["plain"]
+
+
+def test_control_with_a_warm_start(pair: Any) -> None:
+    model, subject, truth, _ = pair
+    first = cpd_nonrigid(model, subject)
+    control = np.arange(1, len(model), 4)
+    again = cpd_nonrigid(model, subject, init_warped=first.warped, sigma2=first.sigma2,
+                         control=control)
+    scale = rms_radius(subject)
+
+    def off(r: CPDResult) -> float:
+        return float(np.sqrt(np.mean(np.sum((r.warped - truth) ** 2, axis=1)))) / scale
+
+    # a quarter of the points, started where the run on every point ended, stay about there
+    assert np.sqrt(np.mean(np.sum((again.warped - first.warped) ** 2, axis=1))) < 0.05 * scale
+    assert off(again) < 1.2 * off(first)
+
+
+@pytest.mark.parametrize(("control", "message"), [
+    (np.array([0, 1]), "at least 3 model points"),
+    (np.array([0, 1, 1, 2]), "distinct"),
+    (np.array([0, 1, 200]), r"lie in \[0, 200\)"),
+    (np.array([-1, 1, 2]), r"lie in \[0, 200\)"),
+    (np.array([0.0, 1.0, 2.0]), "integer model indices"),
+    (np.array([[0, 1, 2]]), "1-D array"),
+])
+def test_control_is_validated(pair: Any, control: np.ndarray, message: str) -> None:
+    model, subject, _, _ = pair
+    with pytest.raises(ValueError, match=message):
+        cpd_nonrigid(model, subject, control=control)
+
+
+def test_control_needs_the_native_backend(pair: Any) -> None:
+    model, subject, _, _ = pair
+    with pytest.raises(ValueError, match="control needs backend='native'"):
+        cpd_nonrigid(model, subject, control=np.arange(10), backend="pycpd")
+
+
 def test_init_warped_is_validated(pair: Any) -> None:
     model, subject, _, _ = pair
     with pytest.raises(ValueError, match="init_warped must have the model's shape"):

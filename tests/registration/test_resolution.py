@@ -15,6 +15,7 @@ from registration import (
     registration_error,
 )
 from registration._points import normalise
+from registration._tree import _resolution
 from registration._tree._resolution import (
     DEFAULT_WORKING_POINTS,
     farthest_point_indices,
@@ -130,6 +131,32 @@ def test_coarse_to_fine_matches_a_full_resolution_run(runs, family):
 
     # measured 0.032 (coarse to fine) vs 0.037 (full resolution)
     assert gt(c2f) <= 1.2 * gt(full)
+
+
+def test_stored_resolution_fits_its_field_with_control_points(monkeypatch, runs, family):
+    """Above ``FINE_CONTROL_POINTS`` (here 120 of 240) each stored-resolution CPD fits its
+    field with the root's farthest-point subsample and moves every stored point: the
+    results are as complete as with every point, and as close to the truth."""
+    monkeypatch.setattr(_resolution, "FINE_CONTROL_POINTS", 120)
+    res = build_dynamic_tree(family.shapes, 0, working_points=WORKING, cpd=FAST_CPD,
+                             executor=SerialExecutor(), names=family.names)
+    _check_stored_resolution(res, family)
+    for s in res.subjects:
+        assert len(s.transform.steps[-1].control_points) == 120  # the stored-resolution CPD
+    truth = family.root_images(0)
+
+    def gt(r):
+        return np.mean([correspondence_error(s.warped, truth[s.index], family.shapes[s.index])
+                        for s in r.subjects])
+
+    assert gt(res) <= 1.1 * gt(runs["c2f"])
+
+
+def test_control_points_are_never_fewer_than_the_working_points(monkeypatch, family):
+    monkeypatch.setattr(_resolution, "FINE_CONTROL_POINTS", 50)
+    res = build_dynamic_tree(family.shapes, 0, working_points=WORKING, cpd=FAST_CPD,
+                             executor=SerialExecutor())
+    assert {len(s.transform.steps[-1].control_points) for s in res.subjects} == {WORKING}
 
 
 def test_static_tree_and_direct_are_at_the_stored_resolution(family):
