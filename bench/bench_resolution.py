@@ -11,6 +11,10 @@ Two parts, each method pair run side by side in this process (default options ot
   p95, parents that agree, and how far apart the two runs' results are, per subject, in
   units of the subject's RMS radius: the RMS distance between the warped root models
   ("warped"), and between the subject points the correspondences pick ("corr").
+- ``control``: the stored-resolution stage's CPDs fitted on every model point against
+  ``FINE_CONTROL_POINTS`` (500) of them, on the same coarse trees of eight 永 edge
+  designs (``deformation_chains``, at most 1800 points a shape, root 0): ground truth
+  (all subjects, far half = chain steps 4-6) and the stage's CPU time, serial.
 - ``gt``: ground truth. :func:`registration.synthetic.deformation_chains` families of
   three 永 edge designs (rows 0, 36, 72 of index.csv; 4 chains x 6 steps), every shape
   sampling ``--gt-points`` (1200) of the dense edge points, root 0: the RMS distance of
@@ -18,7 +22,7 @@ Two parts, each method pair run side by side in this process (default options ot
   tree coarse to fine, the tree at full resolution and plain CPD at full resolution
   (``register_direct(prealign=False, working_points=None)``).
 
-    .venv/bin/python bench/bench_resolution.py [--part yong|gt|all] [--limit N]
+    .venv/bin/python bench/bench_resolution.py [--part yong|gt|control|all] [--limit N]
         [--gt-points 1200] [--gt-designs 3] [--json PATH]
 
 (``REGTREE_DATA=/path/to/shared/data`` when the data is not at ``../shared/data``.)
@@ -162,9 +166,74 @@ def part_gt(points: int, designs: int) -> dict[str, Any]:
             for name, v in gt.items()}
 
 
+def part_control(points: int, designs: list[int]) -> dict[str, Any]:
+    """The stored-resolution stage with its CPDs' fields fitted on every model point
+    against :data:`FINE_CONTROL_POINTS` of them, on one coarse tree per family (captured
+    from the default run, then the stage run again serially, both ways, in this process)."""
+    import copy
+
+    from registration import SerialExecutor
+    from registration._tree import _methods, _resolution
+
+    with (GLYPHS / "index.csv").open(newline="") as fh:
+        ids = [row["id"] for row in csv.DictReader(fh)] if (GLYPHS / "index.csv").exists() \
+            else []
+    if not ids:
+        print(f"NOTE: {GLYPHS} is missing: skipping the control-point part")
+        return {}
+    stage = _resolution.at_stored_resolution
+    captured: dict[str, Any] = {}
+
+    def capture(result: CollectionResult, *args: Any) -> CollectionResult:
+        captured["args"] = (copy.deepcopy(result), *args[:4])
+        return stage(result, *args)
+
+    settings = {"every point": 10**9, "control": _resolution.FINE_CONTROL_POINTS}
+    default = _resolution.FINE_CONTROL_POINTS
+    gt: dict[str, list[float]] = {k: [] for k in settings}
+    far: dict[str, list[float]] = {k: [] for k in settings}
+    cpu = dict.fromkeys(settings, 0.0)
+    _methods.at_stored_resolution = capture  # type: ignore[assignment]
+    try:
+        for row in designs:
+            design = ids[row]
+            dense = np.loadtxt(GLYPHS / "points" / f"{design}_edge.txt")
+            fam = deformation_chains(dense, n_points=min(points, len(dense)), seed=0)
+            truth = fam.root_images(0)
+            build_dynamic_tree(fam.shapes, 0)
+            coarse_result, full, coarse, cpd, wp = captured["args"]
+            line = f"{design[:26]:<26} {len(dense):5d}"
+            for name, k in settings.items():
+                _resolution.FINE_CONTROL_POINTS = k
+                t = time.process_time()
+                res = stage(copy.deepcopy(coarse_result), full, coarse, cpd, wp,
+                            SerialExecutor(), None)
+                cpu[name] += time.process_time() - t
+                errs = {s.index: correspondence_error(s.warped, truth[s.index],
+                                                      fam.shapes[s.index])
+                        for s in res.subjects if s.warped is not None and s.index != 0}
+                deep = [e for i, e in errs.items() if fam.depth[i] >= 4]
+                gt[name].extend(errs.values())
+                far[name].extend(deep)
+                line += f"  {name}: GT {np.mean(list(errs.values())):.4f} far {np.mean(deep):.4f}"
+            print(line, flush=True)
+    finally:
+        _methods.at_stored_resolution = stage
+        _resolution.FINE_CONTROL_POINTS = default
+    base, base_far = np.mean(gt["every point"]), np.mean(far["every point"])
+    out = {}
+    for name in settings:
+        out[name] = {"gt": float(np.mean(gt[name])), "far": float(np.mean(far[name])),
+                     "cpu_s": cpu[name]}
+        print(f"{name:<12} GT {out[name]['gt']:.4f} ({out[name]['gt'] / base:.3f}x)  far "
+              f"{out[name]['far']:.4f} ({out[name]['far'] / base_far:.3f}x)  stage CPU "
+              f"{cpu[name]:.1f} s")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--part", choices=["yong", "gt", "all"], default="all")
+    ap.add_argument("--part", choices=["yong", "gt", "control", "all"], default="all")
     ap.add_argument("--limit", type=int, default=None, help="first N glyphs only")
     ap.add_argument("--gt-points", type=int, default=1200)
     ap.add_argument("--gt-designs", type=int, default=3, help="the first 1-3 of rows 0, 36, 72")
@@ -175,6 +244,8 @@ def main() -> None:
         out["yong"] = part_yong(args.limit)
     if args.part in ("gt", "all"):
         out["gt"] = part_gt(args.gt_points, args.gt_designs)
+    if args.part in ("control", "all"):
+        out["control"] = part_control(1800, [0, 36, 72, 12, 50, 20, 60, 5])
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
 
