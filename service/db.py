@@ -19,11 +19,13 @@ Use :meth:`Database.read` for reads and :meth:`Database.write` for anything that
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
 
+import orjson
 from sqlalchemy import Engine, Select, create_engine, event, make_url
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -55,17 +57,49 @@ def ensure_sqlite_dir(url: str) -> None:
         Path(str(parsed.database)).expanduser().parent.mkdir(parents=True, exist_ok=True)
 
 
+#: orjson's options for the JSON columns: keys that are not strings written as strings,
+#: and numpy arrays and scalars as lists and numbers (what ``json.dumps`` did after
+#: ``tolist()``).
+_ORJSON_OPTIONS = orjson.OPT_NON_STR_KEYS | orjson.OPT_SERIALIZE_NUMPY
+
+
+def dumps_json(value: Any) -> str:
+    """A JSON column's text: orjson, with the standard library's ``json.dumps`` for what
+    orjson refuses (integers beyond 64 bits, say).
+
+    A full result's subjects are about 27 MB of floats (73 glyphs at their stored
+    resolution): ``json.dumps`` took 1.8 s of every such job's end, orjson 0.09 s. Non-finite
+    floats become ``null`` (the documents are made JSON-safe before they get here)."""
+    try:
+        return orjson.dumps(value, option=_ORJSON_OPTIONS).decode()
+    except (orjson.JSONEncodeError, TypeError):
+        return json.dumps(value)
+
+
+def loads_json(text: str | bytes) -> Any:
+    """A JSON column's value: orjson (3x faster than ``json.loads`` on a full result), with
+    ``json.loads`` for text orjson rejects (``NaN`` written by ``json.dumps`` before)."""
+    try:
+        return orjson.loads(text)
+    except orjson.JSONDecodeError:
+        return json.loads(text)
+
+
 def create_db_engine(url: str, *, busy_timeout_ms: int = 30_000) -> Engine:
-    """Create an engine; for SQLite, set up WAL, busy timeout, foreign keys and BEGIN modes."""
+    """Create an engine; for SQLite, set up WAL, busy timeout, foreign keys and BEGIN modes.
+
+    JSON columns go through :func:`dumps_json` and :func:`loads_json`."""
+    codec: dict[str, Any] = {"json_serializer": dumps_json, "json_deserializer": loads_json}
     if not _is_sqlite(url):
         # A server database: pre-ping so that a connection the server dropped (restart,
         # idle timeout) is replaced instead of failing the next request.
-        return create_engine(url, pool_pre_ping=True)
+        return create_engine(url, pool_pre_ping=True, **codec)
 
     ensure_sqlite_dir(url)
     engine = create_engine(
         url,
         connect_args={"timeout": busy_timeout_ms / 1000.0, "check_same_thread": False},
+        **codec,
     )
 
     @event.listens_for(engine, "connect")
