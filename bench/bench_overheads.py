@@ -5,7 +5,7 @@ Run from the project root::
 
     .venv/bin/python bench/bench_overheads.py [--data /work/shared/data] [--glyphs 20]
 
-Three comparisons on the 永 edge glyphs of ``glyphs_yong`` (the first ``--glyphs`` designs):
+Four comparisons on the 永 edge glyphs of ``glyphs_yong`` (the first ``--glyphs`` designs):
 
 1. **The field's kernel product** (``_cpd._field.kernel_product``: a warp, its Jacobian, CPD's
    final warp) dense against the Chebyshev grid it now takes when cheaper, at 200-1200 points
@@ -20,6 +20,10 @@ Three comparisons on the 永 edge glyphs of ``glyphs_yong`` (the first ``--glyph
    with each process's BLAS left to its own threads (as before) and limited to its share of
    the CPUs; wall and the pool's CPU seconds. Run on a quiet machine: the gap grows with the
    machine's other load.
+
+4. **Block size** of the dense E-step and of the final posterior pass
+   (``_cpd._field._BLOCK_ELEMS``): 1 << 22 elements (as before) against the current size,
+   at 500 x N (the stored-resolution stage's control points), M x N and 2M x 2N; CPU ms.
 
 BLAS runs on one thread in this process (as in the pool's processes).
 """
@@ -116,6 +120,35 @@ def pool_blas(glyphs: list[np.ndarray]) -> None:
         _pool._limit_blas_threads = kept
 
 
+def block_sizes(glyphs: list[np.ndarray]) -> None:
+    """The dense E-step and the final posterior pass in blocks of 1 << 22 elements (as
+    before) and of ``_field._BLOCK_ELEMS`` (now 1 << 18), on two glyphs: 500 of the first's
+    points against the second, both as stored, and both doubled (each point and a copy
+    1e-3 away)."""
+    from registration._cpd import _field
+
+    now = _field._BLOCK_ELEMS
+    print(f"4. dense float32 E-step / posterior pass: CPU ms in blocks of {1 << 22} and "
+          f"{now} elements")
+    a, b = normalise(glyphs[0])[0], normalise(glyphs[1])[0]
+    sizes = [(a[farthest_point_indices(a, 500)], b), (a, b)]
+    big = [np.vstack([p, p + 1e-3]) for p in (a, b)]
+    sizes.append((big[0], big[1]))
+    try:
+        for t, x in sizes:
+            row = []
+            for blocks in (1 << 22, now):
+                _estep._BLOCK_ELEMS = _field._BLOCK_ELEMS = blocks
+                es = _estep._EStep(x, len(t), 0.1, "float32")
+                row.append((cpu_ms(es.dense, 5, t, 0.01),
+                            cpu_ms(_estep._posterior_max_dense, 3, t, x, 0.01, 0.1)))
+            print(f"   {len(t):5d} x {len(x):5d}: E-step {row[0][0]:7.1f} / {row[1][0]:7.1f} "
+                  f"({row[1][0] / row[0][0]:.2f}x), posterior {row[0][1]:7.1f} / "
+                  f"{row[1][1]:7.1f} ({row[1][1] / row[0][1]:.2f}x)", flush=True)
+    finally:
+        _estep._BLOCK_ELEMS = _field._BLOCK_ELEMS = now
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=Path("/work/shared/data"))
@@ -130,6 +163,7 @@ def main() -> None:
 
     with threadpool_limits(limits=1, user_api="blas"):
         field_products(glyphs)
+        block_sizes(glyphs)
         engine_reuse(glyphs)
     pool_blas(glyphs)
 

@@ -14,8 +14,12 @@ from ._fgt import bounding_box, gauss_transform, grid_nodes
 
 FloatArray = NDArray[np.float64]
 
-#: Elements of one kernel or E-step block (M x block columns), bounds the memory used.
-_BLOCK_ELEMS = 1 << 22
+#: Elements of one kernel or E-step block (M x block columns). Each block makes several
+#: passes over its elements (product, clamp, cast, exp, two sums), so it pays to keep them
+#: near the cache: 1 << 18 against 1 << 22 took 0.73x / 0.63x / 0.58x the time of the
+#: float32 dense E-step at 500 x 1900 / 1900^2 / 4000^2 points, and 0.8-0.9x of the final
+#: posterior pass (bench/RESULTS.md section 7.3); smaller blocks lose to the loop's overhead.
+_BLOCK_ELEMS = 1 << 18
 #: Chebyshev nodes per axis added to the field's Gauss transform beyond its 1e-10 rule
 #: (:func:`._fgt.cheb_rank`): about 1e-13 per kernel value; measured on 永 glyphs at beta 1
 #: and 2, every sum within 4e-16 of ``sum_j |q_j|`` of the dense product.
