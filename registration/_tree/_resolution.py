@@ -70,10 +70,11 @@ FINE_SIGMA2_FACTOR = 3.0
 #: Most model points the warm-started CPD fits its field with (the root's farthest-point
 #: subsample, chosen once; every stored point is then moved by that field and given its
 #: correspondence). A CPD's E-step costs the model's points times the subject's, and at
-#: this stage the start is already within the coarse registration's error: on five 永
-#: edge families at their stored 1205-1800 points (bench/RESULTS.md section 8.2) fitting
-#: with 500 points gave the same ground-truth error as with every point (0.995x pooled,
-#: every design within 2.5 %, 1000 and 700 points the same) in 0.55x the CPU time.
+#: this stage the start is already within the coarse registration's error: on eight 永
+#: edge families at 1205-1800 points a shape (bench/RESULTS.md section 8.2) fitting with
+#: 500 points gave the same ground-truth error as with every point (0.993x pooled, far
+#: half 0.998x, every design within 2 %; 1000 and 700 points the same) in 0.63x the
+#: stage's CPU time. Never fewer than the working resolution's points.
 FINE_CONTROL_POINTS = 500
 
 
