@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -43,16 +44,38 @@ FAST_ENV = {
 _HANDED_OUT: set[int] = set()
 
 
+#: Ports the servers of the suite listen on: below Linux's ephemeral range (32768-60999),
+#: where no client connection of the suite is given one, split evenly between the
+#: pytest-xdist workers so that two workers never hand out the same port.
+_PORTS = range(20000, 32000)
+
+
+def _worker_ports() -> range:
+    """This pytest-xdist worker's share of :data:`_PORTS` (all of it without xdist)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")  # "gw0", "gw1", ...
+    count = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1))
+    number = int(worker[2:]) % count if worker.startswith("gw") and worker[2:].isdigit() else 0
+    span = len(_PORTS) // count
+    return range(_PORTS.start + number * span, _PORTS.start + (number + 1) * span)
+
+
 def free_port() -> int:
     """A port nothing listens on, and not one given before in this session (a server
-    launched with it may not be listening yet)."""
+    launched with it may not be listening yet), from this worker's share of
+    :data:`_PORTS`."""
+    ports = _worker_ports()
+    rng = random.Random()
     while True:
+        port = rng.choice(ports)
+        if port in _HANDED_OUT:
+            continue
         with socket.socket() as sock:
-            sock.bind(("127.0.0.1", 0))
-            port: int = sock.getsockname()[1]
-        if port not in _HANDED_OUT:
-            _HANDED_OUT.add(port)
-            return port
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:  # taken
+                continue
+        _HANDED_OUT.add(port)
+        return port
 
 
 def _stop(process: subprocess.Popen[bytes], timeout: float = 20.0) -> None:
