@@ -132,10 +132,17 @@ def part_yong(limit: int | None) -> dict[str, Any]:
     return out
 
 
+def design_ids() -> list[str]:
+    """The designs of ``glyphs_yong/index.csv`` in its order; none when it is missing."""
+    index = GLYPHS / "index.csv"
+    if not index.exists():
+        return []
+    with index.open(newline="") as fh:
+        return [row["id"] for row in csv.DictReader(fh)]
+
+
 def part_gt(points: int, designs: int) -> dict[str, Any]:
-    with (GLYPHS / "index.csv").open(newline="") as fh:
-        ids = [row["id"] for row in csv.DictReader(fh)] if (GLYPHS / "index.csv").exists() \
-            else []
+    ids = design_ids()
     if not ids:
         print(f"NOTE: {GLYPHS} is missing: skipping the ground-truth part")
         return {}
@@ -175,9 +182,7 @@ def part_control(points: int, designs: list[int]) -> dict[str, Any]:
     from registration import SerialExecutor
     from registration._tree import _methods, _resolution
 
-    with (GLYPHS / "index.csv").open(newline="") as fh:
-        ids = [row["id"] for row in csv.DictReader(fh)] if (GLYPHS / "index.csv").exists() \
-            else []
+    ids = design_ids()
     if not ids:
         print(f"NOTE: {GLYPHS} is missing: skipping the control-point part")
         return {}
