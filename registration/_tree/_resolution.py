@@ -225,7 +225,7 @@ def _refined_subjects(
     full: _Collection,
     subjects: list[SubjectResult],
     cpd: CPDOptions,
-    control_points: int,
+    control: IntArray | None,
     executor: Executor | None,
     progress: ProgressCallback | None,
     stage: str,
@@ -247,8 +247,6 @@ def _refined_subjects(
     correspondences the wrong way, and a child started from it inherits that (seen with the
     two-stage polish on one 永 design: 0.69x -> 0.88x of plain CPD)."""
     root = full.root
-    control = (farthest_point_indices(full.normed[root], control_points)
-               if len(full.normed[root]) > control_points else None)
     fine = {root: _FineNode(q=full.normed[root], chain=full.root_chain())}
     coarse_chain = {root: full.root_chain()}
     out = {s.index: s for s in subjects}
@@ -333,10 +331,14 @@ def at_stored_resolution(
     result.options["working_points"] = working_points
     if coarse is full:
         return result
-    control_points = max(FINE_CONTROL_POINTS, working_points or 0)
-    result.subjects = _refined_subjects(full, result.subjects, cpd, control_points, executor,
+    # the root's control points, for every stored-resolution CPD of the tree and of direct
+    n_control = max(FINE_CONTROL_POINTS, working_points or 0)
+    root_points = full.normed[full.root]
+    control = (farthest_point_indices(root_points, n_control)
+               if len(root_points) > n_control else None)
+    result.subjects = _refined_subjects(full, result.subjects, cpd, control, executor,
                                         progress, "full resolution")
     if result.direct is not None:
-        result.direct = _refined_subjects(full, result.direct, cpd, control_points, executor,
+        result.direct = _refined_subjects(full, result.direct, cpd, control, executor,
                                           progress, "direct full resolution")
     return result
