@@ -72,7 +72,7 @@ def dumps_json(value: Any) -> str:
     floats become ``null`` (the documents are made JSON-safe before they get here)."""
     try:
         return orjson.dumps(value, option=_ORJSON_OPTIONS).decode()
-    except (orjson.JSONEncodeError, TypeError):
+    except TypeError:  # orjson.JSONEncodeError is one
         return json.dumps(value)
 
 
