@@ -25,6 +25,11 @@ Families (collections with exact ground truth):
   (``../shared/data/chui_rangarajan``): per trial, the model X (root) and that trial's
   targets of deformation levels 1-5;
 - ``generated``: :func:`registration.synthetic.chained_family` with its defaults (root 0).
+- ``mpeg7`` / ``outline``: shape classes no default was tuned on, deformed as the glyphs
+  (root 0, the first seed only): the first instance of each MPEG-7 class (400 points a
+  shape), and the first lmfree2d contour of each class (100 points), three Momocs hearts
+  (80) and three North Sea fishes (120), their outlines densified 20x so that each
+  shape samples its own points off them.
 
 "far" subjects are those more than half the family's chain length away from the root
 along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
@@ -160,6 +165,55 @@ def chui_cases(kind: str, trials: list[int]) -> list[Case]:
             kind=f"chui-{kind}", label=f"chui-{kind} trial {t}", seed=t, shapes=shapes,
             names=names, root=0, truth=truth, depth=depth, distance=depth, far_from=3,
         ))
+    return cases
+
+
+def _densify(contour: np.ndarray, per: int = 20) -> np.ndarray:
+    """A closed contour with `per` points along each of its segments (linear), so that
+    each deformed shape can sample its own points off the outline."""
+    c = np.asarray(contour, dtype=np.float64)
+    t = np.linspace(0.0, 1.0, per, endpoint=False)[None, :, None]
+    return (c[:, None, :] * (1 - t) + np.roll(c, -1, axis=0)[:, None, :] * t).reshape(-1, 2)
+
+
+def outline_sources() -> dict[str, list[tuple[str, np.ndarray, int]]]:
+    """Dense outlines of the shape classes that no default was tuned on, with the points a
+    shape of that class has: ``mpeg7`` (instance 1 of each class, 400 points), ``outline``
+    (lmfree2d contours, shape 1 of each class, 100 points; Momocs hearts, 80, and North
+    Sea fishes, 120: the first three of each)."""
+    out: dict[str, list[tuple[str, np.ndarray, int]]] = {"mpeg7": [], "outline": []}
+    mpeg7 = DATA / "mpeg7"
+    if mpeg7.is_dir():
+        for cls in sorted(p.name for p in mpeg7.iterdir() if (p / f"{p.name}-1.npy").exists()):
+            out["mpeg7"].append((cls, np.load(mpeg7 / cls / f"{cls}-1.npy"), 400))
+    lmfree = DATA / "lmfree2d"
+    if lmfree.is_dir():
+        for cls in sorted(p.name for p in lmfree.iterdir() if (p / "contours.csv").exists()):
+            with (lmfree / cls / "contours.csv").open(newline="") as fh:
+                pts = [(float(r["X"]), float(r["Y"])) for r in csv.DictReader(fh)
+                       if r["Shape"] == "1"]
+            out["outline"].append((f"lmfree2d-{cls}", _densify(np.array(pts)), 100))
+    for name, n in (("hearts", 80), ("nsfishes", 120)):
+        path = DATA / "momocs" / f"{name}.npz"
+        if path.exists():
+            with np.load(path) as data:
+                for key in list(data.keys())[:3]:
+                    out["outline"].append((f"{name}-{key}", _densify(data[key]), n))
+    return out
+
+
+def outline_cases(kind: str, seeds: list[int]) -> list[Case]:
+    """`deformation_chains` (its defaults but the points per shape) of each outline of
+    `kind` (see :func:`outline_sources`), root 0."""
+    cases = []
+    for name, dense, n in outline_sources()[kind]:
+        for seed in seeds:
+            fam = deformation_chains(dense, n_points=n, seed=seed)
+            cases.append(Case(
+                kind=kind, label=f"{kind} {name} seed {seed}", seed=seed,
+                shapes=fam.shapes, names=fam.names, root=0, truth=fam.root_images(0),
+                depth=fam.depth, distance=fam.depth, far_from=max(fam.depth) // 2 + 1,
+            ))
     return cases
 
 
@@ -486,7 +540,7 @@ def main() -> None:
                     help="Chui & Rangarajan trials per series (default 3)")
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
-                    "generated)")
+                    "generated mpeg7 outline)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
@@ -523,6 +577,12 @@ def main() -> None:
     elif DATA.is_dir():
         print(f"NOTE: {CHUI} lacks the def series: skipping the Chui & Rangarajan families")
     cases += generated_cases(seeds)
+    if not args.quick or (args.only and {"mpeg7", "outline"} & set(args.only)):
+        for kind, sources in outline_sources().items():
+            if sources:
+                cases += outline_cases(kind, seeds[:1])
+            elif DATA.is_dir():
+                print(f"NOTE: no {kind} shapes under {DATA}: skipping that family")
     if args.only:
         cases = [c for c in cases if c.kind in args.only]
     print(f"{len(cases)} runs x 3 methods, default options (the library picks its executor); "
