@@ -420,3 +420,37 @@ def test_a_rejected_polish_stage_is_skipped_not_the_end(family, monkeypatch):
     assert len(out.steps) == 1 and len(out.quality) == 1
     assert out.error < task.error
     assert np.allclose(out.steps[0].apply(start), out.warped, atol=1e-8)
+
+
+@pytest.mark.parametrize("margin, kept", [(1e-6, True), (-1e-6, False)])
+def test_a_finer_polish_stage_must_lower_e_by_the_set_fraction(family, monkeypatch, margin,
+                                                               kept):
+    """The finer stage is kept only when its e is at most POLISH_FINER_MAX_E_RATIO of its
+    start's: a finer kernel lowers e a little by sliding points along the outline alone.
+    Set just above and just below the ratio this stage reaches, it is kept, then not."""
+    from registration._error import registration_error
+    from registration._points import mean_spacing2, normalise
+    from registration._tree import _polish as polish_module
+
+    real = polish_module.cpd_nonrigid
+    warped: list[np.ndarray] = []
+
+    def recording(x, y, **kw):
+        res = real(x, y, **kw)
+        warped.append(np.asarray(res.warped))
+        return res
+
+    monkeypatch.setattr(polish_module, "cpd_nonrigid", recording)
+    y, _ = normalise(family.shapes[3])
+    start = y + 0.02 * np.sin(5 * y[:, ::-1])
+    task = polish_module._PolishTask(
+        subject=3, start=start, error=registration_error(start, y), y=y, cpd=FAST_CPD,
+        spacing2=mean_spacing2(y))
+    polish_module._polish_task(task)  # where each stage lands, with the library's rule
+    e1, e2 = (registration_error(w, y) for w in warped)
+    assert e1 <= task.error, "the first stage is kept in this setting"
+    warped.clear()
+    monkeypatch.setattr(polish_module, "POLISH_FINER_MAX_E_RATIO", e2 / e1 + margin)
+    out = polish_module._polish_task(task)
+    assert len(out.steps) == (2 if kept else 1)
+    assert out.error == pytest.approx(e2 if kept else e1)
