@@ -36,7 +36,7 @@ from ._pointmap import jacobian_determinants
 from ._points import Normalization, as_points, normalise, resample
 from ._result import Attempt, CollectionResult, SubjectResult, error_statistics
 from ._similarity import ProgressCallback, Similarity, similarity_matrix
-from ._transform import AffineTransform, ChainTransform
+from ._transform import AffineTransform, ChainTransform, expand_shared_steps
 from ._tree import build_dynamic_tree, build_static_tree, register_direct
 
 __all__ = [
@@ -70,6 +70,7 @@ __all__ = [
     "cpd_nonrigid",
     "default_executor",
     "error_statistics",
+    "expand_shared_steps",
     "fit_affine",
     "group_instances",
     "jacobian_determinants",

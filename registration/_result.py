@@ -138,7 +138,9 @@ class SubjectResult:
             ("attempts", len(self.attempts)),
         ])
 
-    def to_dict(self, *, include_points: bool = True) -> dict[str, Any]:
+    def to_dict(self, *, include_points: bool = True,
+                transform_base: tuple[int, int] | None = None) -> dict[str, Any]:
+        """JSON-ready data; `transform_base` as :meth:`ChainTransform.to_dict`'s ``base``."""
         d: dict[str, Any] = {
             "index": self.index,
             "name": self.name,
@@ -160,7 +162,8 @@ class SubjectResult:
                 None if self.correspondence is None else self.correspondence.tolist()
             )
             d["probability"] = None if self.probability is None else self.probability.tolist()
-            d["transform"] = None if self.transform is None else self.transform.to_dict()
+            d["transform"] = (None if self.transform is None
+                              else self.transform.to_dict(base=transform_base))
         return d
 
 
@@ -337,8 +340,26 @@ class CollectionResult:
             }
         return out
 
-    def to_dict(self, *, include_points: bool = True) -> dict[str, Any]:
-        """A JSON-serialisable document of the whole result."""
+    def to_dict(self, *, include_points: bool = True,
+                shared_steps: bool = False) -> dict[str, Any]:
+        """A JSON-serialisable document of the whole result.
+
+        ``shared_steps``: each subject's transform holds only the steps after those it
+        shares with its parent's, and a ``base`` naming the parent and how many of its
+        steps come first (:meth:`ChainTransform.to_dict`); :func:`registration.
+        expand_shared_steps` restores the full chain. On the 73 永 edge glyphs this is a
+        fraction of the size: each subject's chain otherwise repeats all its ancestors'.
+        """
+        by_index = {s.index: s for s in self.subjects}
+
+        def base(s: SubjectResult) -> tuple[int, int] | None:
+            parent = None if s.parent is None else by_index.get(s.parent)
+            if (not shared_steps or parent is None or s.transform is None
+                    or parent.transform is None):
+                return None
+            k = s.transform.shared_steps(parent.transform)
+            return (parent.index, k) if k > 0 else None
+
         return {
             "method": self.method,
             "root": self.root,
@@ -346,7 +367,8 @@ class CollectionResult:
             "thresholds": dict(self.thresholds),
             "options": dict(self.options),
             "similarity_pairs": self.similarity_pairs,
-            "subjects": [s.to_dict(include_points=include_points) for s in self.subjects],
+            "subjects": [s.to_dict(include_points=include_points, transform_base=base(s))
+                         for s in self.subjects],
             "direct": None
             if self.direct is None
             else [s.to_dict(include_points=include_points) for s in self.direct],

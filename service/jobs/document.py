@@ -55,6 +55,10 @@ def _with_shape_ids(raw: dict[str, Any], shape_ids: list[int], fallback: int) ->
             **transform,
             "path_shape_ids": [_index_to_id(p, shape_ids) for p in transform["path"]],
         }
+        base = transform.get("base")
+        if isinstance(base, dict):  # the steps it shares with that subject's transform
+            subject["transform"]["base"] = {
+                **base, "shape_id": _index_to_id(base.get("index"), shape_ids)}
     return subject
 
 

@@ -209,7 +209,9 @@ def run_registration(*args: Any, **kwargs: Any) -> dict[str, Any]:
     """:func:`run_library`'s result as its document (``to_dict()``), with the similarity D
     under :data:`SIMILARITY_KEY`."""
     result = run_library(*args, **kwargs)
-    doc: dict[str, Any] = result.to_dict()
+    # each subject's transform refers to its parent's steps instead of repeating them; the
+    # result routes expand them (service.api.routes.results.expanded)
+    doc: dict[str, Any] = result.to_dict(shared_steps=True)
     doc[SIMILARITY_KEY] = result.similarity
     return doc
 

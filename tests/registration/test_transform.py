@@ -113,3 +113,64 @@ def test_exact_jacobians_match_central_differences() -> None:
     # a displacement that is not the identity: the check would pass on any I otherwise
     assert np.abs(jacobian_matrices(field, at) - np.eye(2) * field.subject_scale
                   / field.model_scale).max() > 0.05
+
+
+@pytest.fixture(scope="module")
+def chained_result():
+    from registration import CPDOptions, SerialExecutor, build_dynamic_tree
+    from registration.synthetic import chained_family
+
+    fam = chained_family(n_chains=2, chain_length=4, n_points=60, seed=3)
+    res = build_dynamic_tree(fam.shapes, 0, cpd=CPDOptions(max_iter=40),
+                             executor=SerialExecutor())
+    return fam.shapes[0], res
+
+
+def test_shared_steps_expand_to_the_whole_chains(chained_result) -> None:
+    """to_dict(shared_steps=True): a subject's transform keeps the steps after those it
+    shares with its parent's and names them in ``base``; expand_shared_steps gives back
+    exactly to_dict()'s transform, which maps the root onto the warped model."""
+    from registration import expand_shared_steps
+
+    model, result = chained_result
+    whole = result.to_dict()
+    shared = result.to_dict(shared_steps=True)
+    by_index = {s["index"]: s["transform"] for s in shared["subjects"]}
+    based = [s for s in shared["subjects"] if s["transform"] and "base" in s["transform"]]
+    assert based, "no subject below layer 2 in a chained family of depth 4"
+    for s in based:
+        assert s["transform"]["base"]["index"] == s["parent"]
+        assert len(s["transform"]["steps"]) < len(result.subject(s["index"]).transform.steps)
+    for w, s in zip(whole["subjects"], shared["subjects"], strict=True):
+        if s["transform"] is None:
+            assert w["transform"] is None
+            continue
+        expanded = expand_shared_steps(s["transform"], by_index.get)
+        assert json.dumps(expanded) == json.dumps(w["transform"])
+        np.testing.assert_allclose(ChainTransform.from_dict(expanded).apply(model),
+                                   result.subject(s["index"]).warped, atol=1e-8)
+    assert len(json.dumps(shared)) < len(json.dumps(whole))
+
+
+def test_a_transform_with_a_base_is_not_read_as_a_whole_chain(chained_result) -> None:
+    from registration import expand_shared_steps
+
+    _, result = chained_result
+    shared = result.to_dict(shared_steps=True)
+    t = next(s["transform"] for s in shared["subjects"]
+             if s["transform"] and "base" in s["transform"])
+    by_index = {s["index"]: s["transform"] for s in shared["subjects"]}
+    with pytest.raises(ValueError, match="expand_shared_steps"):
+        ChainTransform.from_dict(t)
+    with pytest.raises(ValueError, match="has no transform"):
+        expand_shared_steps(t, lambda index: None)
+    too_many = {**t, "base": {**t["base"], "steps": 10_000}}
+    with pytest.raises(ValueError, match="refers to 10000 steps"):
+        expand_shared_steps(too_many, by_index.get)
+    loop = {**t, "base": {"index": 7, "steps": 1}}
+    with pytest.raises(ValueError, match="loop"):
+        expand_shared_steps(loop, lambda index: loop)
+    with pytest.raises(ValueError, match="not a transform base"):
+        expand_shared_steps({**t, "base": {"steps": 1}}, by_index.get)
+    with pytest.raises(ValueError, match="base steps must be"):
+        result.subjects[0].transform.to_dict(base=(0, 10_000))

@@ -81,6 +81,52 @@ def test_job_runs_to_completion_and_result_reads_back(client: httpx.Client) -> N
     assert [j["id"] for j in listed["items"]] == [job["id"]]
 
 
+def test_stored_transforms_share_their_parents_steps_and_read_back_whole(
+    client: httpx.Client, service: Service
+) -> None:
+    """A subject's stored transform holds only the steps after its parent's, with a
+    ``base`` naming them; every route gives the whole chain, which maps the model onto the
+    subject's warped model."""
+    import json
+    import sqlite3
+
+    from registration import ChainTransform
+
+    shapes = family(n_chains=2, chain_length=4, n_points=60, seed=3)
+    cid = create_collection(client, "shared steps")
+    ids = upload_family(client, cid, shapes)
+    job = submit_job(client, cid, ids[0])
+    assert wait_job(client, job["id"])["status"] == "succeeded"
+
+    with sqlite3.connect(service.db_path) as con:
+        stored = {sid: json.loads(doc)["transform"] for sid, doc in con.execute(
+            "SELECT shape_id, document FROM result_subjects WHERE job_id = ?", (job["id"],))}
+    based = {sid: t for sid, t in stored.items() if t and "base" in t}
+    assert based, "no subject below layer 2 in a chained family of depth 4"
+
+    full = client.get(f"/v1/jobs/{job['id']}/result", params={"full": "true"}).json()
+    whole = {s["shape_id"]: s for s in full["subjects"]}
+    model = shapes[0][1]
+    for sid, t in based.items():
+        detail = client.get(f"/v1/jobs/{job['id']}/result/subjects/{sid}").json()
+        transform = detail["transform"]
+        assert "base" not in transform and transform == whole[sid]["transform"]
+        # the stored steps are the last ones of the whole chain, after the parent's
+        base = t["base"]
+        assert base["shape_id"] == detail["parent_shape_id"]
+        assert len(transform["steps"]) == base["steps"] + len(t["steps"])
+        assert transform["steps"][base["steps"]:] == t["steps"]
+        parent = client.get(f"/v1/jobs/{job['id']}/result/subjects/{base['shape_id']}").json()
+        assert transform["steps"][:base["steps"]] == parent["transform"]["steps"][:base["steps"]]
+        np.testing.assert_allclose(ChainTransform.from_dict(transform).apply(model),
+                                   np.array(detail["warped"]), atol=1e-8)
+        mapped = client.post(f"/v1/jobs/{job['id']}/result/subjects/{sid}/transform",
+                             json={"points": model.tolist()})
+        assert mapped.status_code == 200, mapped.text
+        np.testing.assert_allclose(np.array(mapped.json()["points"]),
+                                   np.array(detail["warped"]), atol=1e-6)
+
+
 def test_job_validation(client: httpx.Client) -> None:
     a = create_collection(client, "a")
     b = create_collection(client, "b")

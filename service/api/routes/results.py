@@ -3,7 +3,7 @@ identity transform) and their transforms, forwards (model onto subject) and inve
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Annotated, Any
 
 import numpy as np
@@ -41,6 +41,26 @@ def stored_result(session: Session, job_id: int) -> Result:
     return result
 
 
+def _with_full_transform(
+    document: dict[str, Any], base_of: Callable[[int], Mapping[str, Any] | None]
+) -> dict[str, Any]:
+    """`document` (a stored subject) with its transform's every step: stored, a subject's
+    transform holds only the steps after those it shares with its parent's and a ``base``
+    naming them (``CollectionResult.to_dict(shared_steps=True)``); results stored before
+    that hold every step and pass unchanged."""
+    transform = document.get("transform")
+    if not isinstance(transform, Mapping) or "base" not in transform:
+        return document
+    from registration import expand_shared_steps
+
+    try:
+        full = expand_shared_steps(transform, base_of)
+    except ValueError as e:
+        raise ProblemError(500, f"stored result of subject {document.get('shape_id')}: {e}",
+                           type_=ProblemType.INTERNAL) from e
+    return {**document, "transform": full}
+
+
 def full_subjects(session: Session, job_id: int) -> list[dict[str, Any]]:
     """Every subject of a result with its heavy arrays, in the job's input order."""
     rows = session.scalars(
@@ -48,7 +68,9 @@ def full_subjects(session: Session, job_id: int) -> list[dict[str, Any]]:
         .where(ResultSubject.job_id == job_id)
         .order_by(ResultSubject.position)
     ).all()
-    return [r.document for r in rows]
+    by_index = {int(r.document.get("index", r.position)): r.document.get("transform")
+                for r in rows}
+    return [_with_full_transform(r.document, by_index.get) for r in rows]
 
 
 def _number(value: Any) -> float | None:
@@ -247,11 +269,26 @@ def subject_document(session: Session, job_id: int, shape_id: int) -> dict[str, 
     _succeeded_job(session, job_id)
     row = session.get(ResultSubject, (job_id, shape_id))
     if row is not None:
-        return dict(row.document)
+        return _with_full_transform(dict(row.document), _base_reader(session, job_id, row))
     result = session.get(Result, job_id)
     if result is not None and result.document.get("root_shape_id") == shape_id:
         return root_subject(session, job_id, result.document)
     raise not_found(f"subject {shape_id} in the result of job", job_id)
+
+
+def _base_reader(session: Session, job_id: int, row: ResultSubject
+                 ) -> Callable[[int], Mapping[str, Any] | None]:
+    """The stored transforms `row`'s may refer to, by position: those of the subjects on
+    its tree path, read in one query."""
+    path = ((row.document.get("transform") or {}).get("path_shape_ids") or [])
+    ids = [int(i) for i in path if isinstance(i, int)]
+    found = session.scalars(
+        select(ResultSubject).where(ResultSubject.job_id == job_id,
+                                    ResultSubject.shape_id.in_(ids))
+    ).all() if ids else []
+    by_index = {int(r.document.get("index", r.position)): r.document.get("transform")
+                for r in found}
+    return by_index.get
 
 
 @operation(
