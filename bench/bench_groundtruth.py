@@ -25,11 +25,13 @@ Families (collections with exact ground truth):
   (``../shared/data/chui_rangarajan``): per trial, the model X (root) and that trial's
   targets of deformation levels 1-5;
 - ``generated``: :func:`registration.synthetic.chained_family` with its defaults (root 0).
-- ``mpeg7`` / ``outline``: shape classes no default was tuned on, deformed as the glyphs
-  (root 0, the first seed only): the first instance of each MPEG-7 class (400 points a
-  shape), and the first lmfree2d contour of each class (100 points), three Momocs hearts
-  (80) and three North Sea fishes (120), their outlines densified 20x so that each
-  shape samples its own points off them.
+- ``mpeg7`` / ``outline`` / ``outline-random``: shape classes no default was tuned on,
+  deformed as the glyphs (root 0, the first seed only): the first instance of each MPEG-7
+  class (400 points a shape, random subsets as the glyphs), and the first lmfree2d contour
+  of each class (100 points), three Momocs hearts (80) and three North Sea fishes (120),
+  their outlines densified 20x so that each shape samples its own points off them: evenly
+  from a random start (``outline``, as outlines are digitised) or as random subsets
+  (``outline-random``).
 
 "far" subjects are those more than half the family's chain length away from the root
 along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
@@ -204,11 +206,16 @@ def outline_sources() -> dict[str, list[tuple[str, np.ndarray, int]]]:
 
 def outline_cases(kind: str, seeds: list[int]) -> list[Case]:
     """`deformation_chains` (its defaults but the points per shape) of each outline of
-    `kind` (see :func:`outline_sources`), root 0."""
+    `kind` (see :func:`outline_sources`), root 0. ``outline`` samples each shape evenly
+    along its outline from a random start, as outlines are digitised; ``outline-random``
+    takes random subsets instead (as the glyph and MPEG-7 families do): gaps and clusters
+    at 80-120 points that real outline data does not have."""
     cases = []
-    for name, dense, n in outline_sources()[kind]:
+    source = "outline" if kind == "outline-random" else kind
+    sampling = "even" if kind == "outline" else "random"
+    for name, dense, n in outline_sources()[source]:
         for seed in seeds:
-            fam = deformation_chains(dense, n_points=n, seed=seed)
+            fam = deformation_chains(dense, n_points=n, seed=seed, sampling=sampling)
             cases.append(Case(
                 kind=kind, label=f"{kind} {name} seed {seed}", seed=seed,
                 shapes=fam.shapes, names=fam.names, root=0, truth=fam.root_images(0),
@@ -540,7 +547,7 @@ def main() -> None:
                     help="Chui & Rangarajan trials per series (default 3)")
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
-                    "generated mpeg7 outline)")
+                    "generated mpeg7 outline outline-random)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
@@ -577,11 +584,13 @@ def main() -> None:
     elif DATA.is_dir():
         print(f"NOTE: {CHUI} lacks the def series: skipping the Chui & Rangarajan families")
     cases += generated_cases(seeds)
-    if not args.quick or (args.only and {"mpeg7", "outline"} & set(args.only)):
-        for kind, sources in outline_sources().items():
-            if sources:
+    if not args.quick or (args.only and {"mpeg7", "outline", "outline-random"}
+                          & set(args.only)):
+        sources = outline_sources()
+        for kind in ("mpeg7", "outline", "outline-random"):
+            if sources["outline" if kind == "outline-random" else kind]:
                 cases += outline_cases(kind, seeds[:1])
-            elif DATA.is_dir():
+            elif DATA.is_dir() and kind != "outline-random":
                 print(f"NOTE: no {kind} shapes under {DATA}: skipping that family")
     if args.only:
         cases = [c for c in cases if c.kind in args.only]

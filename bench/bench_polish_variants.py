@@ -180,7 +180,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=bg.DATA)
     ap.add_argument("--families", nargs="*", default=["edge", "skel", "fish", "chinese"],
-                    help="edge skel fish chinese generated mpeg7 outline")
+                    help="edge skel fish chinese generated mpeg7 outline outline-random")
     ap.add_argument("--designs", default="0,72", help="glyph ids or rows of index.csv")
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--trials", type=int, default=3)
@@ -199,7 +199,7 @@ def main() -> None:
             cases = bg.chui_cases(fam, list(range(args.trials)))
         elif fam == "generated":
             cases = bg.generated_cases(seeds)
-        elif fam in ("mpeg7", "outline"):
+        elif fam in ("mpeg7", "outline", "outline-random"):
             cases = bg.outline_cases(fam, seeds)
         else:
             raise SystemExit(f"unknown family {fam!r}")

@@ -409,6 +409,7 @@ def deformation_chains(
     rotation_deg: float = 3.0,
     shear: float = 0.03,
     seed: int = 0,
+    sampling: str = "random",
 ) -> DeformationFamily:
     """Chains of composed random smooth warps of a real shape, each shape sampled anew.
 
@@ -444,6 +445,11 @@ def deformation_chains(
         Largest shear of one step; in [0, 1).
     seed : int
         Seed of the random generator: equal arguments give equal families.
+    sampling : {"random", "even"}
+        How each shape picks its `n_points` dense points: a random subset (for unordered
+        points such as edge pixels), or every ``n / n_points``-th point from a random start
+        ("even": evenly along an outline whose dense points are in order along it, as
+        outlines are digitised; the warps stretch the spacing, as on real shapes).
 
     Returns
     -------
@@ -476,6 +482,8 @@ def deformation_chains(
             raise ValueError(f"{label} must be a finite non-negative number; got {amount!r}")
     if shear >= 1:
         raise ValueError(f"shear must be below 1; got {shear}")
+    if sampling not in ("random", "even"):
+        raise ValueError(f"sampling must be 'random' or 'even'; got {sampling!r}")
     rng = np.random.default_rng(seed)
     lo, hi = p.min(axis=0), p.max(axis=0)
     steps: list[tuple[_RBFStep, ...]] = [()]
@@ -503,6 +511,10 @@ def deformation_chains(
     for img in dense_images:
         if n_dense <= n_points:
             idx = np.arange(n_dense, dtype=np.intp)
+        elif sampling == "even":
+            start = int(rng.integers(n_dense))
+            idx = np.sort((start + (np.arange(n_points) * n_dense) // n_points) % n_dense)
+            idx = idx.astype(np.intp)
         else:
             idx = np.sort(rng.choice(n_dense, size=n_points, replace=False)).astype(np.intp)
         indices.append(idx)

@@ -128,6 +128,24 @@ def test_fewer_dense_points_than_requested_uses_them_all() -> None:
     assert all(np.array_equal(i, np.arange(60)) for i in fam.indices)
 
 
+def test_even_sampling_takes_evenly_spaced_dense_points_from_a_random_start() -> None:
+    """sampling="even": every n/k-th dense point (an ordered outline sampled evenly, as
+    outlines are digitised), each shape from its own start; the truth still holds."""
+    fam = deformation_chains(DENSE, n_chains=2, chain_length=3, n_points=100, seed=4,
+                             sampling="even")
+    starts = set()
+    for idx, shape, img in zip(fam.indices, fam.shapes, fam.dense_images, strict=True):
+        gaps = np.diff(np.r_[idx, idx[0] + len(DENSE)])
+        assert len(idx) == 100 and set(gaps) <= {20}  # 2000 dense points / 100
+        np.testing.assert_array_equal(shape, img[idx])
+        starts.add(int(idx[0]))
+    assert len(starts) > 1, "every shape sampled from the same start"
+    truth = fam.root_images(0)
+    np.testing.assert_allclose(truth[0], fam.shapes[0])
+    random = deformation_chains(DENSE, n_chains=2, chain_length=3, n_points=100, seed=4)
+    assert any(len(set(np.diff(i))) > 1 for i in random.indices)
+
+
 @pytest.mark.parametrize(
     ("dense", "kwargs", "match"),
     [
@@ -143,6 +161,7 @@ def test_fewer_dense_points_than_requested_uses_them_all() -> None:
         (DENSE, {"step": float("nan")}, "step must be a finite non-negative number"),
         (DENSE, {"rotation_deg": float("inf")}, "rotation_deg must be"),
         (DENSE, {"shear": 1.0}, "shear must be below 1"),
+        (DENSE, {"sampling": "grid"}, "sampling must be 'random' or 'even'"),
         (DENSE, {"step": 5.0}, "Jacobian determinant"),
     ],
 )
