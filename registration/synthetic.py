@@ -421,8 +421,9 @@ def deformation_chains(
     (uniform in +-`rotation_deg`) and shear (uniform in +-`shear`) about the current
     shape's centroid. A step is redrawn until its Jacobian determinant exceeds 0.2 at
     every dense point, so every warp is a diffeomorphism on the shape. Every shape,
-    shape 0 included, samples its own random subset of `n_points` dense points (sorted
-    indices, no repeats; all points when there are fewer), so no two shapes share points.
+    shape 0 included, samples its own `n_points` dense points (a random subset, or evenly
+    from a random start: see `sampling`; sorted indices, no repeats; all points when there
+    are fewer), so no two shapes share points (but by chance).
     Nothing is posed or shuffled otherwise.
 
     Parameters
