@@ -32,6 +32,9 @@ Families (collections with exact ground truth):
   their outlines densified 20x so that each shape samples its own points off them: evenly
   from a random start (``outline``, as outlines are digitised) or as random subsets
   (``outline-random``).
+- ``glyph-other``: five other characters (書水心東龍) rendered from the Noto CJK fonts
+  when this machine has them (sans regular, serif bold), their edge pixels chained as the
+  永 glyphs' (root 0, the first seed only): glyph sets no default was tuned on.
 
 "far" subjects are those more than half the family's chain length away from the root
 along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
@@ -221,6 +224,53 @@ def outline_cases(kind: str, seeds: list[int]) -> list[Case]:
                 shapes=fam.shapes, names=fam.names, root=0, truth=fam.root_images(0),
                 depth=fam.depth, distance=fam.depth, far_from=max(fam.depth) // 2 + 1,
             ))
+    return cases
+
+
+#: Characters other than 永 for the ``glyph-other`` family, and the CJK fonts they are
+#: rendered from when this machine has them (Debian's fonts-noto-cjk, which .ci/run
+#: installs).
+OTHER_CHARACTERS = "書水心東龍"
+OTHER_FONTS = {
+    "sans-regular": Path("/usr/share/fonts/opentype/noto/NotoSansCJK-Regular.ttc"),
+    "serif-bold": Path("/usr/share/fonts/opentype/noto/NotoSerifCJK-Bold.ttc"),
+}
+
+
+def _glyph_edges(char: str, font: Path) -> np.ndarray:
+    """The edge pixels (ink pixels with a blank 4-neighbour) of `char` rendered at 256 px,
+    as (x, y) points."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    img = Image.new("L", (300, 300), 255)
+    ImageDraw.Draw(img).text((22, 0), char, font=ImageFont.truetype(str(font), 256), fill=0)
+    ink = np.asarray(img) < 128
+    inner = (ink[1:-1, 1:-1] & ink[:-2, 1:-1] & ink[2:, 1:-1] & ink[1:-1, :-2]
+             & ink[1:-1, 2:])
+    edge = ink.copy()
+    edge[1:-1, 1:-1] &= ~inner
+    ys, xs = np.nonzero(edge)
+    return np.c_[xs, ys].astype(np.float64)
+
+
+def other_glyph_cases(seeds: list[int]) -> list[Case]:
+    """``glyph-other``: the characters of :data:`OTHER_CHARACTERS` in the fonts of
+    :data:`OTHER_FONTS` found here, their edges chained as the 永 glyphs' (root 0):
+    glyph sets no default was tuned on."""
+    cases = []
+    for char in OTHER_CHARACTERS:
+        for font_name, font in OTHER_FONTS.items():
+            if not font.exists():
+                continue
+            dense = _glyph_edges(char, font)
+            for seed in seeds:
+                fam = deformation_chains(dense, seed=seed)
+                cases.append(Case(
+                    kind="glyph-other", label=f"glyph-other {char} {font_name} seed {seed}",
+                    seed=seed, shapes=fam.shapes, names=fam.names, root=0,
+                    truth=fam.root_images(0), depth=fam.depth, distance=fam.depth,
+                    far_from=max(fam.depth) // 2 + 1,
+                ))
     return cases
 
 
@@ -547,7 +597,7 @@ def main() -> None:
                     help="Chui & Rangarajan trials per series (default 3)")
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
-                    "generated mpeg7 outline outline-random)")
+                    "generated mpeg7 outline outline-random glyph-other)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
@@ -592,6 +642,12 @@ def main() -> None:
                 cases += outline_cases(kind, seeds[:1])
             elif DATA.is_dir() and kind != "outline-random":
                 print(f"NOTE: no {kind} shapes under {DATA}: skipping that family")
+    if not args.quick or (args.only and "glyph-other" in args.only):
+        others = other_glyph_cases(seeds[:1])
+        if not others:
+            print("NOTE: none of the CJK fonts of OTHER_FONTS is installed: skipping the "
+                  "glyph-other family")
+        cases += others
     if args.only:
         cases = [c for c in cases if c.kind in args.only]
     print(f"{len(cases)} runs x 3 methods, default options (the library picks its executor); "
