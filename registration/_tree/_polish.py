@@ -98,7 +98,7 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
     quality: list[RegistrationQuality] = []
     corr: IntArray = np.zeros(0, dtype=np.intp)
     prob: FloatArray = np.zeros(0)
-    for factor in POLISH_BETA_FACTORS:
+    for stage, factor in enumerate(POLISH_BETA_FACTORS):
         # the start already lies on the subject: sigma^2 from its residual (e = mean
         # squared nearest distance, both ways; sigma^2 is per coordinate), not from the
         # spread of all pairs, which would let CPD wander off again; never below the
@@ -109,7 +109,7 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
         warped = np.asarray(res.warped, dtype=np.float64)
         e = registration_error(warped, task.y)
         q = measure_quality(cur, warped, task.y, res.transform, e, task.spacing2)
-        max_e = e_cur if factor >= POLISH_BETA_FACTORS[0] else POLISH_FINER_MAX_E_RATIO * e_cur
+        max_e = e_cur if stage == 0 else POLISH_FINER_MAX_E_RATIO * e_cur  # finer: see above
         if not (q.min_jacobian > 0 and e <= max_e and q.confidence >= MIN_CONFIDENCE):
             continue  # this stage is not kept; the next starts where the last kept left
         steps.append(res.transform)
