@@ -61,6 +61,15 @@ def _with_full_transform(
     return {**document, "transform": full}
 
 
+def _transforms_by_position(rows: Sequence[ResultSubject]
+                            ) -> Callable[[int], Mapping[str, Any] | None]:
+    """The stored transform of each of `rows` by its position in the job's input (what a
+    transform's ``base`` names)."""
+    by_index = {int(r.document.get("index", r.position)): r.document.get("transform")
+                for r in rows}
+    return by_index.get
+
+
 def full_subjects(session: Session, job_id: int) -> list[dict[str, Any]]:
     """Every subject of a result with its heavy arrays, in the job's input order."""
     rows = session.scalars(
@@ -68,9 +77,8 @@ def full_subjects(session: Session, job_id: int) -> list[dict[str, Any]]:
         .where(ResultSubject.job_id == job_id)
         .order_by(ResultSubject.position)
     ).all()
-    by_index = {int(r.document.get("index", r.position)): r.document.get("transform")
-                for r in rows}
-    return [_with_full_transform(r.document, by_index.get) for r in rows]
+    base_of = _transforms_by_position(rows)
+    return [_with_full_transform(r.document, base_of) for r in rows]
 
 
 def _number(value: Any) -> float | None:
@@ -286,9 +294,7 @@ def _base_reader(session: Session, job_id: int, row: ResultSubject
         select(ResultSubject).where(ResultSubject.job_id == job_id,
                                     ResultSubject.shape_id.in_(ids))
     ).all() if ids else []
-    by_index = {int(r.document.get("index", r.position)): r.document.get("transform")
-                for r in found}
-    return by_index.get
+    return _transforms_by_position(found)
 
 
 @operation(
