@@ -207,16 +207,19 @@ def outline_sources() -> dict[str, list[tuple[str, np.ndarray, int]]]:
     return out
 
 
-def outline_cases(kind: str, seeds: list[int]) -> list[Case]:
+def outline_cases(kind: str, seeds: list[int],
+                  sources: dict[str, list[tuple[str, np.ndarray, int]]] | None = None
+                  ) -> list[Case]:
     """`deformation_chains` (its defaults but the points per shape) of each outline of
     `kind` (see :func:`outline_sources`), root 0. ``outline`` samples each shape evenly
     along its outline from a random start, as outlines are digitised; ``outline-random``
     takes random subsets instead (as the glyph and MPEG-7 families do): gaps and clusters
-    at 80-120 points that real outline data does not have."""
+    at 80-120 points that real outline data does not have. `sources`: those of
+    :func:`outline_sources`, read again when not given."""
     cases = []
     source = "outline" if kind == "outline-random" else kind
     sampling = "even" if kind == "outline" else "random"
-    for name, dense, n in outline_sources()[source]:
+    for name, dense, n in (sources or outline_sources())[source]:
         for seed in seeds:
             fam = deformation_chains(dense, n_points=n, seed=seed, sampling=sampling)
             cases.append(Case(
@@ -238,19 +241,15 @@ OTHER_FONTS = {
 
 
 def _glyph_edges(char: str, font: Path) -> np.ndarray:
-    """The edge pixels (ink pixels with a blank 4-neighbour) of `char` rendered at 256 px,
-    as (x, y) points."""
+    """The Canny edge points of `char` rendered at 256 px (the library's image route, as
+    the 永 set's edges were made)."""
     from PIL import Image, ImageDraw, ImageFont
+
+    from registration.images import points_from_image
 
     img = Image.new("L", (300, 300), 255)
     ImageDraw.Draw(img).text((22, 0), char, font=ImageFont.truetype(str(font), 256), fill=0)
-    ink = np.asarray(img) < 128
-    inner = (ink[1:-1, 1:-1] & ink[:-2, 1:-1] & ink[2:, 1:-1] & ink[1:-1, :-2]
-             & ink[1:-1, 2:])
-    edge = ink.copy()
-    edge[1:-1, 1:-1] &= ~inner
-    ys, xs = np.nonzero(edge)
-    return np.c_[xs, ys].astype(np.float64)
+    return points_from_image(img, mode="edges")
 
 
 def other_glyph_cases(seeds: list[int]) -> list[Case]:
@@ -639,7 +638,7 @@ def main() -> None:
         sources = outline_sources()
         for kind in ("mpeg7", "outline", "outline-random"):
             if sources["outline" if kind == "outline-random" else kind]:
-                cases += outline_cases(kind, seeds[:1])
+                cases += outline_cases(kind, seeds[:1], sources)
             elif DATA.is_dir() and kind != "outline-random":
                 print(f"NOTE: no {kind} shapes under {DATA}: skipping that family")
     if not args.quick or (args.only and "glyph-other" in args.only):
