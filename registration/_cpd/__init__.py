@@ -31,8 +31,8 @@ option), :mod:`._estep` (the E-step engine), :mod:`._mstep` (dense and low-rank 
 """
 
 from ._field import NonrigidTransform
-from ._nonrigid import CPDResult, cpd_nonrigid
+from ._nonrigid import CPDResult, cpd_nonrigid, interpolating_field
 from ._options import DTYPES, CPDOptions, Range
 
 __all__ = ["DTYPES", "CPDOptions", "CPDResult", "NonrigidTransform", "Range",
-           "cpd_nonrigid"]
+           "cpd_nonrigid", "interpolating_field"]

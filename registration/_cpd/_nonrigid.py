@@ -20,7 +20,7 @@ from .._points import as_points
 from .._repr import number_text, points_text
 from ._estep import _EStep, _posterior_max, run_estep
 from ._field import FloatArray, NonrigidTransform, _gauss_kernel, kernel_product
-from ._mstep import _low_rank_factor, _mstep_dense, _mstep_low_rank
+from ._mstep import _low_rank_factor, _mstep_dense, _mstep_low_rank, _spd_solve
 from ._options import CPDOptions, check_run_options
 from ._pycpd import _run_pycpd
 
@@ -399,6 +399,36 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
     return _finish(x, y, wmat=wmat, g=gk, s2=s2, w=w, beta=beta, xd=xd, xs=xs,
                    yd=yd, ys=ys, iterations=it, converged=converged, objective=objective,
                    moved=None if idx is None else y_all)
+
+
+def interpolating_field(points: ArrayLike, targets: ArrayLike, beta: float,
+                        ridge: float = 1e-3) -> NonrigidTransform:
+    """CPD's Gaussian-RBF field of width `beta` that moves each of `points` onto its
+    `target`, smooth in between: ``W = (G + ridge I)^-1 (targets - points)`` (the kernel is
+    1 at distance 0, so the ridge bounds how far a point may stay off its target). In the
+    points' own coordinates (no normalisation). The solve runs with the BLAS limited as in
+    :func:`cpd_nonrigid`, so a pool worker and the calling process get the same bits.
+
+    Raises
+    ------
+    ValueError
+        If `points` or `targets` is not a finite (n, 2) array, their shapes differ, or
+        `beta` or `ridge` is not positive.
+    """
+    x = as_points(points, name="points", min_points=1)
+    t = as_points(targets, name="targets", min_points=1)
+    if t.shape != x.shape:
+        raise ValueError(f"targets must have the shape of points {x.shape}; got {t.shape}")
+    if not (math.isfinite(beta) and beta > 0 and math.isfinite(ridge) and ridge > 0):
+        raise ValueError(f"beta and ridge must be positive; got {beta!r} and {ridge!r}")
+    g = _gauss_kernel(x, x, beta)
+    g.flat[:: len(x) + 1] += ridge
+    with _blas_limit():
+        coefficients = _spd_solve(g, t - x)
+    zero = np.zeros(2)
+    return NonrigidTransform(control_points=x, coefficients=coefficients, beta=beta,
+                             model_shift=zero, model_scale=1.0, subject_shift=zero,
+                             subject_scale=1.0)
 
 
 def _control_indices(control: ArrayLike | None, m: int, backend: Any) -> NDArray[np.intp] | None:

@@ -85,10 +85,15 @@ def build_dynamic_tree(
         kernel width beta then half of it; a stage is kept when it does not fold, lowers
         e and keeps a confidence >= 0.2, and a rejected stage is skipped (see
         :mod:`._polish`): the slide a chain accumulates link by link can relax, then the
-        finer deformation the edges' smooth kernel leaves out is fitted. Up to two more
-        CPD per subject. On the ground-truth chains of bench/bench_groundtruth.py it
-        lowered the correspondence error on every family (bench/RESULTS.md, 0.00, 0.000
-        and 0.0000); False: the tree as built.
+        finer deformation the edges' smooth kernel leaves out is fitted. Two links or
+        more from the root, the root is also registered onto the subject directly, and
+        halfway between the two (polished again) replaces the chain's registration when
+        its e is no larger: the two registrations' errors partly cancel. Up to two more
+        CPD per subject; two links or more from the root, up to seven (eight when the
+        direct registration also tries a rotated pose). On the
+        ground-truth chains of bench/bench_groundtruth.py it lowered the correspondence
+        error on every family but randomly subsampled outlines (bench/RESULTS.md, 0.00,
+        0.000, 0.0000 and 0.0000000); False: the tree as built.
 
     Returns
     -------
@@ -186,8 +191,14 @@ def build_dynamic_tree(
         _refine_parents(coll, sim, sim_rule, nodes, results, tried, tau_err, floors,
                         error_threshold is not None, fold_check, cpd, prealign, spec, executor,
                         progress)
+    known: dict[int, _RegOutcome] | None = None
     if polish:
-        _polish_subjects(coll, results, cpd, executor, progress)
+        if options["compare_direct"]:  # run once, for the comparison and the consensus
+            known = run.direct_outcomes(sim)
+        root_q = coll.normed[root]
+        _polish_subjects(coll, results, cpd, executor, progress,
+                         direct=lambda s: known[s] if known is not None
+                         else run.task(sim, root, s, 2, root_q))
     return run.finish(
         "dynamic_tree", [results[s] for s in subjects_idx], sim, sim_rule,
         compare_direct=options["compare_direct"],
@@ -199,7 +210,7 @@ def build_dynamic_tree(
             "fold_check": fold_check,
             "polish": f"layer >= {POLISH_MIN_LAYER}" if polish else "off",
         },
-        max_candidates=max_candidates,
+        max_candidates=max_candidates, direct_outcomes=known,
     )
 
 
@@ -343,23 +354,33 @@ class _Run:
             pose=self.pose, spacing2=self.coll.spacing2[subject],
         )
 
-    def direct(self, sim: Similarity, compare: bool = True) -> list[SubjectResult] | None:
-        """Direct CPD from the root to every subject (None unless ``compare``)."""
-        if not compare:
-            return None
+    def direct_outcomes(self, sim: Similarity) -> dict[int, _RegOutcome]:
+        """The root registered directly onto every subject, as a layer-2 edge (pose
+        handling included), by subject."""
         coll, r = self.coll, self.coll.root
         subjects_idx = [k for k in range(coll.n) if k != r]
         if self.prealign:
             sim.ensure([(r, s) for s in subjects_idx], executor=self.executor,
                        progress=self.progress, stage="similarity direct")
         tasks = [self.task(sim, r, s, 2, coll.normed[r]) for s in subjects_idx]
-        root_node = coll.root_node()
-        out_by_subject = {}
-        for out in _run_tasks(tasks, self.executor, self.progress, "direct"):
-            res, _ = _subject_from_outcome(coll, out, root_node)
+        return {out.subject: out
+                for out in _run_tasks(tasks, self.executor, self.progress, "direct")}
+
+    def direct(self, sim: Similarity, compare: bool = True,
+               outcomes: dict[int, _RegOutcome] | None = None) -> list[SubjectResult] | None:
+        """Direct CPD from the root to every subject (None unless ``compare``); from
+        `outcomes` (:meth:`direct_outcomes`) when they were already run."""
+        if not compare:
+            return None
+        if outcomes is None:
+            outcomes = self.direct_outcomes(sim)
+        root_node = self.coll.root_node()
+        subjects = []
+        for _, out in sorted(outcomes.items()):
+            res, _ = _subject_from_outcome(self.coll, out, root_node)
             res.reason = "direct CPD from the root"
-            out_by_subject[out.subject] = res
-        return [out_by_subject[s] for s in subjects_idx]
+            subjects.append(res)
+        return subjects
 
     def finish(
         self,
@@ -371,10 +392,11 @@ class _Run:
         compare_direct: bool,
         thresholds: dict[str, Any],
         max_candidates: int = 1,
+        direct_outcomes: dict[int, _RegOutcome] | None = None,
     ) -> CollectionResult:
-        """The method's result (with direct CPD's when ``compare_direct``), at the stored
-        resolution."""
-        direct = self.direct(sim, compare_direct)
+        """The method's result (with direct CPD's when ``compare_direct``: from
+        `direct_outcomes` when they were already run), at the stored resolution."""
+        direct = self.direct(sim, compare_direct, direct_outcomes)
         result = _collection_result(
             method, self.coll, sim, subjects, direct, rule,
             thresholds=thresholds,

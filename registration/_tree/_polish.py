@@ -1,10 +1,12 @@
 """A final polish of each of the tree's registrations: CPD from the root model as warped
 along the subject's chain (at layer 2: its one edge) onto the subject, coarse to fine, so
-the slide the chain accumulated can relax and a single edge's CPD can finish fitting.
+the slide the chain accumulated can relax and a single edge's CPD can finish fitting; two
+links or more from the root, then a consensus with the root's own registration.
 
 Each edge of a tree path registers the root model, as already warped onto the parent,
-onto the child; the error of one link (0.035-0.04 of the subject's size on the 永
-deformation chains, near the sampling floor) adds up along the path. After the tree is
+onto the child; the error of one link adds up along the path (on the 永 skeleton chains
+one CPD link started from the parent's true image leaves 0.04-0.05 of the subject's size,
+where CPD started on the subject's true image settles at 0.015-0.03). After the tree is
 built, every attached subject at layer >= ``POLISH_MIN_LAYER`` is registered again, in
 the stages of ``POLISH_BETA_FACTORS``: each stage's CPD moves the root's points, where the
 previous stage (first: the chain) left them, onto the subject (the tree's CPD options but
@@ -17,18 +19,27 @@ confidence is at least ``MIN_CONFIDENCE``; a finer stage must also lower e by a 
 where the last kept one (or the chain) left the points. A chain's composed field has more
 freedom than one CPD's, so its e can be lower than a wide stage's while its points have
 slid: there the finer stage, from the chain, still lowers e and the correspondence error.
-Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine) and 0.0000
-(layer 2, skipping).
+
+At layer >= ``POLISH_CONSENSUS_MIN_LAYER`` the root model is also registered onto the
+subject directly and polished the same way, and the chain's polished points are moved
+halfway to those and polished again (`_consensus`): kept when that e is no larger than the
+chain's. The subject's transform stays its chain, extended by the polish's steps (the
+chain's stages, the step halfway, the stages from there), so its children and the
+stored-resolution stage read it as before.
+Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine), 0.0000
+(layer 2, skipping) and 0.0000000 (the consensus).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .._cpd import CPDOptions, cpd_nonrigid
+from .._cpd import CPDOptions, cpd_nonrigid, interpolating_field
 from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._pointmap import PointTransform
@@ -38,6 +49,7 @@ from .._similarity import ProgressCallback
 from .._transform import ChainTransform
 from ._collection import _Collection
 from ._rules import MIN_CONFIDENCE
+from ._tasks import _register_task, _RegOutcome, _RegTask
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -68,6 +80,22 @@ POLISH_BETA_FACTORS = (1.0, 0.5)
 #: (worst run 1.28 -> 1.12) and those outlines from 1.16 to 1.12; every other family
 #: moves by at most 0.015.
 POLISH_FINER_MAX_E_RATIO = 0.8
+#: Subjects at this layer or deeper (two links or more from the root) are also registered
+#: from the root directly, for a consensus with their chain (see `_consensus`). At layer 2
+#: the chain is that direct registration. Ground truth (bench/RESULTS.md 0.0000000, 63
+#: runs; tree / plain CPD before -> after): 永 skeletons 0.79 -> 0.74, edges 0.60 -> 0.58,
+#: Chui fish 0.26 -> 0.25, Chinese 0.44 -> 0.33, generated 0.46 -> 0.40, MPEG-7 0.75 ->
+#: 0.73, evenly sampled outlines 0.71 -> 0.68, other characters 0.78 -> 0.76; random
+#: subsets of outlines 1.12 -> 1.15. Up to five more CPD per subject.
+POLISH_CONSENSUS_MIN_LAYER = 3
+#: The kernel width of the step that moves the chain's model halfway to the direct
+#: registration's, as a fraction of the tree's beta: at a quarter it reproduces the halfway
+#: points to 0.0004-0.006 of the subject's size (0.006-0.03 at the tree's own width, which
+#: cannot follow the two registrations' difference along a stroke) and the ground truth of
+#: the exact halfway start (bench/RESULTS.md 0.0000000).
+CONSENSUS_KERNEL_FACTOR = 0.25
+#: Ridge added to the kernel matrix of that step (its kernel is 1 at distance 0).
+CONSENSUS_RIDGE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -78,6 +106,21 @@ class _PolishTask:
     y: FloatArray  # the subject, normalised coordinates
     cpd: CPDOptions
     spacing2: float
+    # the root's registration onto the subject directly (to run, or already run), for the
+    # consensus (layer >= POLISH_CONSENSUS_MIN_LAYER; see `_consensus`), else None
+    direct: _RegTask | _RegOutcome | None = None
+
+
+@dataclass(frozen=True)
+class _Stages:
+    """Where the polish's CPD stages left the model: the stages kept (none: the start)."""
+
+    warped: FloatArray
+    error: float
+    steps: tuple[PointTransform, ...]
+    quality: tuple[RegistrationQuality, ...]  # of each stage kept
+    correspondence: IntArray
+    probability: FloatArray
 
 
 @dataclass(frozen=True)
@@ -87,13 +130,16 @@ class _PolishOutcome:
     error: float
     correspondence: IntArray
     probability: FloatArray
-    steps: tuple[PointTransform, ...]  # the stages kept, coarse to fine (none: rejected)
-    quality: tuple[RegistrationQuality, ...]  # of each stage kept
+    steps: tuple[PointTransform, ...]  # the transform's steps after the chain (none: rejected)
+    quality: tuple[RegistrationQuality, ...]  # of each CPD stage among them
+    consensus: dict[str, Any] | None = None  # what the consensus found (see `_consensus`)
 
 
-def _polish_task(task: _PolishTask) -> _PolishOutcome:
-    o = task.cpd
-    cur, e_cur = task.start, task.error
+def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
+            spacing2: float) -> _Stages:
+    """The polish's CPD stages (:data:`POLISH_BETA_FACTORS`) from `start`, each kept only
+    when it passes the checks (see the module doc)."""
+    cur, e_cur = start, e_start
     steps: list[PointTransform] = []
     quality: list[RegistrationQuality] = []
     corr: IntArray = np.zeros(0, dtype=np.intp)
@@ -103,12 +149,12 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
         # squared nearest distance, both ways; sigma^2 is per coordinate), not from the
         # spread of all pairs, which would let CPD wander off again; never below the
         # squared point spacing
-        sigma2 = max(0.5 * e_cur, task.spacing2)
-        res = cpd_nonrigid(cur, task.y, beta=factor * o.beta, lmbda=o.lmbda, w=o.w,
+        sigma2 = max(0.5 * e_cur, spacing2)
+        res = cpd_nonrigid(cur, y, beta=factor * o.beta, lmbda=o.lmbda, w=o.w,
                            max_iter=o.max_iter, tol=o.tol, dtype=o.dtype, sigma2=sigma2)
         warped = np.asarray(res.warped, dtype=np.float64)
-        e = registration_error(warped, task.y)
-        q = measure_quality(cur, warped, task.y, res.transform, e, task.spacing2)
+        e = registration_error(warped, y)
+        q = measure_quality(cur, warped, y, res.transform, e, spacing2)
         max_e = e_cur if stage == 0 else POLISH_FINER_MAX_E_RATIO * e_cur  # finer: see above
         if not (q.min_jacobian > 0 and e <= max_e and q.confidence >= MIN_CONFIDENCE):
             continue  # this stage is not kept; the next starts where the last kept left
@@ -117,8 +163,63 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
         cur, e_cur = warped, e
         corr = np.asarray(res.correspondence, dtype=np.intp)
         prob = np.asarray(res.probability, dtype=np.float64)
-    return _PolishOutcome(subject=task.subject, warped=cur, error=e_cur, correspondence=corr,
-                          probability=prob, steps=tuple(steps), quality=tuple(quality))
+    return _Stages(warped=cur, error=e_cur, steps=tuple(steps), quality=tuple(quality),
+                   correspondence=corr, probability=prob)
+
+
+def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[str, Any]]:
+    """The consensus of the chain's (polished) registration with the root's own.
+
+    The root model is registered onto the subject directly (as a layer-2 edge would be,
+    pose handling included) and polished the same way; the model is moved halfway between
+    the two (by CPD's field through those points, :func:`~registration._cpd.
+    interpolating_field`) and polished from there.
+    The two registrations' errors are largely independent: the chain's comes from its
+    links' slides adding up, the direct one's from the large shape difference a single CPD
+    bridges; halfway, part of each cancels. Kept (None otherwise) when the step and the
+    stages do not fold, at least one stage passes its checks and the e reached is no larger
+    than the chain's: a direct registration that went wrong (as on the large differences
+    the tree exists for) leaves a worse e and is not kept.
+    """
+    assert task.direct is not None
+    direct = (task.direct if isinstance(task.direct, _RegOutcome)
+              else _register_task(task.direct))
+    info: dict[str, Any] = {"direct_error": direct.error, "pose": direct.pose, "kept": False}
+    if not direct.min_jacobian > 0:
+        info["reason"] = "the direct registration folds"
+        return None, info
+    other = _stages(direct.warped, direct.error, task.y, task.cpd, task.spacing2)
+    info["direct_polished_error"] = other.error
+    step = interpolating_field(chain.warped, 0.5 * (chain.warped + other.warped),
+                               CONSENSUS_KERNEL_FACTOR * task.cpd.beta, CONSENSUS_RIDGE)
+    start, jac = step.apply_with_jacobian(chain.warped)
+    if not float(np.linalg.det(jac).min()) > 0:
+        info["reason"] = "the step halfway folds"
+        return None, info
+    found = _stages(start, registration_error(start, task.y), task.y, task.cpd, task.spacing2)
+    info["error"] = found.error
+    if not found.steps:
+        info["reason"] = "no stage from halfway passed the checks"
+        return None, info
+    if not found.error <= chain.error:
+        info["reason"] = "e above the chain's"
+        return None, info
+    info["kept"] = True
+    info["reason"] = "e no larger than the chain's"
+    return replace(found, steps=(step, *found.steps)), info
+
+
+def _polish_task(task: _PolishTask) -> _PolishOutcome:
+    chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2)
+    best, info = chain, None
+    if task.direct is not None:
+        found, info = _consensus(task, chain)
+        if found is not None:
+            best = replace(found, steps=(*chain.steps, *found.steps),
+                           quality=(*chain.quality, *found.quality))
+    return _PolishOutcome(subject=task.subject, warped=best.warped, error=best.error,
+                          correspondence=best.correspondence, probability=best.probability,
+                          steps=best.steps, quality=best.quality, consensus=info)
 
 
 def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome) -> SubjectResult:
@@ -127,16 +228,23 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome) -> Sub
     chain = replace(old.transform, steps=(*old.transform.steps, *out.steps))
     assert isinstance(chain, ChainTransform)
     confidence = min(old.confidence, *(q.confidence for q in out.quality))
-    quality = {**(old.quality or {}), "polish": {
+    polish = {
         "error_before": old.error, "steps": len(out.steps), **out.quality[-1].to_dict(),
         "confidence": min(q.confidence for q in out.quality),
-        "min_jacobian": min(q.min_jacobian for q in out.quality)}}
+        "min_jacobian": min(q.min_jacobian for q in out.quality)}
+    reason = (f"{old.reason}; polished: {len(out.quality)} more CPD from the chained model "
+              f"(e {old.error:.3g} -> {out.error:.3g})")
+    if out.consensus is not None:
+        polish["consensus"] = out.consensus
+        if out.consensus["kept"]:
+            reason = (f"{old.reason}; polished: the consensus of its chain and the root's "
+                      f"direct registration, {len(out.quality)} more CPD "
+                      f"(e {old.error:.3g} -> {out.error:.3g})")
     return replace(
         old, error=out.error, warped=coll.norms[out.subject].invert(out.warped),
         correspondence=out.correspondence, probability=out.probability, transform=chain,
-        confidence=confidence, quality=quality,
-        reason=f"{old.reason}; polished: {len(out.steps)} more CPD from the chained model "
-               f"(e {old.error:.3g} -> {out.error:.3g})",
+        confidence=confidence, quality={**(old.quality or {}), "polish": polish},
+        reason=reason,
     )
 
 
@@ -147,11 +255,17 @@ def _polish_subjects(
     executor: Executor | None,
     progress: ProgressCallback | None,
     min_layer: int = POLISH_MIN_LAYER,
+    direct: Callable[[int], _RegTask | _RegOutcome] | None = None,
 ) -> None:
-    """Polish every attached subject at layer >= `min_layer` in place (see the module doc)."""
+    """Polish every attached subject at layer >= `min_layer` in place (see the module doc);
+    `direct(s)`: the root's registration onto subject `s` (to run, or already run), for
+    the consensus of the
+    subjects at layer >= :data:`POLISH_CONSENSUS_MIN_LAYER` (None: no consensus)."""
     tasks = [
         _PolishTask(subject=s, start=coll.norms[s].apply(r.warped), error=r.error,
-                    y=coll.normed[s], cpd=cpd, spacing2=coll.spacing2[s])
+                    y=coll.normed[s], cpd=cpd, spacing2=coll.spacing2[s],
+                    direct=direct(s) if direct is not None
+                    and r.layer >= POLISH_CONSENSUS_MIN_LAYER else None)
         for s, r in sorted(results.items())
         if r.warped is not None and r.layer is not None and r.layer >= min_layer
         and r.error is not None and r.transform is not None and r.confidence is not None

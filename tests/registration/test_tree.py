@@ -12,9 +12,10 @@ from registration import (
     SerialExecutor,
     build_dynamic_tree,
     build_static_tree,
+    cpd_nonrigid,
     register_direct,
 )
-from registration._tree._polish import POLISH_BETA_FACTORS
+from registration._tree._polish import POLISH_BETA_FACTORS, POLISH_CONSENSUS_MIN_LAYER
 from registration.synthetic import chained_family, correspondence_error
 
 FAST_CPD = CPDOptions(max_iter=60)
@@ -386,9 +387,19 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
         assert "polished" in s.reason
         # the reported transform still maps the root model onto the reported warped model
         assert np.allclose(s.transform.apply(shapes[0]), s.warped, atol=1e-8)
-        # the polish's stages, coarse to fine, each a CPD step of the chain
-        assert 1 <= p["steps"] <= len(POLISH_BETA_FACTORS)
         assert len(s.transform.steps) == len(before.transform.steps) + p["steps"]
+        consensus = p.get("consensus")
+        assert (consensus is not None) == (s.layer >= POLISH_CONSENSUS_MIN_LAYER)
+        if consensus is None or not consensus["kept"]:
+            # the polish's stages, coarse to fine, each a CPD step of the chain
+            assert 1 <= p["steps"] <= len(POLISH_BETA_FACTORS)
+            continue
+        # the chain's stages kept, the step halfway to the direct registration, then the
+        # stages from there; kept only at no larger an e than the chain's
+        assert 2 <= p["steps"] <= 2 * len(POLISH_BETA_FACTORS) + 1
+        assert consensus["error"] == s.error and "consensus" in s.reason
+    assert any((s.quality or {}).get("polish", {}).get("consensus") for s in res.subjects), \
+        "no subject deep enough for the consensus"
 
 
 def test_a_rejected_polish_stage_is_skipped_not_the_end(family, monkeypatch):
@@ -454,3 +465,120 @@ def test_a_finer_polish_stage_must_lower_e_by_the_set_fraction(family, monkeypat
     out = polish_module._polish_task(task)
     assert len(out.steps) == (2 if kept else 1)
     assert out.error == pytest.approx(e2 if kept else e1)
+
+
+def test_interpolating_field_moves_each_point_onto_its_target():
+    from registration._cpd import interpolating_field
+
+    t = np.linspace(0, 2 * np.pi, 80, endpoint=False)
+    points = np.c_[np.cos(t), 0.6 * np.sin(t)]
+    targets = points + 0.05 * np.c_[np.sin(3 * t), np.cos(2 * t)]  # a smooth displacement
+    step = interpolating_field(points, targets, beta=0.5)
+    assert np.abs(step.apply(points) - targets).max() < 2e-3
+    # between the points it follows the same smooth field, without folding
+    mid = np.c_[np.cos(t + np.pi / 80), 0.6 * np.sin(t + np.pi / 80)]
+    moved, jac = step.apply_with_jacobian(mid)
+    assert np.abs(moved - mid).max() < 0.06 and np.linalg.det(jac).min() > 0
+    # no displacement, no step
+    assert np.allclose(interpolating_field(points, points, beta=0.5).apply(mid), mid)
+    # it serialises as the chains' other non-rigid steps do
+    from registration._points import normalise
+
+    unit = normalise(points)[1].to_dict()
+    back = ChainTransform.from_dict({"source": unit, "target": unit, "path": [0, 1],
+                                     "steps": [step.to_dict()]})
+    assert np.allclose(back.steps[0].apply(mid), moved, atol=1e-12)
+
+
+def _consensus_task(family, subject):
+    """A polish task for `subject` with the root's direct registration (as the tree makes
+    it, the pose as given); the chain's start: the root's points where plain CPD puts them,
+    moved a little along a smooth field."""
+    from registration._error import registration_error
+    from registration._points import mean_spacing2, normalise
+    from registration._pose import PoseSpec
+    from registration._tree import _polish as polish_module
+    from registration._tree._tasks import _RegTask, _Start
+
+    y, _ = normalise(family.shapes[subject])
+    q, _ = normalise(family.shapes[0])
+    start = np.asarray(cpd_nonrigid(q, y, max_iter=60).warped)
+    start = start + 0.02 * np.sin(5 * start[:, ::-1])
+    direct = _RegTask(subject=subject, member=0, layer=2, similarity=0.0, q=q, y=y,
+                      starts=(_Start("as given"),), cpd=FAST_CPD, prealign=True,
+                      pose=PoseSpec.resolve(None, None), spacing2=mean_spacing2(y))
+    return polish_module._PolishTask(subject=subject, start=start,
+                                     error=registration_error(start, y), y=y, cpd=FAST_CPD,
+                                     spacing2=mean_spacing2(y), direct=direct)
+
+
+@pytest.mark.parametrize("above", [False, True])
+def test_the_consensus_is_kept_only_at_no_larger_an_e_than_the_chains(family, monkeypatch,
+                                                                      above):
+    """The chain's polished registration, the root's direct one polished, halfway between
+    them polished again: kept when its e is no larger than the chain's (set just below,
+    then just above it here), else the chain's polish stands."""
+    from registration._tree import _polish as polish_module
+
+    real = polish_module._stages
+    runs: list = []
+
+    def stages(start, e_start, y, o, spacing2):
+        out = real(start, e_start, y, o, spacing2)
+        runs.append(out)
+        if len(runs) == 3:  # from halfway: its e set just around the chain's
+            assert out.steps, "no stage from halfway passed its checks here"
+            from dataclasses import replace
+            out = replace(out, error=runs[0].error * (1 + (1e-9 if above else -1e-9)))
+        return out
+
+    monkeypatch.setattr(polish_module, "_stages", stages)
+    task = _consensus_task(family, 4)
+    out = polish_module._polish_task(task)
+    chain, found = runs[0], runs[2]
+    assert len(runs) == 3 and out.consensus is not None
+    assert out.consensus["kept"] is (not above)
+    if above:
+        assert out.consensus["reason"] == "e above the chain's"
+        assert out.steps == chain.steps and np.array_equal(out.warped, chain.warped)
+        return
+    # the chain's stages, the step halfway, the stages from there: one map from the start
+    assert out.steps[: len(chain.steps)] == chain.steps
+    assert len(out.steps) == len(chain.steps) + 1 + len(found.steps)
+    assert len(out.quality) == len(chain.steps) + len(found.steps)
+    p = task.start
+    for step in out.steps:
+        p = step.apply(p)
+    assert np.allclose(p, out.warped, atol=1e-8)
+
+
+def test_a_folding_direct_registration_gives_no_consensus(family, monkeypatch):
+    from dataclasses import replace
+
+    from registration._tree import _polish as polish_module
+
+    real = polish_module._register_task
+    monkeypatch.setattr(polish_module, "_register_task",
+                        lambda task: replace(real(task), min_jacobian=-0.1))
+    task = _consensus_task(family, 3)
+    out = polish_module._polish_task(task)
+    assert out.consensus == {"direct_error": pytest.approx(out.consensus["direct_error"]),
+                             "pose": "as given", "kept": False,
+                             "reason": "the direct registration folds"}
+    alone = polish_module._polish_task(replace(task, direct=None))
+    assert out.consensus is not None and alone.consensus is None
+    assert out.steps == () or np.array_equal(out.warped, alone.warped)
+
+
+@pytest.mark.parametrize("targets, beta, ridge, message", [
+    (np.zeros((5, 2)), 0.5, 1e-3, "targets must have the shape of points"),
+    (np.zeros((4, 3)), 0.5, 1e-3, "targets"),
+    (np.zeros((4, 2)), 0.0, 1e-3, "beta and ridge must be positive"),
+    (np.zeros((4, 2)), 0.5, -1.0, "beta and ridge must be positive"),
+    (np.full((4, 2), np.nan), 0.5, 1e-3, "targets"),
+])
+def test_interpolating_field_refuses_bad_input(targets, beta, ridge, message):
+    from registration._cpd import interpolating_field
+
+    with pytest.raises(ValueError, match=message):
+        interpolating_field(np.eye(4, 2), targets, beta, ridge)
