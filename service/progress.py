@@ -5,8 +5,9 @@ estimate of the time left.
 The library reports progress per stage, each with its own count: pairs of shapes for the
 similarity stages (``similarity``, ``similarity layer 3``, ...), registrations for the
 others. A tree job runs, in order: ``similarity``; the tree's layers (``similarity layer
-N``, ``layer N`` for N = 2, 3, ...); ``similarity leaves``, ``leaves``; ``refine``;
-``polish``; when it compares, ``similarity direct``, ``direct``; and when it decides at a
+N``, ``layer N`` for N = 2, 3, ...); ``similarity leaves``, ``leaves``; ``refine``; when it
+compares, ``similarity direct``, ``direct`` (a static tree: after the tree's stages, as it
+has no polish); ``polish``; and when it decides at a
 working resolution below its shapes' (coarse to fine), ``full resolution`` and ``direct
 full resolution``, which count subjects. Stages with nothing to do are not reported. A
 ``grouping`` job runs ``fields`` (instances), ``alignment`` (alignments to the median field)
@@ -54,8 +55,10 @@ PHASE_WEIGHTS = {
     "similarity": 0.15,
     "layers": 0.41,
     "refine": 0.05,
-    "polish": 0.22,
     "direct": 0.17,
+    # 0.22 until the polish's consensus (bench/RESULTS.md 0.0000000), which made the phase
+    # 2.7-2.9x as long on the 73 永 glyphs (68 of 72 subjects at layer >= 3)
+    "polish": 0.6,
     "full resolution": 0.06,
     "direct full resolution": 0.038,
 }
@@ -185,9 +188,9 @@ def phase_weights(
         phases = ["direct"] + (["direct full resolution"] if coarse_to_fine else [])
     else:
         phases = ["similarity", "layers"]
-        if method == "dynamic_tree":
-            phases += ["refine", "polish"]
-        if compare_direct:
+        if method == "dynamic_tree":  # the polish reuses the direct registrations
+            phases += ["refine", *(["direct"] if compare_direct else []), "polish"]
+        elif compare_direct:
             phases.append("direct")
         if coarse_to_fine:
             phases += ["full resolution"] + (["direct full resolution"] if compare_direct else [])

@@ -30,9 +30,9 @@ STAGES = [
     ("similarity leaves", 10),
     ("leaves", 2),
     ("refine", 6),
-    ("polish", 9),
     ("similarity direct", 12),
     ("direct", 15),
+    ("polish", 9),
 ]
 
 
