@@ -76,12 +76,15 @@ def test_page_states_readable_tree_names_and_numbers(
     rows = page.locator("#ui-subjects tbody tr")
     expect(rows).to_have_count(len(result["subjects"]))
     numbers = rows.locator("td.num").all_inner_texts()
-    decimals = [t for t in numbers if "." in t]
+    exponents = [t for t in numbers if "e" in t.lower()]
+    decimals = [t for t in numbers if "." in t and t not in exponents]
     # exponents only below 1e-6
-    assert decimals and all(abs(float(t)) < 1e-6 for t in numbers if "e" in t.lower()), numbers
+    assert decimals and all(abs(float(t)) < 1e-6 for t in exponents), numbers
     for text in decimals:
         digits = re.sub(r"^-?0\.0*", "", text).replace(".", "")
         assert len(digits) in (2, 3), text  # 3 significant digits (2: a confidence)
+    for text in exponents:  # the mantissa's digits: 1.22e-8
+        assert len(re.sub(r"[^0-9]", "", text.lower().split("e")[0])) <= 3, text
 
     # an unattached shape shows its best rejected attempt (the page is handed a result in
     # which one subject found no usable registration: today's tree attaches every one here)
