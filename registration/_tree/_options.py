@@ -79,7 +79,8 @@ class MethodOptions(TypedDict, total=False):
         Half-width in degrees of the "upright" mode (default 30); given alone, it
         selects that mode (glyph scans, aligned outlines).""")]
     compare_direct: Annotated[bool, Option(False, "bool", """
-        Also run direct CPD from the root on every subject, for comparison.""")]
+        Also run direct CPD from the root on every subject, for comparison (a dynamic
+        tree runs it before its polish, whose consensus reuses it).""")]
     names: Annotated[Sequence[str] | None, Option(None, "sequence of str, optional", """
         A name for each shape, in the result and its messages; default ``shape-<k>``.""")]
     working_points: Annotated[int | None, Option(DEFAULT_WORKING_POINTS, "int or None", """
