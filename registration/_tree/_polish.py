@@ -174,12 +174,12 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
     pose handling included) and polished the same way; the model is moved halfway between
     the two (by CPD's field through those points, :func:`~registration._cpd.
     interpolating_field`) and polished from there.
-    The two registrations' errors are largely independent: the chain's comes from its
-    links' slides adding up, the direct one's from the large shape difference a single CPD
-    bridges; halfway, part of each cancels. Kept (None otherwise) when the step and the
-    stages do not fold, at least one stage passes its checks and the e reached is no larger
-    than the chain's: a direct registration that went wrong (as on the large differences
-    the tree exists for) leaves a worse e and is not kept.
+    The two registrations err differently: the chain by its links' slides adding up, the
+    direct one by the large shape difference a single CPD bridges; halfway, part of each
+    cancels (measured, not assumed: bench/RESULTS.md 0.0000000). Kept (None otherwise) when
+    the step and the stages do not fold, at least one stage passes its checks and the e
+    reached is no larger than the chain's: a direct registration that went wrong (as on the
+    large differences the tree exists for) leaves a worse e and is not kept.
     """
     assert task.direct is not None
     direct = (task.direct if isinstance(task.direct, _RegOutcome)
