@@ -24,6 +24,12 @@ Variants (comma-separated, ``--variants``):
 - ``l2/VARIANT``: VARIANT from layer 2 on (the subjects registered from the root directly);
 - ``chained``: layers in order, a subject's start is the edge from its parent's polished
   registration (a CPD at the default sigma^2), then one stage; else as ``stages:2``.
+- ``library``: the library's polish (``registration/_tree/_polish.py``: its stages from
+  layer 2, and from layer 3 the consensus), with plain CPD's registration from the cache
+  standing in for the root's direct one (the library's has the pose handling);
+  ``library:em``: the same with plain EM in its CPD (no ``accelerate``); ``library:d0``
+  / ``library:d1``: the direct registration not polished / polished by the finer stage
+  only.
 
     .venv/bin/python bench/bench_polish_variants.py --data /work/shared/data \\
         --families edge skel fish chinese --designs 0 --seeds 1 \\
@@ -125,6 +131,44 @@ def _polish(variant: str, start: Array, y: Array, h2: float) -> Array:
     return out if ok else start
 
 
+def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[str]
+             ) -> Array:
+    """The library's polish of one subject (see ``library`` in the module doc)."""
+    from registration._cpd import interpolating_field
+    from registration._tree import _polish as pm
+
+    real = pm.cpd_nonrigid
+
+    def run(*a: Any, **kw: Any) -> Any:
+        return real(*a, **{**kw, "accelerate": kw.get("accelerate", False)
+                           and "em" not in opts})
+
+    pm.cpd_nonrigid = run
+    try:
+        chain = pm._stages(start, registration_error(start, y), y, CPD, h2)
+        if other is None:
+            return chain.warped
+        factors = pm.POLISH_BETA_FACTORS
+        if "d0" in opts:
+            polished = other
+        else:
+            if "d1" in opts:
+                pm.POLISH_BETA_FACTORS = factors[1:]
+            try:
+                polished = pm._stages(other, registration_error(other, y), y, CPD, h2).warped
+            finally:
+                pm.POLISH_BETA_FACTORS = factors
+        step = interpolating_field(chain.warped, 0.5 * (chain.warped + polished),
+                                   pm.CONSENSUS_KERNEL_FACTOR * CPD.beta, pm.CONSENSUS_RIDGE)
+        half, jac = step.apply_with_jacobian(chain.warped)
+        if not float(np.linalg.det(jac).min()) > 0:
+            return chain.warped
+        found = pm._stages(half, registration_error(half, y), y, CPD, h2)
+        return found.warped if found.steps and found.error <= chain.error else chain.warped
+    finally:
+        pm.cpd_nonrigid = real
+
+
 def _built(case: bg.Case) -> dict[str, Any]:
     CACHE.mkdir(parents=True, exist_ok=True)
     key = CACHE / f"{case.label.replace(' ', '_')}_r{case.root}.pkl"
@@ -151,6 +195,10 @@ def run_variant(variant: str, case: bg.Case, d: dict[str, Any]) -> list[tuple[fl
         y, nm = nrm[k]
         start = nm.apply(warped)
         kind, min_layer = variant, 3
+        if kind.startswith("library") and layer is not None and layer >= 2:
+            other = nm.apply(plain[k]) if layer >= 3 else None
+            out[k] = nm.invert(_library(start, y, h2[k], other, kind.split(":")[1:]))
+            continue
         if variant.startswith("l2/"):  # the same variant from layer 2 on
             kind, min_layer = variant[3:], 2
         if kind != "none" and layer is not None and layer >= min_layer:

@@ -356,17 +356,19 @@ def near_pairs(t: FloatArray, x_tree: cKDTree, r: float, cap: int | None
             np.ascontiguousarray(pairs["v"])[order])
 
 
-def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float
-                   ) -> tuple[NDArray[np.intp], FloatArray]:
+def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float,
+                   sparse: bool = False) -> tuple[NDArray[np.intp], FloatArray]:
     """For each centroid, ``argmax_n`` and ``max_n`` of ``P(m | x_n)``.
 
-    Above :data:`POSTERIOR_DENSE_MAX_PAIRS` pairs, from the pairs within the truncation
-    radius (every posterior within ``TRUNCATION_EPS`` relative of the dense one, every
-    dropped one below ``TRUNCATION_EPS``); centroids with no pair within it take the dense
-    row.  Falls back to the dense pass when the radius holds a quarter of the pairs.
+    Above :data:`POSTERIOR_DENSE_MAX_PAIRS` pairs, or with ``sparse`` (the caller's last
+    E-step was the truncated one, so few pairs lie within the radius), from the pairs
+    within the truncation radius (every posterior within ``TRUNCATION_EPS`` relative of the
+    dense one, every dropped one below ``TRUNCATION_EPS``); centroids with no pair within
+    it take the dense row.  Falls back to the dense pass when the radius holds a quarter of
+    the pairs.
     """
     m, n = len(t), len(x)
-    if m * n <= POSTERIOR_DENSE_MAX_PAIRS:
+    if m * n <= POSTERIOR_DENSE_MAX_PAIRS and not sparse:
         return _posterior_max_dense(t, x, sigma2, w)
     r = _EStep(x, m, w, "float64").radius(t, sigma2)
     found = near_pairs(t, cKDTree(x), r, m * n // 4)

@@ -12,9 +12,10 @@ the stages of ``POLISH_BETA_FACTORS``: each stage's CPD moves the root's points,
 previous stage (first: the chain) left them, onto the subject (the tree's CPD options but
 a kernel width beta scaled by the stage's factor; the points keep the root's order), with
 sigma^2 starting from that start's residual rather than from the spread of all pairs (it
-starts aligned). A stage is kept only when it passes the checks the tree holds every
-registration to: its warp does not fold, its e is no larger than its start's, and its own
-confidence is at least ``MIN_CONFIDENCE``; a finer stage must also lower e by a fifth
+starts aligned), and its EM accelerated (``cpd_nonrigid(accelerate=True)``; see `_stages`).
+A stage is kept only when it passes the checks the tree holds every registration to: its
+warp does not fold, its e is no larger than its start's, and its own confidence is at least
+``MIN_CONFIDENCE``; a finer stage must also lower e by a fifth
 (``POLISH_FINER_MAX_E_RATIO``). A rejected stage is skipped: the next starts
 where the last kept one (or the chain) left the points. A chain's composed field has more
 freedom than one CPD's, so its e can be lower than a wide stage's while its points have
@@ -138,7 +139,15 @@ class _PolishOutcome:
 def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
             spacing2: float) -> _Stages:
     """The polish's CPD stages (:data:`POLISH_BETA_FACTORS`) from `start`, each kept only
-    when it passes the checks (see the module doc)."""
+    when it passes the checks (see the module doc).
+
+    Each stage's EM is accelerated: started aligned, plain EM converges linearly (the
+    objective's relative change falls about 0.8x per iteration on the 永 glyphs), and
+    SQUAREM's extrapolation, checked against the objective, reaches the same fixed point in
+    about half the iterations (bench/RESULTS.md 0.00000000: correspondence error against
+    plain CPD unchanged within 0.007 on six families, 20-24 % less CPU). The tree's own
+    edges, which start far from their subject and whose EM path through the shrinking
+    variance matters, are not accelerated."""
     cur, e_cur = start, e_start
     steps: list[PointTransform] = []
     quality: list[RegistrationQuality] = []
@@ -151,7 +160,8 @@ def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
         # squared point spacing
         sigma2 = max(0.5 * e_cur, spacing2)
         res = cpd_nonrigid(cur, y, beta=factor * o.beta, lmbda=o.lmbda, w=o.w,
-                           max_iter=o.max_iter, tol=o.tol, dtype=o.dtype, sigma2=sigma2)
+                           max_iter=o.max_iter, tol=o.tol, dtype=o.dtype, sigma2=sigma2,
+                           accelerate=True)
         warped = np.asarray(res.warped, dtype=np.float64)
         e = registration_error(warped, y)
         q = measure_quality(cur, warped, y, res.transform, e, spacing2)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 from typing import Any
 
@@ -356,6 +357,73 @@ def test_init_warped_starts_from_the_given_positions(pair: Any) -> None:
     cold: list[float] = []
     cpd_nonrigid(model, subject, max_iter=1, callback=lambda it, s2, obj: cold.append(s2))
     assert calls[0] < cold[0]
+
+
+# ----------------------------------------------------------------------------------------
+# accelerated EM (accelerate)
+# ----------------------------------------------------------------------------------------
+def _warm(pair: Any) -> tuple[np.ndarray, np.ndarray, float]:
+    """The subject, a start near it as the tree's polish has (a short run's end), and the
+    variance it starts from (half the start's mean squared distance to the subject)."""
+    model, subject, _, _ = pair
+    start = cpd_nonrigid(model, subject, max_iter=12).warped
+    near = np.argmin(((start[:, None] - subject[None]) ** 2).sum(-1), axis=1)
+    return subject, start, 0.5 * float(np.mean(np.sum((start - subject[near]) ** 2, axis=1)))
+
+
+def test_accelerate_reaches_the_same_fit_in_fewer_iterations(pair: Any) -> None:
+    subject, start, s2 = _warm(pair)
+    runs = {acc: cpd_nonrigid(start, subject, sigma2=s2, dtype="float64", accelerate=acc)
+            for acc in (False, True)}
+    plain, fast = runs[False], runs[True]
+    scale = rms_radius(subject)
+    assert fast.converged and plain.converged
+    assert fast.iterations < 0.75 * plain.iterations
+    # the same fixed point: at least as low an objective, the same points to 1e-3 of
+    # the shape's size, the same correspondences almost everywhere
+    assert fast.objective <= plain.objective + 1e-6 * abs(plain.objective)
+    assert np.sqrt(np.mean(np.sum((fast.warped - plain.warped) ** 2, axis=1))) < 1e-3 * scale
+    assert np.mean(fast.correspondence == plain.correspondence) > 0.97
+    assert np.allclose(fast.transform.apply(start), fast.warped, atol=1e-8 * scale)
+
+
+def test_accelerate_never_raises_the_objective(pair: Any,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    from registration._cpd import _nonrigid
+
+    subject, start, s2 = _warm(pair)
+    for step_max in (4.0, 1e4):  # the default, and steps so long that some are rejected
+        monkeypatch.setattr(_nonrigid, "ACCEL_STEP_MAX", step_max)
+        seen: list[float] = []
+
+        def record(it: int, s: float, obj: float, seen: list[float] = seen) -> None:
+            seen.append(obj)
+
+        res = cpd_nonrigid(start, subject, sigma2=s2, dtype="float64", accelerate=True,
+                           callback=record)
+        # each accepted state's objective is no larger than the last: an extrapolation
+        # that would raise it is dropped for EM's own iterate
+        assert all(b <= a + 1e-9 * abs(a) for a, b in itertools.pairwise(seen))
+        assert res.converged and np.isfinite(res.warped).all()
+        if step_max > 4:  # rejected extrapolations cost an E-step each, and are counted
+            assert res.iterations > len(seen)
+
+
+def test_accelerate_stopped_by_max_iter_returns_an_em_iterate(pair: Any) -> None:
+    subject, start, s2 = _warm(pair)
+    # two EM steps, then an extrapolated state that no E-step has checked: not returned
+    plain = cpd_nonrigid(start, subject, sigma2=s2, tol=0.0, max_iter=2)
+    fast = cpd_nonrigid(start, subject, sigma2=s2, tol=0.0, max_iter=2, accelerate=True)
+    assert np.array_equal(plain.warped, fast.warped)
+    assert plain.sigma2 == fast.sigma2
+
+
+def test_accelerate_is_validated(pair: Any) -> None:
+    model, subject, _, _ = pair
+    with pytest.raises(ValueError, match="accelerate must be True or False"):
+        cpd_nonrigid(model, subject, accelerate="yes")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="accelerate needs backend='native'"):
+        cpd_nonrigid(model, subject, accelerate=True, backend="pycpd")
 
 
 # ----------------------------------------------------------------------------------------

@@ -239,6 +239,19 @@ def test_sparse_correspondences_match_dense(monkeypatch: pytest.MonkeyPatch) -> 
         np.testing.assert_array_equal(arg[clear], arg_d[clear])
 
 
+def test_sparse_hint_gives_the_dense_correspondences() -> None:
+    # below POSTERIOR_DENSE_MAX_PAIRS, `sparse` (the last E-step was the truncated one)
+    # takes the pairs within the radius, with the dense pass's answer
+    x, t = curve(400, 8), curve(380, 9, wobble=0.05)
+    assert len(x) * len(t) <= _estep.POSTERIOR_DENSE_MAX_PAIRS
+    for s2, w in ((0.01**2, 0.1), (0.3**2, 0.1)):  # the second: too many pairs, dense
+        arg, best = _posterior_max(t, x, s2, w, sparse=True)
+        arg_d, best_d = _posterior_max_dense(t, x, s2, w)
+        np.testing.assert_allclose(best, best_d, rtol=1e-8, atol=1e-12)
+        clear = best_d > 1e-6
+        np.testing.assert_array_equal(arg[clear], arg_d[clear])
+
+
 @pytest.fixture(scope="module")
 def pair() -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(2)
