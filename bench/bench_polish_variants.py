@@ -29,7 +29,7 @@ Variants (comma-separated, ``--variants``):
   standing in for the root's direct one (the library's has the pose handling);
   ``library:em``: the same with plain EM in its CPD (no ``accelerate``); ``library:d0``
   / ``library:d1``: the direct registration not polished / polished by the finer stage
-  only.
+  only; ``library:tolX``: the consensus kept at an e up to X times the chain's.
 
     .venv/bin/python bench/bench_polish_variants.py --data /work/shared/data \\
         --families edge skel fish chinese --designs 0 --seeds 1 \\
@@ -164,7 +164,9 @@ def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[
         if not float(np.linalg.det(jac).min()) > 0:
             return chain.warped
         found = pm._stages(half, registration_error(half, y), y, CPD, h2)
-        return found.warped if found.steps and found.error <= chain.error else chain.warped
+        tol = next((float(o[3:]) for o in opts if o.startswith("tol")), 1.0)
+        return (found.warped if found.steps and found.error <= tol * chain.error
+                else chain.warped)
     finally:
         pm.cpd_nonrigid = real
 

@@ -88,9 +88,9 @@ def build_dynamic_tree(
         finer deformation the edges' smooth kernel leaves out is fitted. Two links or
         more from the root, the root is also registered onto the subject directly, and
         halfway between the two (polished again) replaces the chain's registration when
-        its e is no larger: the two registrations' errors partly cancel. Up to two more
-        CPD per subject; two links or more from the root, up to seven (eight when the
-        direct registration also tries a rotated pose). On the
+        its e is at most 1.1x the chain's: the two registrations' errors partly cancel.
+        Up to two more CPD per subject; two links or more from the root, up to seven
+        (eight when the direct registration also tries a rotated pose). On the
         ground-truth chains of bench/bench_groundtruth.py it lowered the correspondence
         error on every family but randomly subsampled outlines (bench/RESULTS.md, 0.00,
         0.000, 0.0000 and 0.0000000); False: the tree as built.
