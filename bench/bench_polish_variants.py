@@ -29,7 +29,9 @@ Variants (comma-separated, ``--variants``):
   standing in for the root's direct one (the library's has the pose handling);
   ``library:em``: the same with plain EM in its CPD (no ``accelerate``); ``library:d0``
   / ``library:d1``: the direct registration not polished / polished by the finer stage
-  only; ``library:tolX``: the consensus kept at an e up to X times the chain's.
+  only; ``library:tolX``: the consensus kept at an e up to X times the chain's (default:
+  the library's); ``library:wX``: the start moved X of the way to the direct registration
+  (default 0.5).
 
     .venv/bin/python bench/bench_polish_variants.py --data /work/shared/data \\
         --families edge skel fish chinese --designs 0 --seeds 1 \\
@@ -158,13 +160,15 @@ def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[
                 polished = pm._stages(other, registration_error(other, y), y, CPD, h2).warped
             finally:
                 pm.POLISH_BETA_FACTORS = factors
-        step = interpolating_field(chain.warped, 0.5 * (chain.warped + polished),
+        weight = next((float(o[1:]) for o in opts if o.startswith("w")), 0.5)
+        step = interpolating_field(chain.warped, chain.warped + weight * (polished - chain.warped),
                                    pm.CONSENSUS_KERNEL_FACTOR * CPD.beta, pm.CONSENSUS_RIDGE)
         half, jac = step.apply_with_jacobian(chain.warped)
         if not float(np.linalg.det(jac).min()) > 0:
             return chain.warped
         found = pm._stages(half, registration_error(half, y), y, CPD, h2)
-        tol = next((float(o[3:]) for o in opts if o.startswith("tol")), 1.0)
+        tol = next((float(o[3:]) for o in opts if o.startswith("tol")),
+                   pm.CONSENSUS_MAX_E_RATIO)
         return (found.warped if found.steps and found.error <= tol * chain.error
                 else chain.warped)
     finally:
