@@ -57,8 +57,10 @@ PHASE_WEIGHTS = {
     "refine": 0.05,
     "direct": 0.17,
     # 0.22 until the polish's consensus (bench/RESULTS.md 0.0000000), which made the phase
-    # 2.7-2.9x as long on the 73 永 glyphs (68 of 72 subjects at layer >= 3)
-    "polish": 0.6,
+    # 2.7-2.9x as long on the 73 永 glyphs (68 of 72 subjects at layer >= 3): 0.6; then its
+    # accelerated EM (section 7.4) 0.52x as long over HTTP (15.90 -> 8.20 s with
+    # compare_direct, 18.76 -> 9.84 s without, the same day)
+    "polish": 0.31,
     "full resolution": 0.06,
     "direct full resolution": 0.038,
 }
