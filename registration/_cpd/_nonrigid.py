@@ -429,7 +429,8 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
         if not (np.isfinite(w_new).all() and np.isfinite(t_new).all()
                 and math.isfinite(s2_new)):
             break
-        history.append((wmat, t, s2))
+        if accelerate:
+            history.append((wmat, t, s2))
         wmat, t, objective, l_old = w_new, t_new, lval, lval
         it += 1
         hit_floor = s2_new <= floor

@@ -283,8 +283,8 @@ def _polish_subjects(
 ) -> None:
     """Polish every attached subject at layer >= `min_layer` in place (see the module doc);
     `direct(s)`: the root's registration onto subject `s` (to run, or already run), for
-    the consensus of the
-    subjects at layer >= :data:`POLISH_CONSENSUS_MIN_LAYER` (None: no consensus)."""
+    the consensus of the subjects at layer >= :data:`POLISH_CONSENSUS_MIN_LAYER` (None: no
+    consensus)."""
     tasks = [
         _PolishTask(subject=s, start=coll.norms[s].apply(r.warped), error=r.error,
                     y=coll.normed[s], cpd=cpd, spacing2=coll.spacing2[s],
