@@ -63,6 +63,16 @@ _DEN_FLOOR = 1e-300
 #: so a choice made within this factor is at worst slightly off near a crossover; every
 #: method is exact to its stated tolerance, so only the time can differ.
 ENGINE_REUSE_FACTOR = 1.25
+#: Up to this many (model, subject) pairs the E-step is dense without estimating the
+#: others' costs. At the tree's 400 x 400 points the dense float32 E-step takes 0.23-0.31
+#: ms, and so does the estimate itself (a k-d tree count, the grids' sizes); the grid
+#: E-step, when chosen there, took 0.78 ms (its cost model is fitted at 2000-8000 points,
+#: where its fixed costs do not show), the truncated one 0.27 ms after 1.4 ms for its
+#: neighbour list (25 永 glyphs' tree, every CPD: bench/RESULTS.md 7.6).
+DENSE_ONLY_MAX_PAIRS = 1 << 18
+#: Smallest exponent the final correspondence pass evaluates (see `_posterior_max_dense`).
+_EXP_MIN = -700.0
+_KERNEL_MIN = math.exp(_EXP_MIN)
 #: The final correspondence pass is dense up to this many (model, subject) pairs.
 POSTERIOR_DENSE_MAX_PAIRS = 1 << 21
 #: ... and above that, still dense when this fraction of the pairs or more lies within
@@ -142,12 +152,15 @@ class _EStep:
             xa[3] = -inv2s * self.xsq[a:b]
             e64 = self._buf64[: m * k].reshape(m, k)
             np.matmul(ta, xa, out=e64)
-            np.minimum(e64, 0.0, out=e64)  # exact value is <= 0; drop rounding
             if self._buf32 is not None:
                 e: NDArray[Any] = self._buf32[: m * k].reshape(m, k)
                 e[...] = e64
             else:
                 e = e64
+            # the exact value is <= 0: -|e| drops the rounding above it (np.minimum, which
+            # propagates NaNs, cost as much as the exp; abs and negate 0.15x of it)
+            np.abs(e, out=e)
+            np.negative(e, out=e)
             np.exp(e, out=e)
             colsum = (ones @ e).astype(np.float64)
             den = colsum + c
@@ -430,19 +443,44 @@ def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float,
 
 def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float
                          ) -> tuple[NDArray[np.intp], FloatArray]:
+    """For each centroid, ``argmax_n`` and ``max_n`` of ``P(m | x_n)`` over every pair, in
+    blocks of subject points. The exponents come from one product per block, as in the
+    dense E-step (the coordinate differences, seven passes over the block, and an exp on
+    underflowing values took 13-24 ns a pair: ten dense E-steps' time at 400 x 400
+    points); float64 throughout."""
     m, n = len(t), len(x)
     c = _outlier_const(sigma2, w, m, n)
+    inv2s = 0.5 / sigma2
+    ta = np.empty((m, 4))
+    ta[:, :2] = t
+    ta[:, 2] = -inv2s * np.einsum("ij,ij->i", t, t)
+    ta[:, 3] = 1.0
+    xsq = np.einsum("ij,ij->i", x, x)
+    rows = np.arange(m)
     best = np.full(m, -1.0)
     arg = np.zeros(m, dtype=np.intp)
     step = max(1, _BLOCK_ELEMS // m)
     for a in range(0, n, step):
         b = min(n, a + step)
-        e = _gauss_kernel(t, x[a:b], math.sqrt(sigma2))
+        xa = np.empty((4, b - a))
+        xa[:2] = x[a:b].T / sigma2
+        xa[2] = 1.0
+        xa[3] = -inv2s * xsq[a:b]
+        e = ta @ xa
+        # the exact exponent is <= 0 (the clip drops rounding above it); numpy's float64
+        # exp leaves its vector path for inputs below about -708 (7.5 ns a value instead
+        # of 0.85: most pairs at a small sigma), so exponents are clipped at -700 and
+        # exp(-700) ~ 1e-304 taken off again: a kernel that small is 0, as it underflowed
+        # before (with w = 0, a subject point far from every centroid keeps its floored,
+        # zero posteriors), and every other moves by 1e-304
+        np.clip(e, _EXP_MIN, 0.0, out=e)
+        np.exp(e, out=e)
+        e -= _KERNEL_MIN
         den = e.sum(axis=0) + c
         np.maximum(den, _DEN_FLOOR, out=den)
-        e /= den
+        e *= 1.0 / den
         k = np.argmax(e, axis=1)
-        v = e[np.arange(m), k]
+        v = e[rows, k]
         better = v > best
         best[better] = v[better]
         arg[better] = k[better] + a
@@ -456,9 +494,12 @@ def run_estep(estep: _EStep, t: FloatArray, sigma2: float, truncate: bool | None
     estimated cost decide, ``True`` forces a method where it applies (truncation first),
     ``False`` rules it out.
 
-    With both left to the estimate, a choice is reused while ``sigma2`` stays within
+    With both left to the estimate, up to :data:`DENSE_ONLY_MAX_PAIRS` pairs it is dense,
+    and above, a choice is reused while ``sigma2`` stays within
     :data:`ENGINE_REUSE_FACTOR` of the variance it was made at (see there)."""
     auto = truncate is None and gauss_grid is None
+    if auto and estep.m * estep.n <= DENSE_ONLY_MAX_PAIRS:
+        return estep.dense(t, sigma2)
     if auto and estep.choice is not None:
         s2_at, engine = estep.choice
         if s2_at / ENGINE_REUSE_FACTOR <= sigma2 <= s2_at * ENGINE_REUSE_FACTOR:

@@ -151,6 +151,7 @@ def test_estimated_choice_is_reused_while_sigma_stays_close(
     """A method chosen by the estimated costs runs again without new estimates while
     sigma^2 stays within ENGINE_REUSE_FACTOR of where it was chosen, and is chosen afresh
     beyond; either way the sums are the dense ones within the method's tolerance."""
+    monkeypatch.setattr(_estep, "DENSE_ONLY_MAX_PAIRS", 0)  # small sets: always dense
     x, t = curve(500, 5), curve(450, 6, wobble=0.05)
     est = _EStep(x, len(t), 0.1, "float64")
     sample = np.unique(np.linspace(0, len(t) - 1, 64).astype(np.intp))
@@ -170,6 +171,7 @@ def test_estimated_choice_is_reused_while_sigma_stays_close(
     close(_estep.run_estep(est, t, near, None, None, sample), dense_sums(t, x, near, 0.1), 1e-8)
     assert est.choice == chosen
     monkeypatch.undo()
+    monkeypatch.setattr(_estep, "DENSE_ONLY_MAX_PAIRS", 0)
     far = s2 * 4 * _estep.ENGINE_REUSE_FACTOR
     close(_estep.run_estep(est, t, far, None, None, sample), dense_sums(t, x, far, 0.1), 1e-8)
     assert est.choice is not None and est.choice[0] == far
@@ -231,6 +233,33 @@ def test_pivoted_cholesky_and_eigen_form(beta: float) -> None:
     assert len(lam5) == 5
 
 
+
+def test_small_problems_take_the_dense_estep_without_estimates(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Up to DENSE_ONLY_MAX_PAIRS pairs the E-step is dense at every sigma (estimating the
+    other methods' costs would cost as much as the dense E-step); one pair more and the
+    estimates run again."""
+    x, t = curve(500, 5), curve(450, 6, wobble=0.05)
+    sample = np.unique(np.linspace(0, len(t) - 1, 64).astype(np.intp))
+    monkeypatch.setattr(_estep, "DENSE_ONLY_MAX_PAIRS", len(t) * len(x))
+    est = _EStep(x, len(t), 0.1, "float32")
+    with monkeypatch.context() as mp:
+        def no_estimate(*args: object) -> float:
+            raise AssertionError("estimated a small problem's E-step")
+
+        for name in ("density", "grid_cost", "box_cost", "truncated", "grid", "boxgrid"):
+            mp.setattr(_EStep, name, no_estimate)
+        for s2 in (1.0, 0.05**2, 0.005**2):  # grid, box and truncated ranges at any size
+            got = _estep.run_estep(est, t, s2, None, None, sample)
+            assert got.nnz == len(t) * len(x)
+            close(got, dense_sums(t, x, s2, 0.1), 1e-5)
+        assert est.choice is None
+    monkeypatch.setattr(_estep, "DENSE_ONLY_MAX_PAIRS", len(t) * len(x) - 1)
+    got = _estep.run_estep(est, t, 0.005**2, None, None, sample)
+    assert est.choice is not None and est.choice[1] == "truncated"
+    assert got.nnz < len(t) * len(x)
+
+
 def test_sparse_correspondences_match_dense(monkeypatch: pytest.MonkeyPatch) -> None:
     x, t = curve(400, 8), curve(380, 9, wobble=0.05)
     monkeypatch.setattr(_estep, "POSTERIOR_DENSE_MAX_PAIRS", 0)
@@ -240,6 +269,26 @@ def test_sparse_correspondences_match_dense(monkeypatch: pytest.MonkeyPatch) -> 
         np.testing.assert_allclose(best, best_d, rtol=1e-8, atol=1e-12)
         clear = best_d > 1e-6  # ties among vanishing posteriors may pick another index
         np.testing.assert_array_equal(arg[clear], arg_d[clear])
+
+
+@pytest.mark.parametrize("sigma", [0.002, 0.02, 0.3])
+def test_dense_correspondences_match_the_posterior_matrix(sigma: float) -> None:
+    # the pass computes its exponents by one product per block and clips them at -700 (an
+    # exp below that leaves numpy's vector path): the same posteriors as the full matrix
+    # from coordinate differences, also where most pairs underflow (sigma 0.002). Not
+    # with w = 0 there: subject points 37 sigma from every centroid then have only
+    # denormal kernels over a floored denominator, ratios without significant digits
+    # (the pass gives them 0, the matrix up to 1e-4)
+    x, t = curve(400, 8), curve(380, 9, wobble=0.05)
+    for w in (0.1, 0.0) if sigma > 0.01 else (0.1, 0.01):
+        k = np.exp(-((t[:, None, :] - x[None, :, :]) ** 2).sum(-1) / (2 * sigma**2))
+        den = np.maximum(k.sum(axis=0) + _estep._outlier_const(sigma**2, w, len(t), len(x)),
+                         1e-300)
+        p = k / den
+        arg, best = _posterior_max_dense(t, x, sigma**2, w)
+        np.testing.assert_allclose(best, p.max(axis=1), rtol=1e-9, atol=1e-14)
+        clear = best > 1e-6
+        np.testing.assert_array_equal(arg[clear], p.argmax(axis=1)[clear])
 
 
 def test_sparse_hint_gives_the_dense_correspondences() -> None:
