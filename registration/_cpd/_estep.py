@@ -72,7 +72,9 @@ ENGINE_REUSE_FACTOR = 1.25
 DENSE_ONLY_MAX_PAIRS = 1 << 18
 #: Smallest exponent the final correspondence pass evaluates (see `_posterior_max_dense`).
 _EXP_MIN = -700.0
-_KERNEL_MIN = math.exp(_EXP_MIN)
+#: ... and its kernel, by numpy's vector exp (the one the pass runs; ``math.exp`` may
+#: differ in the last bit, which would leave the clipped kernels at +-1e-320, not 0)
+_KERNEL_MIN = float(np.exp(np.full(8, _EXP_MIN))[0])
 #: The final correspondence pass is dense up to this many (model, subject) pairs.
 POSTERIOR_DENSE_MAX_PAIRS = 1 << 21
 #: ... and above that, still dense when this fraction of the pairs or more lies within
