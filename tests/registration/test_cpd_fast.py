@@ -233,7 +233,6 @@ def test_pivoted_cholesky_and_eigen_form(beta: float) -> None:
     assert len(lam5) == 5
 
 
-
 def test_small_problems_take_the_dense_estep_without_estimates(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """Up to DENSE_ONLY_MAX_PAIRS pairs the E-step is dense at every sigma (estimating the
