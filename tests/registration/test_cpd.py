@@ -409,6 +409,22 @@ def test_accelerate_never_raises_the_objective(pair: Any,
             assert res.iterations > len(seen)
 
 
+def test_accelerate_does_not_stop_on_an_extrapolation_that_made_no_progress(
+        pair: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    from registration._cpd import _nonrigid
+
+    subject, start, s2 = _warm(pair)
+    plain = cpd_nonrigid(start, subject, sigma2=s2, dtype="float64")
+    # every extrapolation lands back on the state one EM step before: accepted (its
+    # objective is the one it must not exceed), with no change against it; that is no
+    # convergence, and EM goes on from there
+    monkeypatch.setattr(_nonrigid, "_squarem", lambda s0, s1, s2_, step_max, floor: s1)
+    stuck = cpd_nonrigid(start, subject, sigma2=s2, dtype="float64", accelerate=True)
+    assert stuck.converged and stuck.iterations > 3
+    scale = rms_radius(subject)
+    assert np.sqrt(np.mean(np.sum((stuck.warped - plain.warped) ** 2, axis=1))) < 1e-3 * scale
+
+
 def test_accelerate_stopped_by_max_iter_returns_an_em_iterate(pair: Any) -> None:
     subject, start, s2 = _warm(pair)
     # two EM steps, then an extrapolated state that no E-step has checked: not returned
