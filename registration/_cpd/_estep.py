@@ -92,6 +92,27 @@ class _EStepOut:
     nnz: int  # pairs evaluated (M*N when dense)
 
 
+def _exponent_rows(t: FloatArray, sigma2: float) -> FloatArray:
+    """The centroids' factor of the Gaussian exponent as one product: ``exponent[m, n] =
+    (t_m . x_n) / s2 - |t_m|^2 / (2 s2) - |x_n|^2 / (2 s2) = rows @ cols`` (with
+    :func:`_exponent_cols`)."""
+    rows = np.empty((len(t), 4))
+    rows[:, :2] = t
+    rows[:, 2] = -0.5 / sigma2 * np.einsum("ij,ij->i", t, t)
+    rows[:, 3] = 1.0
+    return rows
+
+
+def _exponent_cols(x: FloatArray, xsq: FloatArray, sigma2: float) -> FloatArray:
+    """The subject points' factor (``xsq``: their squared norms), see
+    :func:`_exponent_rows`."""
+    cols = np.empty((4, len(x)))
+    cols[:2] = x.T / sigma2
+    cols[2] = 1.0
+    cols[3] = -0.5 / sigma2 * xsq
+    return cols
+
+
 def _outlier_const(sigma2: float, w: float, m: int, n: int) -> float:
     # (2 pi sigma2)^(D/2) w/(1-w) M/N with D = 2
     return 2.0 * math.pi * sigma2 * w / (1.0 - w) * m / n
@@ -134,12 +155,7 @@ class _EStep:
     def dense(self, t: FloatArray, sigma2: float) -> _EStepOut:
         m, n, x = self.m, self.n, self.x
         c = _outlier_const(sigma2, self.w, m, n)
-        inv2s = 0.5 / sigma2
-        # exponent[m, n] = (t_m . x_n)/s2 - |t_m|^2/(2 s2) - |x_n|^2/(2 s2) = ta @ xa.T
-        ta = np.empty((m, 4))
-        ta[:, :2] = t
-        ta[:, 2] = -inv2s * np.einsum("ij,ij->i", t, t)
-        ta[:, 3] = 1.0
+        ta = _exponent_rows(t, sigma2)
         p1 = np.zeros(m)
         px = np.zeros((m, 2))
         pt1 = np.empty(n)
@@ -148,10 +164,7 @@ class _EStep:
         for a in range(0, n, self.block):
             b = min(n, a + self.block)
             k = b - a
-            xa = np.empty((4, k))
-            xa[:2] = x[a:b].T / sigma2
-            xa[2] = 1.0
-            xa[3] = -inv2s * self.xsq[a:b]
+            xa = _exponent_cols(x[a:b], self.xsq[a:b], sigma2)
             e64 = self._buf64[: m * k].reshape(m, k)
             np.matmul(ta, xa, out=e64)
             if self._buf32 is not None:
@@ -452,11 +465,7 @@ def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float
     points); float64 throughout."""
     m, n = len(t), len(x)
     c = _outlier_const(sigma2, w, m, n)
-    inv2s = 0.5 / sigma2
-    ta = np.empty((m, 4))
-    ta[:, :2] = t
-    ta[:, 2] = -inv2s * np.einsum("ij,ij->i", t, t)
-    ta[:, 3] = 1.0
+    ta = _exponent_rows(t, sigma2)
     xsq = np.einsum("ij,ij->i", x, x)
     rows = np.arange(m)
     best = np.full(m, -1.0)
@@ -464,11 +473,7 @@ def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float
     step = max(1, _BLOCK_ELEMS // m)
     for a in range(0, n, step):
         b = min(n, a + step)
-        xa = np.empty((4, b - a))
-        xa[:2] = x[a:b].T / sigma2
-        xa[2] = 1.0
-        xa[3] = -inv2s * xsq[a:b]
-        e = ta @ xa
+        e = ta @ _exponent_cols(x[a:b], xsq[a:b], sigma2)
         # the exact exponent is <= 0 (the clip drops rounding above it); numpy's float64
         # exp leaves its vector path for inputs below about -708 (7.5 ns a value instead
         # of 0.85: most pairs at a small sigma), so exponents are clipped at -700 and
