@@ -14,8 +14,8 @@ float64 computation:
 * a grid E-step while sigma is wide: a Chebyshev-grid fast Gauss transform
   (:mod:`._fgt`), linear in the points;
 * a truncated E-step once sigma is small: only pairs closer than a radius derived from a
-  rigorous bound on the dropped mass are evaluated (``scipy.spatial.cKDTree`` pairs kept
-  as a CSR kernel while the centroids move little), giving a sparse ``P``.
+  rigorous bound on the dropped mass are evaluated (pairs from a cell list,
+  :mod:`._neighbours`, kept as a CSR kernel while the centroids move little), giving a sparse ``P``.
 
 The cheapest allowed E-step is chosen on every iteration from estimated costs
 (``_estep.run_estep``).

@@ -1,4 +1,4 @@
-"""CPD's E-step engine: dense (chunked BLAS) and truncated (sparse, k-d tree) posteriors.
+"""CPD's E-step engine: dense (chunked BLAS) and truncated (sparse, cell list) posteriors.
 
 Both return the sums the M-step needs (``P1``, ``Pt1``, ``P X``) and the objective, never
 ``P`` itself.  Coordinates are normalised (see :mod:`._nonrigid`).
@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from ._boxfgt import BOX_WIDTHS, BoxGrid, box_rank, box_work
 from ._fgt import FGT_MAX_RANK, ChebGrid, bounding_box, fgt_ranks
 from ._field import _BLOCK_ELEMS, FloatArray, _gauss_kernel
+from ._neighbours import near_pairs
 
 #: Cost of the grid E-step per point, ``FGT_NODE_COST * (r_x r_y) ** FGT_NODE_POWER``, in
 #: units of one pair of the float64 dense E-step (fitted on fish contours of 8000 points
@@ -36,12 +37,13 @@ DENSE_PAIR_COST_F32 = 0.6
 #: Cost of one pair of the truncated E-step relative to the float64 dense E-step (measured
 #: CPU time at 4000 points: 19-27 ns against 15 ns, and 9.4 ns for the float32 dense one).
 TRUNCATED_PAIR_COST = 1.5
-#: Building the truncated E-step's neighbour list (a k-d tree query at the larger radius,
-#: a sort, the CSR index) costs about 6-9 evaluations of the list (measured at 2000-8000
-#: points), and a list lasts several iterations (pruned, not rebuilt, as sigma shrinks):
-#: the estimated cost of an iteration that must build it is taken this many times higher
-#: (3 against 2: the switch from the box E-step at 8000 points moves from sigma ~0.018
-#: to ~0.01, where the list is half as long; 0.59 -> 0.45 s CPU for that build).
+#: Building the truncated E-step's neighbour list (a cell-list search at the larger
+#: radius, the CSR index) costs 1.4-4.5 evaluations of the list (measured at 2000 and 8000
+#: points, sigma 0.005-0.1; with the k-d tree search it replaced, 6-9), and a list lasts
+#: several iterations (pruned, not rebuilt, as sigma shrinks): the estimated cost of an
+#: iteration that must build it is taken this many times higher (chosen with the k-d tree:
+#: 3 against 2 moved the switch from the box E-step at 8000 points from sigma ~0.018 to
+#: ~0.01; with the cell list, 1.5 and 2 time the same within the machine's noise).
 TRUNCATION_BUILD_COST = 3.0
 #: The truncated E-step's neighbour list holds at most this many pairs (memory: ~40 bytes
 #: each); beyond, the grid or dense E-step runs.
@@ -135,7 +137,6 @@ class _EStep:
         # neighbour list of the truncated E-step
         self.max_density = 1.0
         self.force_truncate = False
-        self._pi: NDArray[np.intp] | None = None
         self._pj: NDArray[np.intp] | None = None
         self._xj: FloatArray | None = None
         self._kmat: scipy.sparse.csr_matrix | None = None
@@ -279,8 +280,8 @@ class _EStep:
         """Sparse E-step over all pairs closer than ``r`` (and possibly a few more).
 
         Candidate pairs come from a neighbour list built with a larger radius
-        ``r_build = TRUNCATION_SKIN * r`` around the centroids ``t_build`` (one
-        ``cKDTree.sparse_distance_matrix``).  The list stays valid while
+        ``r_build = TRUNCATION_SKIN * r`` around the centroids ``t_build`` (one cell-list
+        search, :func:`._neighbours.near_pairs`).  The list stays valid while
         ``r + max_m |t_m - t_build_m| <= r_build``: then every pair now closer than ``r``
         was closer than ``r_build`` at build time (triangle inequality), so it is in the
         list.  Extra pairs in the list are evaluated exactly, which only adds accuracy.
@@ -293,8 +294,8 @@ class _EStep:
         if not self._list_valid(t, r) and not self._prune_list(t, TRUNCATION_SKIN * r):
             if not self._build_list(t, TRUNCATION_SKIN * r):
                 return None
-        i, j, xj, kmat = self._pi, self._pj, self._xj, self._kmat
-        assert i is not None and j is not None and xj is not None and kmat is not None
+        j, xj, kmat = self._pj, self._xj, self._kmat
+        assert j is not None and xj is not None and kmat is not None
         c = _outlier_const(sigma2, self.w, m, n)
         # |t_i - x_j|^2 on the listed pairs, one coordinate at a time (1-D passes are
         # several times faster than a (P, 2) einsum); np.repeat = t[i] as rows are sorted
@@ -332,7 +333,7 @@ class _EStep:
         return math.sqrt(float(np.max(np.einsum("ij,ij->i", d, d))))
 
     def _list_valid(self, t: FloatArray, r: float) -> bool:
-        if self._pi is None or self._t_build is None:
+        if self._pj is None or self._t_build is None:
             return False
         if self._r_build > TRUNCATION_SHRINK * r:  # list much too loose: prune or rebuild
             return False
@@ -344,62 +345,39 @@ class _EStep:
         Valid when ``r_build + max_m |t_m - t_build_m| <= `` the list's radius: every pair
         now within ``r_build`` was within the list's radius at build time (triangle
         inequality), so it is listed; pairs keep their order (sorted by centroid)."""
-        if self._pi is None or self._t_build is None or self._xj is None:
+        if self._pj is None or self._t_build is None or self._xj is None:
             return False
         if r_build + self._moved(t) > self._r_build:
             return False
         dx = np.repeat(t[:, 0], self._counts) - self._xj[0]
         dy = np.repeat(t[:, 1], self._counts) - self._xj[1]
-        keep = dx * dx + dy * dy <= r_build * r_build
-        assert self._pj is not None
-        self._set_list(self._pi[keep], self._pj[keep], t, r_build, self._xj[:, keep])
+        dx *= dx
+        dy *= dy
+        dx += dy
+        kept = np.flatnonzero(dx <= r_build * r_build)
+        counts = np.diff(np.searchsorted(kept, np.cumsum(self._counts)), prepend=0)
+        self._set_list(counts, self._pj.take(kept), t, r_build, self._xj.take(kept, axis=1))
         return True
 
     def _build_list(self, t: FloatArray, r_build: float) -> bool:
         cap = None if self.force_truncate else int(
             min(self.max_density * self.m * self.n, TRUNCATION_MAX_PAIRS))
-        found = near_pairs(t, self.tree_x, r_build, cap, distances=False)
+        found = near_pairs(t, self.x, r_build, cap, distances=False)
         if found is None:
-            self._pi = None
+            self._pj = None
             return False
-        self._set_list(found[0], found[1], t, r_build)
+        self._set_list(found.counts, found.j, t, r_build, found.xj)
         return True
 
-    def _set_list(self, pi: NDArray[np.intp], pj: NDArray[np.intp], t: FloatArray,
-                  r_build: float, xj: FloatArray | None = None) -> None:
-        self._pi, self._pj = pi, pj
-        if xj is None:  # one gather per coordinate: 2 ns a pair, against 30 for x[pj].T
-            xj = np.empty((2, len(pj)))
-            self.x[:, 0].take(pj, out=xj[0])
-            self.x[:, 1].take(pj, out=xj[1])
-        self._xj = xj
-        self._counts = np.bincount(pi, minlength=self.m)
+    def _set_list(self, counts: NDArray[np.intp], pj: NDArray[np.intp], t: FloatArray,
+                  r_build: float, xj: FloatArray) -> None:
+        self._pj, self._xj, self._counts = pj, xj, counts
         indptr = np.zeros(self.m + 1, dtype=np.intp)
-        np.cumsum(self._counts, out=indptr[1:])
+        np.cumsum(counts, out=indptr[1:])
         self._kmat = scipy.sparse.csr_matrix(
             (np.zeros(len(pj), dtype=self.dtype), pj, indptr), shape=(self.m, self.n))
         self._t_build = t.copy()
         self._r_build = r_build
-
-
-def near_pairs(t: FloatArray, x_tree: cKDTree, r: float, cap: int | None,
-               distances: bool = True
-               ) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray | None] | None:
-    """All pairs ``(i, j, |t_i - x_j|)`` with ``|t_i - x_j| <= r``, sorted by ``i`` (one
-    ``cKDTree.sparse_distance_matrix``; a stable radix sort when ``M < 65536``), the
-    distances only with ``distances``.  None if more than ``cap`` pairs."""
-    pairs = cKDTree(t).sparse_distance_matrix(x_tree, r, output_type="ndarray")
-    if cap is not None and len(pairs) > cap:
-        return None
-    m = len(t)
-    raw_i = pairs["i"]
-    order = np.argsort(raw_i.astype(np.uint16) if m < 65536 else raw_i, kind="stable")
-    # the sorted row indices are the counts' runs; the gathers go through contiguous
-    # copies of the record's fields (a gather from the strided field costs 2-3x more)
-    i = np.repeat(np.arange(m), np.bincount(raw_i, minlength=m))
-    j = pairs["j"].astype(np.intp).take(order)
-    dist = np.ascontiguousarray(pairs["v"]).take(order) if distances else None
-    return i, j, dist
 
 
 def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float,
@@ -425,10 +403,10 @@ def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float,
     counts = x_tree.query_ball_point(t[sample], r, return_length=True)
     if float(np.mean(counts)) > POSTERIOR_SPARSE_MAX_DENSITY * n:
         return _posterior_max_dense(t, x, sigma2, w)
-    found = near_pairs(t, x_tree, r, int(m * n * POSTERIOR_SPARSE_MAX_DENSITY))
+    found = near_pairs(t, x, r, int(m * n * POSTERIOR_SPARSE_MAX_DENSITY))
     if found is None:
         return _posterior_max_dense(t, x, sigma2, w)
-    i, j, dist = found
+    i, j, dist = found.i, found.j, found.dist
     assert dist is not None
     e = np.exp(-0.5 / sigma2 * dist**2)
     den = np.bincount(j, weights=e, minlength=n) + _outlier_const(sigma2, w, m, n)
