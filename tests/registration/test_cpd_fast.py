@@ -65,6 +65,22 @@ def test_grid_estep_matches_dense(sigma: float, w: float) -> None:
     close(got, dense_sums(t, x, sigma * sigma, w), 1e-8)
 
 
+def test_interpolation_weights_on_and_next_to_the_nodes() -> None:
+    """Points on a node (or a denormal away) get that node's one-hot row; elsewhere the
+    weights reproduce polynomials up to the degree the nodes carry."""
+    p = 13
+    nodes = _cheb_nodes(p)
+    on = _interp_matrix(nodes, p)
+    np.testing.assert_array_equal(on, np.eye(p))
+    near = _interp_matrix(np.array([nodes[4] + 5e-324, nodes[7] - 5e-324]), p)
+    np.testing.assert_array_equal(near, np.eye(p)[[4, 7]])
+    u = np.r_[-1.0, np.linspace(-0.999, 0.999, 57), 1.0, nodes[2] + 1e-15]
+    lmat = _interp_matrix(u, p)
+    assert np.all(np.isfinite(lmat))
+    for degree in (0, 1, 5, p - 1):
+        np.testing.assert_allclose(lmat @ nodes**degree, u**degree, atol=1e-13)
+
+
 @pytest.mark.parametrize("widths", [1.0, 2.0, 4.0, 7.0, 8.0])
 def test_box_rank_interpolates_every_shift(widths: float) -> None:
     """Every 1-D kernel value between a box and any point (inside the box or up to 9
