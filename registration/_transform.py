@@ -94,9 +94,16 @@ class ChainTransform:
     steps: tuple[PointTransform, ...]
     path: tuple[int, ...]
 
-    def __repr__(self) -> str:  # short: the steps' arrays are not printed
-        kinds = ", ".join(type(s).__name__ for s in self.steps) or "identity"
-        return f"ChainTransform(path={self.path}, steps=[{kinds}])"
+    def __repr__(self) -> str:  # short: the steps' arrays are not printed, runs counted
+        runs: list[list[Any]] = []
+        for step in self.steps:
+            name = type(step).__name__
+            if runs and runs[-1][0] == name:
+                runs[-1][1] += 1
+            else:
+                runs.append([name, 1])
+        kinds = ", ".join(name if k == 1 else f"{k} x {name}" for name, k in runs)
+        return f"ChainTransform(path={self.path}, steps=[{kinds or 'identity'}])"
 
     def apply_normalised(self, points: ArrayLike) -> FloatArray:
         """Apply the steps to points already in normalised coordinates."""

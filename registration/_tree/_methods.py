@@ -89,8 +89,12 @@ def build_dynamic_tree(
         more from the root, the root is also registered onto the subject directly, and
         halfway between the two (polished again) replaces the chain's registration when
         its e is at most 1.1x the chain's: the two registrations' errors partly cancel.
-        Up to two more CPD per subject; two links or more from the root, up to seven
-        (eight when the direct registration also tries a rotated pose). On the
+        Subjects are polished parents first, and two links or more from the root a
+        subject's edge is first registered again from its parent as polished, kept when
+        its e is no larger than the chain's (the subject's transform then extends the
+        parent's polished one). Up to two more CPD per subject; two links or more from
+        the root, up to eight (nine when the direct registration also tries a rotated
+        pose). On the
         ground-truth chains of bench/bench_groundtruth.py it lowered the correspondence
         error on every family but randomly subsampled outlines (bench/RESULTS.md, 0.00,
         0.000, 0.0000 and 0.0000000); False: the tree as built.

@@ -21,12 +21,20 @@ where the last kept one (or the chain) left the points. A chain's composed field
 freedom than one CPD's, so its e can be lower than a wide stage's while its points have
 slid: there the finer stage, from the chain, still lowers e and the correspondence error.
 
+Subjects are polished a tree level at a time, parents first. At layer >=
+``POLISH_FROM_PARENT_MIN_LAYER`` a subject whose parent's polish moved it first registers
+its edge again, from the parent's polished points (the tree made it from the parent's
+chained ones, so the child inherited the parent's slide); that edge replaces the chain
+when its e is no larger, and the subject's transform then extends the parent's polished
+chain.
+
 At layer >= ``POLISH_CONSENSUS_MIN_LAYER`` the root model is also registered onto the
 subject directly and polished the same way, and the chain's polished points are moved
 halfway to those and polished again (`_consensus`): kept when that e is at most
 ``CONSENSUS_MAX_E_RATIO`` (1.1) times the chain's. The subject's transform stays its chain,
 extended by the polish's steps (the chain's stages, the step halfway, the stages from
-there), so its children and the stored-resolution stage read it as before.
+there), so the stored-resolution stage reads the edge the tree built and the polish apart
+(:mod:`._resolution`).
 Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine), 0.0000
 (layer 2, skipping) and 0.0000000 (the consensus); 7.4 (accelerated EM) and 7.5 (the
 consensus's e rule).
@@ -48,7 +56,7 @@ from .._pointmap import PointTransform
 from .._quality import RegistrationQuality, measure_quality
 from .._result import SubjectResult
 from .._similarity import ProgressCallback
-from .._transform import ChainTransform
+from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
 from ._rules import MIN_CONFIDENCE
 from ._tasks import _register_task, _RegOutcome, _RegTask
@@ -109,6 +117,14 @@ CONSENSUS_RIDGE = 1e-3
 #: 1.25 generated gains (0.344) and the rest move by at most 0.004, but the worst runs of
 #: MPEG-7 and the random subsets lose (1.08 -> 1.10, 1.27 -> 1.30).
 CONSENSUS_MAX_E_RATIO = 1.1
+#: Subjects at this layer or deeper whose parent's polish moved it first register their
+#: edge again, from the parent's polished points, before their own polish (see
+#: `_edge_from_parent`): the tree's edges were made from each parent's chained
+#: registration, and a child inherits its parent's slide. The subjects are polished a
+#: tree level at a time, parents first. Ground truth (bench/RESULTS.md 7.7, 24 runs; tree
+#: / plain CPD, all subjects and the far half): 永 edges 0.592 -> 0.547 and 0.537 -> 0.481,
+#: skeletons 0.651 -> 0.623 and 0.603 -> 0.567.
+POLISH_FROM_PARENT_MIN_LAYER = 3
 
 
 @dataclass(frozen=True)
@@ -122,6 +138,11 @@ class _PolishTask:
     # the root's registration onto the subject directly (to run, or already run), for the
     # consensus (layer >= POLISH_CONSENSUS_MIN_LAYER; see `_consensus`), else None
     direct: _RegTask | _RegOutcome | None = None
+    # the parent's polished points (the parent's normalised coordinates) when its polish
+    # moved it (layer >= POLISH_FROM_PARENT_MIN_LAYER), and the affine pre-alignment steps
+    # the subject's edge started with; the edge is registered again from there
+    from_parent: FloatArray | None = None
+    edge_affine: tuple[PointTransform, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -146,6 +167,11 @@ class _PolishOutcome:
     steps: tuple[PointTransform, ...]  # the transform's steps after the chain (none: rejected)
     quality: tuple[RegistrationQuality, ...]  # of each CPD stage among them
     consensus: dict[str, Any] | None = None  # what the consensus found (see `_consensus`)
+    # the edge registered again from the parent's polished points, when kept: its steps
+    # (they lead `steps`, which then extend the parent's polished chain), and what it found
+    edge_steps: tuple[PointTransform, ...] = ()
+    edge_quality: RegistrationQuality | None = None
+    from_parent: dict[str, Any] | None = None
 
 
 def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
@@ -233,8 +259,52 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
     return replace(found, steps=(step, *found.steps)), info
 
 
+def _edge_from_parent(task: _PolishTask
+                      ) -> tuple[_Stages | None, RegistrationQuality | None, dict[str, Any]]:
+    """The subject's edge registered again, from its parent's polished points.
+
+    The same CPD as the tree's edges (not accelerated; after the edge's own affine
+    pre-alignment, if it had one), from the parent's registration as polished instead of
+    as chained. Kept when it does not fold, its confidence is at least
+    :data:`MIN_CONFIDENCE` and its e is no larger than the chain's: the polish then starts
+    from it, and the subject's transform extends the parent's polished chain."""
+    assert task.from_parent is not None
+    q = task.from_parent
+    for step in task.edge_affine:
+        q = step.apply(q)
+    o = task.cpd
+    res = cpd_nonrigid(q, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter,
+                       tol=o.tol, dtype=o.dtype)
+    warped = np.asarray(res.warped, dtype=np.float64)
+    e = registration_error(warped, task.y)
+    quality = measure_quality(q, warped, task.y, res.transform, e, task.spacing2)
+    info: dict[str, Any] = {"error": e, "chain_error": task.error, "kept": False}
+    if not quality.min_jacobian > 0:
+        info["reason"] = "it folds"
+    elif not quality.confidence >= MIN_CONFIDENCE:
+        info["reason"] = f"confidence below {MIN_CONFIDENCE:g}"
+    elif not e <= task.error:
+        info["reason"] = "e above the chain's"
+    else:
+        info["kept"] = True
+        info["reason"] = "e no larger than the chain's"
+        return _Stages(warped=warped, error=e, steps=(*task.edge_affine, res.transform),
+                       quality=(quality,),
+                       correspondence=np.asarray(res.correspondence, dtype=np.intp),
+                       probability=np.asarray(res.probability, dtype=np.float64)
+                       ), quality, info
+    return None, None, info
+
+
 def _polish_task(task: _PolishTask) -> _PolishOutcome:
-    chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2)
+    start, error, edge, edge_q, edge_info = task.start, task.error, None, None, None
+    if task.from_parent is not None:
+        edge, edge_q, edge_info = _edge_from_parent(task)
+        if edge is not None:
+            start, error = edge.warped, edge.error
+    chain = _stages(start, error, task.y, task.cpd, task.spacing2)
+    if edge is not None and not chain.steps:  # the edge alone
+        chain = replace(edge, steps=(), quality=())
     best, info = chain, None
     if task.direct is not None:
         found, info = _consensus(task, chain)
@@ -243,25 +313,50 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
                            quality=(*chain.quality, *found.quality))
     return _PolishOutcome(subject=task.subject, warped=best.warped, error=best.error,
                           correspondence=best.correspondence, probability=best.probability,
-                          steps=best.steps, quality=best.quality, consensus=info)
+                          steps=best.steps, quality=best.quality, consensus=info,
+                          edge_steps=() if edge is None else edge.steps, edge_quality=edge_q,
+                          from_parent=edge_info)
 
 
-def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome) -> SubjectResult:
-    """`old` with the polished registration in place of the chained one."""
-    assert old.transform is not None and old.confidence is not None and out.steps
-    chain = replace(old.transform, steps=(*old.transform.steps, *out.steps))
+def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
+              parent: SubjectResult | None = None) -> SubjectResult:
+    """`old` with the polished registration in place of the chained one; `parent`: the
+    parent as polished, when the subject's edge was registered again from it."""
+    assert old.transform is not None and old.confidence is not None
+    assert out.steps or out.edge_steps
+    if out.edge_steps:
+        assert parent is not None and parent.transform is not None
+        assert parent.confidence is not None and out.edge_quality is not None
+        # the parent's polished chain, the edge from it, then the subject's own polish
+        chain = replace(old.transform, steps=(*parent.transform.steps, *out.edge_steps,
+                                              *out.steps))
+        confidence = min(parent.confidence, out.edge_quality.confidence)
+    else:
+        chain = replace(old.transform, steps=(*old.transform.steps, *out.steps))
+        confidence = old.confidence
     assert isinstance(chain, ChainTransform)
-    confidence = min(old.confidence, *(q.confidence for q in out.quality))
+    quality = out.quality
+    if out.edge_quality is not None:
+        quality = (out.edge_quality, *quality)
+    confidence = min([confidence, *(q.confidence for q in out.quality)])
     polish = {
-        "error_before": old.error, "steps": len(out.steps), **out.quality[-1].to_dict(),
-        "confidence": min(q.confidence for q in out.quality),
-        "min_jacobian": min(q.min_jacobian for q in out.quality)}
+        "error_before": old.error, "steps": len(out.steps), **quality[-1].to_dict(),
+        "confidence": min(q.confidence for q in quality),
+        "min_jacobian": min(q.min_jacobian for q in quality)}
     reason = (f"{old.reason}; polished: {len(out.quality)} more CPD from the chained model "
               f"(e {old.error:.3g} -> {out.error:.3g})")
+    if out.from_parent is not None:
+        polish["from_parent"] = out.from_parent
+    if out.edge_steps:
+        reason = (f"{old.reason}; polished: its edge registered again from the parent as "
+                  f"polished, {len(out.quality)} more CPD (e {old.error:.3g} -> "
+                  f"{out.error:.3g})")
     if out.consensus is not None:
         polish["consensus"] = out.consensus
         if out.consensus["kept"]:
-            reason = (f"{old.reason}; polished: the consensus of its chain and the root's "
+            start = ("its edge from the parent as polished" if out.edge_steps
+                     else "its chain")
+            reason = (f"{old.reason}; polished: the consensus of {start} and the root's "
                       f"direct registration, {len(out.quality)} more CPD "
                       f"(e {old.error:.3g} -> {out.error:.3g})")
     return replace(
@@ -281,26 +376,69 @@ def _polish_subjects(
     min_layer: int = POLISH_MIN_LAYER,
     direct: Callable[[int], _RegTask | _RegOutcome] | None = None,
 ) -> None:
-    """Polish every attached subject at layer >= `min_layer` in place (see the module doc);
-    `direct(s)`: the root's registration onto subject `s` (to run, or already run), for
-    the consensus of the subjects at layer >= :data:`POLISH_CONSENSUS_MIN_LAYER` (None: no
-    consensus)."""
-    tasks = [
-        _PolishTask(subject=s, start=coll.norms[s].apply(r.warped), error=r.error,
-                    y=coll.normed[s], cpd=cpd, spacing2=coll.spacing2[s],
-                    direct=direct(s) if direct is not None
-                    and r.layer >= POLISH_CONSENSUS_MIN_LAYER else None)
-        for s, r in sorted(results.items())
+    """Polish every attached subject at layer >= `min_layer` in place (see the module doc),
+    a tree level at a time, parents first: a subject at layer >=
+    :data:`POLISH_FROM_PARENT_MIN_LAYER` whose parent's polish moved it first registers
+    its edge again from there (`_edge_from_parent`). `direct(s)`: the root's registration
+    onto subject `s` (to run, or already run), for the consensus of the subjects at layer
+    >= :data:`POLISH_CONSENSUS_MIN_LAYER` (None: no consensus)."""
+    todo = [
+        s for s, r in sorted(results.items())
         if r.warped is not None and r.layer is not None and r.layer >= min_layer
         and r.error is not None and r.transform is not None and r.confidence is not None
     ]
-    if not tasks:
+    if not todo:
         return
-    with owned_executor(executor, 8 * len(tasks)) as ex:
+    built = {s: r.transform for s, r in results.items() if r.transform is not None}
+    levels: dict[int, list[int]] = {}
+    for s in todo:
+        levels.setdefault(len(results[s].path), []).append(s)
+    moved: set[int] = set()  # subjects whose polish moved them
+    done = 0
+    with owned_executor(executor, 8 * len(todo)) as ex:
         if progress is not None:
-            progress("polish", 0, len(tasks))
-        for done, (_, out) in enumerate(ex.map_unordered(_polish_task, tasks), start=1):
-            if out.steps:
-                results[out.subject] = _polished(coll, results[out.subject], out)
-            if progress is not None:
-                progress("polish", done, len(tasks))
+            progress("polish", 0, len(todo))
+        for level in sorted(levels):
+            tasks = [_polish_subject_task(coll, results, built, moved, s, cpd, direct)
+                     for s in levels[level]]
+            for _, out in ex.map_unordered(_polish_task, tasks):
+                if out.steps or out.edge_steps:
+                    old = results[out.subject]
+                    parent = (results[old.parent] if out.edge_steps and old.parent is not None
+                              else None)
+                    results[out.subject] = _polished(coll, old, out, parent)
+                    moved.add(out.subject)
+                done += 1
+                if progress is not None:
+                    progress("polish", done, len(todo))
+
+
+def _polish_subject_task(
+    coll: _Collection,
+    results: dict[int, SubjectResult],
+    built: dict[int, ChainTransform],
+    moved: set[int],
+    s: int,
+    cpd: CPDOptions,
+    direct: Callable[[int], _RegTask | _RegOutcome] | None,
+) -> _PolishTask:
+    r = results[s]
+    assert r.warped is not None and r.layer is not None and r.error is not None
+    from_parent: FloatArray | None = None
+    edge_affine: tuple[PointTransform, ...] = ()
+    p = r.parent
+    if r.layer >= POLISH_FROM_PARENT_MIN_LAYER and p is not None and p in moved:
+        parent = results[p]
+        assert parent.warped is not None
+        from_parent = coll.norms[p].apply(parent.warped)
+        edge = built[s].steps[len(built[p].steps):]  # the edge as the tree made it
+        lead = 0
+        while lead < len(edge) - 1 and isinstance(edge[lead], AffineTransform):
+            lead += 1
+        edge_affine = tuple(edge[:lead])
+    return _PolishTask(
+        subject=s, start=coll.norms[s].apply(r.warped), error=r.error, y=coll.normed[s],
+        cpd=cpd, spacing2=coll.spacing2[s],
+        direct=direct(s) if direct is not None and r.layer >= POLISH_CONSENSUS_MIN_LAYER
+        else None,
+        from_parent=from_parent, edge_affine=edge_affine)

@@ -209,6 +209,13 @@ def _polish_steps(res: SubjectResult) -> int:
     return 0 if polish is None else int(polish.get("steps", 1))
 
 
+def _edge_from_polished_parent(res: SubjectResult) -> bool:
+    """Whether `res`'s edge was registered again from its parent's polished registration
+    (its chain then extends the parent's whole chain, polish included)."""
+    polish = (res.quality or {}).get("polish") or {}
+    return bool((polish.get("from_parent") or {}).get("kept"))
+
+
 def _as_built(res: SubjectResult) -> ChainTransform:
     """The chain `res` was attached with: a polished subject's chain ends in the polish's
     CPD steps, which its children were not built on."""
@@ -234,25 +241,34 @@ def _refined_subjects(
     the stored resolution, a layer at a time from the root: one short CPD per subject,
     started from its parent's stored-resolution result as its children were built on, moved
     by the subject's coarse edge (and, for a polished subject, its coarse polish steps: see
-    :mod:`._polish`). A polished subject with children gets one more CPD, of its edge alone,
-    for its children to start from (as at the working resolution, where they were built on
-    its chained registration, not on the polished one).
+    :mod:`._polish`). A child whose polish registered its edge again from the parent as
+    polished starts from the parent's final stored-resolution result; a polished subject
+    with children built on its chained registration (its edge's own, at the working
+    resolution) gets one more CPD, of its edge alone, for those children to start from.
 
     The edge is a map of the plane fitted between the parent's shape and the subject's,
     so it carries the parent's refined correspondences over. On six 永 ground-truth
     families (bench/RESULTS.md section 8.1) one CPD for a polished subject (edge and polish
     together) gave the same correspondence error (0.99x) as redoing its edge and then its
     polish (two CPDs); one CPD per subject from its whole coarse chain was worse (1.04x).
-    Children start from the as-built result because a polish that lowers e can still move
-    correspondences the wrong way, and a child started from it inherits that (seen with the
-    two-stage polish on one 永 design: 0.69x -> 0.88x of plain CPD)."""
+    Children start from the result they were built on at the working resolution: started
+    from a polished parent they had not been registered from, they inherit a polish that
+    can move correspondences the wrong way while it lowers e (seen with the two-stage
+    polish on one 永 design: 0.69x -> 0.88x of plain CPD); the polish registers a child's
+    edge again from its polished parent only where that edge reaches no larger an e."""
     root = full.root
+    # each member's stored-resolution registration: as built (what children attached on
+    # its chained registration start from) and final (children whose edge was registered
+    # again from its polished registration, see _polish.POLISH_FROM_PARENT_MIN_LAYER)
     fine = {root: _FineNode(q=full.normed[root], chain=full.root_chain())}
+    fine_final = dict(fine)
     coarse_chain = {root: full.root_chain()}
+    coarse_final = dict(coarse_chain)
     out = {s.index: s for s in subjects}
     pending = sorted((s for s in subjects if s.attached and s.parent is not None),
                      key=lambda s: (len(s.path), s.index))
-    parents = {s.parent for s in pending}
+    on_final = {s.index for s in pending if _edge_from_polished_parent(s)}
+    needs_built = {s.parent for s in pending if s.index not in on_final}
     by_depth: dict[int, list[SubjectResult]] = {}
     for s in pending:
         by_depth.setdefault(len(s.path), []).append(s)
@@ -261,18 +277,25 @@ def _refined_subjects(
     final_chain: dict[int, ChainTransform] = {}
     for depth in sorted(by_depth):
         group = by_depth[depth]
-        tasks, kinds, edges, steps = [], [], {}, {}
+        tasks, kinds, edges, steps, starts = [], [], {}, {}, {}
         for s in group:
             assert s.parent is not None and s.transform is not None
             built = _as_built(s)
             coarse_chain[s.index] = built
-            edges[s.index] = _edge_steps(built, coarse_chain[s.parent])
+            coarse_final[s.index] = s.transform
+            if s.index in on_final:
+                edges[s.index] = _edge_steps(built, coarse_final[s.parent])
+                starts[s.index] = fine_final[s.parent]
+            else:
+                edges[s.index] = _edge_steps(built, coarse_chain[s.parent])
+                starts[s.index] = fine[s.parent]
             steps[s.index] = (*edges[s.index], *s.transform.steps[len(built.steps):])
-            tasks.append(_FineTask(subject=s.index, q=fine[s.parent].q, steps=steps[s.index],
-                                   y=full.normed[s.index], cpd=cpd, control=control))
+            tasks.append(_FineTask(subject=s.index, q=starts[s.index].q,
+                                   steps=steps[s.index], y=full.normed[s.index], cpd=cpd,
+                                   control=control))
             kinds.append("final")
-            if built is not s.transform and s.index in parents:
-                tasks.append(_FineTask(subject=s.index, q=fine[s.parent].q,
+            if built is not s.transform and s.index in needs_built:
+                tasks.append(_FineTask(subject=s.index, q=starts[s.index].q,
                                        steps=edges[s.index], y=full.normed[s.index], cpd=cpd,
                                        control=control))
                 kinds.append("built")
@@ -282,13 +305,15 @@ def _refined_subjects(
             s = out[res.subject]
             assert s.parent is not None
             own = steps[s.index] if kind == "final" else edges[s.index]
-            chain = fine[s.parent].chain.extended((*own, res.step), full.norms[s.index],
-                                                  s.index)
+            chain = starts[s.index].chain.extended((*own, res.step), full.norms[s.index],
+                                                   s.index)
+            node = _FineNode(q=res.warped, chain=chain)
             if kind == "final":
                 fine_outcome[s.index] = res
                 final_chain[s.index] = chain
+                fine_final[s.index] = node
             if kind == "built" or s.index not in fine:
-                fine[s.index] = _FineNode(q=res.warped, chain=chain)
+                fine[s.index] = node
         done += len(group)
     for index, res in fine_outcome.items():
         s = out[index]

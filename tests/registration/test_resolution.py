@@ -18,6 +18,7 @@ from registration._points import normalise
 from registration._tree import _resolution
 from registration._tree._resolution import (
     DEFAULT_WORKING_POINTS,
+    _edge_from_polished_parent,
     farthest_point_indices,
 )
 from registration.synthetic import (
@@ -214,11 +215,19 @@ def test_farthest_point_subsample_is_deterministic_and_even():
     np.testing.assert_array_equal(farthest_point_indices(pts[:10], 50), np.arange(10))
 
 
-def test_children_of_a_polished_subject_start_from_its_registration_as_built():
+@pytest.mark.parametrize("from_parent_min_layer", [3, 99])
+def test_children_of_a_polished_subject_start_from_its_registration_as_built(
+        from_parent_min_layer, monkeypatch):
     """A polished subject's children were built, at the working resolution, on its chained
-    registration, not on the polished one: at the stored resolution they start from its
-    edge's own stored-resolution CPD (one more task for such a subject), so a polish that
-    lowers e but moves correspondences the wrong way stays with that subject."""
+    registration, not on the polished one, unless the polish registered a child's edge
+    again from the polished parent. At the stored resolution the first start from the
+    parent's edge's own stored-resolution CPD (one more task for such a parent), so a
+    polish that lowers e but moves correspondences the wrong way stays with that subject;
+    the second from the parent's final stored-resolution registration, its whole chain."""
+    from registration._tree import _polish
+
+    # 99: no edge registered again from a polished parent (every child built on the chain)
+    monkeypatch.setattr(_polish, "POLISH_FROM_PARENT_MIN_LAYER", from_parent_min_layer)
     fam = deformation_chains(base_outline(1500), n_chains=2, chain_length=4, n_points=240,
                              seed=0, step=0.3)
     events: list[tuple[str, int, int]] = []
@@ -229,14 +238,21 @@ def test_children_of_a_polished_subject_start_from_its_registration_as_built():
     polished_parents = [s for s in res.subjects if (s.quality or {}).get("polish")
                         and any(c.parent == s.index for c in res.subjects)]
     assert polished_parents, "no polished subject with children: pick another family"
+    kinds = set()
     for p in polished_parents:
         built = p.transform.steps[:len(p.transform.steps) - p.quality["polish"]["steps"] - 1]
         for c in (c for c in res.subjects if c.parent == p.index):
+            if _edge_from_polished_parent(c):
+                kinds.add("final")
+                assert c.transform.shared_steps(p.transform) == len(p.transform.steps)
+                continue
+            kinds.add("built")
             assert c.transform.steps[:len(built)] == built
             # then the parent's own stored-resolution step of its edge, not its polish
             step = c.transform.steps[len(built)]
             assert len(step.control_points) == n_root
             assert step is not p.transform.steps[-1]
+    assert kinds == ({"built"} if from_parent_min_layer == 99 else {"final"}), kinds
     counts = [(d, t) for s, d, t in events if s == "full resolution"]
     attached = sum(1 for s in res.subjects if s.attached)
     assert counts[-1] == (attached, attached)

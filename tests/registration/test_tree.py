@@ -15,7 +15,11 @@ from registration import (
     cpd_nonrigid,
     register_direct,
 )
-from registration._tree._polish import POLISH_BETA_FACTORS, POLISH_CONSENSUS_MIN_LAYER
+from registration._tree._polish import (
+    POLISH_BETA_FACTORS,
+    POLISH_CONSENSUS_MIN_LAYER,
+    POLISH_FROM_PARENT_MIN_LAYER,
+)
 from registration.synthetic import chained_family, correspondence_error
 
 FAST_CPD = CPDOptions(max_iter=60)
@@ -378,7 +382,8 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
     assert plain.thresholds["polish"] == "off" and res.thresholds["polish"] == "layer >= 2"
     polished = {s.index for s in res.subjects if "polish" in (s.quality or {})}
     assert polished, "no subject was polished on a chained family"
-    for s in res.subjects:
+    rebuilt: set[int] = set()
+    for s in sorted(res.subjects, key=lambda s: len(s.path)):  # parents first
         before = plain.subject(s.index)
         # the tree itself is the same: polish is a final pass
         assert (s.parent, s.layer) == (before.parent, before.layer)
@@ -389,16 +394,30 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
         p = s.quality["polish"]
         assert p["error_before"] == before.error and s.error <= before.error
         assert p["min_jacobian"] > 0 and p["confidence"] >= 0.2
-        assert s.confidence <= before.confidence
         assert "polished" in s.reason
         # the reported transform still maps the root model onto the reported warped model
         assert np.allclose(s.transform.apply(shapes[0]), s.warped, atol=1e-8)
-        assert len(s.transform.steps) == len(before.transform.steps) + p["steps"]
+        from_parent = p.get("from_parent")
+        assert (from_parent is not None) == (
+            s.layer >= POLISH_FROM_PARENT_MIN_LAYER and s.parent in polished)
+        if from_parent is not None and from_parent["kept"]:
+            # the edge registered again from the parent as polished (no larger e than the
+            # chain's), the subject's transform extending the parent's polished one
+            rebuilt.add(s.index)
+            parent = res.subject(s.parent)
+            assert from_parent["error"] <= from_parent["chain_error"] == before.error
+            assert s.transform.shared_steps(parent.transform) == len(parent.transform.steps)
+            assert len(s.transform.steps) == len(parent.transform.steps) + 1 + p["steps"]
+            assert s.confidence <= parent.confidence
+            assert "registered again from the parent" in s.reason or "consensus" in s.reason
+        else:
+            assert s.confidence <= before.confidence
+            assert len(s.transform.steps) == len(before.transform.steps) + p["steps"]
         consensus = p.get("consensus")
         assert (consensus is not None) == (s.layer >= POLISH_CONSENSUS_MIN_LAYER)
         if consensus is None or not consensus["kept"]:
             # the polish's stages, coarse to fine, each a CPD step of the chain
-            assert 1 <= p["steps"] <= len(POLISH_BETA_FACTORS)
+            assert (0 if s.index in rebuilt else 1) <= p["steps"] <= len(POLISH_BETA_FACTORS)
             continue
         # the chain's stages kept, the step halfway to the direct registration, then the
         # stages from there; kept only at no larger an e than the chain's
@@ -406,6 +425,7 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
         assert consensus["error"] == s.error and "consensus" in s.reason
     assert any((s.quality or {}).get("polish", {}).get("consensus") for s in res.subjects), \
         "no subject deep enough for the consensus"
+    assert rebuilt, "no edge registered again from a polished parent"
 
 
 def test_a_rejected_polish_stage_is_skipped_not_the_end(family, monkeypatch):
