@@ -52,17 +52,17 @@ if TYPE_CHECKING:
 #: (:data:`FINE_EXPONENT`, :func:`phase_weights`): a CPD at the stored resolution costs
 #: between the points and their product, the decisions run at the working resolution.
 PHASE_WEIGHTS = {
-    "similarity": 0.15,
-    "layers": 0.41,
-    "refine": 0.05,
-    "direct": 0.17,
-    # 0.22 until the polish's consensus (bench/RESULTS.md 0.0000000), which made the phase
-    # 2.7-2.9x as long on the 73 永 glyphs (68 of 72 subjects at layer >= 3): 0.6; then its
-    # accelerated EM (section 7.4) 0.52x as long over HTTP (15.90 -> 8.20 s with
-    # compare_direct, 18.76 -> 9.84 s without, the same day)
-    "polish": 0.31,
-    "full resolution": 0.06,
-    "direct full resolution": 0.038,
+    # measured again in session 14 (bench/RESULTS.md 5.5), after the E-step's speed-ups
+    # and the polish's edges from polished parents; session 7's were similarity 0.15,
+    # layers 0.41, refine 0.05, direct 0.17, polish 0.22 (0.31 after the consensus and
+    # the accelerated EM), full resolution 0.06, direct full resolution 0.038
+    "similarity": 0.21,
+    "layers": 0.30,
+    "refine": 0.03,
+    "direct": 0.12,
+    "polish": 0.34,
+    "full resolution": 0.029,
+    "direct full resolution": 0.015,
 }
 #: A grouping job's phases, as shares of its run: the mean wall-clock shares of nine runs
 #: with the service's process pool, 50, 100 and 200 generated impressions three times each
