@@ -72,7 +72,8 @@ ENGINE_REUSE_FACTOR = 1.25
 #: where its fixed costs do not show), the truncated one 0.27 ms after 1.4 ms for its
 #: neighbour list (25 永 glyphs' tree, every CPD: bench/RESULTS.md 7.6).
 DENSE_ONLY_MAX_PAIRS = 1 << 18
-#: Smallest exponent the final correspondence pass evaluates (see `_posterior_max_dense`).
+#: Smallest exponent the final correspondence pass and the float64 dense E-step evaluate
+#: (see `_posterior_max_dense` and :meth:`_EStep.dense`).
 _EXP_MIN = -700.0
 #: ... and its kernel, by numpy's vector exp (the one the pass runs; ``math.exp`` may
 #: differ in the last bit, which would leave the clipped kernels at +-1e-320, not 0)
@@ -113,6 +114,13 @@ def _exponent_cols(x: FloatArray, xsq: FloatArray, sigma2: float) -> FloatArray:
     cols[2] = 1.0
     cols[3] = -0.5 / sigma2 * xsq
     return cols
+
+
+def _max_exponent(t: FloatArray, x: FloatArray, sigma2: float) -> float:
+    """An upper bound on ``|t_m - x_n|^2 / (2 sigma2)`` over all pairs: the squared
+    diagonal of the two sets' bounding box over ``2 sigma2``."""
+    lo, hi = bounding_box(t, x)
+    return float(np.sum((hi - lo) ** 2)) / (2.0 * sigma2)
 
 
 def _outlier_const(sigma2: float, w: float, m: int, n: int) -> float:
@@ -156,6 +164,12 @@ class _EStep:
     def dense(self, t: FloatArray, sigma2: float) -> _EStepOut:
         m, n, x = self.m, self.n, self.x
         c = _outlier_const(sigma2, self.w, m, n)
+        # numpy's float64 exp leaves its vector path for arguments below about -708 (7.5 ns
+        # a value against 0.85): where the two sets' box allows such exponents, they are
+        # clipped at _EXP_MIN and the clipped kernel subtracted after the exp, so the
+        # kernels change by at most 1e-304 and those clipped are 0 (exactly, below 1e-304);
+        # float32's exp keeps its vector path
+        clip = self.dtype == np.float64 and _max_exponent(t, x, sigma2) > -_EXP_MIN
         ta = _exponent_rows(t, sigma2)
         p1 = np.zeros(m)
         px = np.zeros((m, 2))
@@ -176,8 +190,12 @@ class _EStep:
             # the exact value is <= 0: -|e| drops the rounding above it (np.minimum, which
             # propagates NaNs, cost as much as the exp; abs and negate 0.15x of it)
             np.abs(e, out=e)
+            if clip:
+                np.minimum(e, -_EXP_MIN, out=e)
             np.negative(e, out=e)
             np.exp(e, out=e)
+            if clip:
+                e -= _KERNEL_MIN
             colsum = (ones @ e).astype(np.float64)
             den = colsum + c
             np.maximum(den, _DEN_FLOOR, out=den)

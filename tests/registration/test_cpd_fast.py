@@ -47,6 +47,38 @@ def close(a: _estep._EStepOut, b: _estep._EStepOut, rel: float) -> None:
     assert abs(a.nll - b.nll) <= rel * abs(b.nll) + 1e-9
 
 
+def naive_sums(t: np.ndarray, x: np.ndarray, s2: float, w: float) -> _estep._EStepOut:
+    """The E-step's sums from the whole kernel matrix, every exponent exact."""
+    d2 = np.sum((t[:, None, :] - x[None, :, :]) ** 2, axis=2)
+    k = np.exp(-d2 / (2.0 * s2))
+    c = 2.0 * np.pi * s2 * w / (1.0 - w) * len(t) / len(x)
+    colsum = k.sum(axis=0)
+    den = np.maximum(colsum + c, 1e-300)
+    return _estep._EStepOut(k @ (1.0 / den), colsum / den, k @ (x / den[:, None]),
+                            -float(np.sum(np.log(den))) + len(x) * np.log(s2), k.size)
+
+
+@pytest.mark.parametrize("sigma", [0.3, 0.03, 0.01, 0.004])
+@pytest.mark.parametrize("w", [0.1, 0.0])
+def test_float64_dense_estep_clips_only_what_underflows(
+        sigma: float, w: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """At a small sigma most exponents lie below -700, where numpy's float64 exp is slow:
+    they are clipped and their kernel subtracted, and the sums stay those of the exact
+    kernels (w = 0 too, where a subject point far from every centroid has only such
+    kernels and its denominator stays at the floor)."""
+    t = curve(300, 1)
+    x = np.vstack([curve(250, 2, wobble=0.1) * 1.05, [[3.0, 3.0]]])  # one point far off
+    s2 = sigma * sigma
+    assert (_estep._max_exponent(t, x, s2) > -_estep._EXP_MIN) == (sigma < 0.3)
+    got = dense_sums(t, x, s2, w)
+    # the same E-step without the clip: the same sums to rounding
+    monkeypatch.setattr(_estep, "_max_exponent", lambda *_: 0.0)
+    close(got, dense_sums(t, x, s2, w), 1e-14)
+    # and the exact kernels' sums, to the rounding of the exponent's expanded form
+    # (|t|^2 - 2 t.x + |x|^2 loses about eps |t|^2 / sigma^2 to cancellation)
+    close(got, naive_sums(t, x, s2, w), 1e-10)
+
+
 @pytest.mark.parametrize("sigma", [2.0, 0.7, 0.3, 0.12, 0.05])
 def test_gauss_transform_matches_dense(sigma: float) -> None:
     rng = np.random.default_rng(1)
