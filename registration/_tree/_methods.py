@@ -90,10 +90,11 @@ def build_dynamic_tree(
         halfway between the two (polished again) replaces the chain's registration when
         its e is at most 1.1x the chain's: the two registrations' errors partly cancel.
         Subjects are polished parents first, and two links or more from the root a
-        subject's edge is first registered again from its parent as polished, kept when
-        its e is no larger than the chain's (the subject's transform then extends the
-        parent's polished one). Up to two more CPD per subject; two links or more from
-        the root, up to eight (nine when the direct registration also tries a rotated
+        subject's edge is also registered again from its parent as polished; when its e
+        is no larger than the chain's, both are polished and halfway between the two
+        (polished again) is taken (the subject's transform then extends the parent's
+        polished one). Up to two more CPD per subject; two links or more from the root,
+        up to twelve (thirteen when the direct registration also tries a rotated
         pose). On the
         ground-truth chains of bench/bench_groundtruth.py it lowered the correspondence
         error on every family but randomly subsampled outlines (bench/RESULTS.md, 0.00,

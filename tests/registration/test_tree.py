@@ -428,6 +428,31 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
     assert rebuilt, "no edge registered again from a polished parent"
 
 
+def test_polish_moves_halfway_between_the_edges_two_registrations():
+    """A subject whose edge was registered again from its polished parent has two polished
+    registrations of that edge (from the chain, from the edge again); halfway between them,
+    polished again, is kept when no stage folds and its e is at most 1.1x the lower of the
+    two; the transform then runs through the parent's polished chain, the edge, the second
+    registration's stages, the step halfway and the stages from there."""
+    fam = chained_family(n_chains=2, chain_length=5, n_points=100, step=0.3, seed=3)
+    res = build_dynamic_tree(fam.shapes[:8], 0, cpd=FAST_CPD, executor=SerialExecutor())
+    halfway = [s for s in res.subjects
+               if ((s.quality or {}).get("polish") or {}).get("from_parent", {}).get("halfway")]
+    assert halfway, "no subject took the halfway step: pick another family"
+    for s in halfway:
+        p = s.quality["polish"]
+        info = p["from_parent"]
+        assert info["kept"]
+        assert "registered again from the parent" in s.reason or "consensus" in s.reason
+        lower = min(info["chain_polished_error"], info["polished_error"])
+        assert info["halfway_error"] <= 1.1 * lower
+        parent = res.subject(s.parent)
+        assert s.transform.shared_steps(parent.transform) == len(parent.transform.steps)
+        assert len(s.transform.steps) == len(parent.transform.steps) + 1 + p["steps"]
+        assert p["steps"] >= 2  # at least the step halfway and one stage from there
+        assert np.allclose(s.transform.apply(fam.shapes[0]), s.warped, atol=1e-8)
+
+
 def test_a_rejected_polish_stage_is_skipped_not_the_end(family, monkeypatch):
     """A chain's composed field can reach a lower e than one wide CPD stage while its
     points have slid (the first stage then raises e and is rejected); the finer stage
