@@ -53,16 +53,17 @@ if TYPE_CHECKING:
 #: between the points and their product, the decisions run at the working resolution.
 PHASE_WEIGHTS = {
     # measured again in session 14 (bench/RESULTS.md 5.5), after the E-step's speed-ups
-    # and the polish's edges from polished parents; session 7's were similarity 0.15,
-    # layers 0.41, refine 0.05, direct 0.17, polish 0.22 (0.31 after the consensus and
-    # the accelerated EM), full resolution 0.06, direct full resolution 0.038
-    "similarity": 0.21,
-    "layers": 0.30,
-    "refine": 0.03,
-    "direct": 0.12,
-    "polish": 0.34,
-    "full resolution": 0.029,
-    "direct full resolution": 0.015,
+    # and the polish's edges from polished parents (halfway between the edge's two
+    # registrations); session 7's were similarity 0.15, layers 0.41, refine 0.05, direct
+    # 0.17, polish 0.22 (0.31 after the consensus and the accelerated EM), full resolution
+    # 0.06, direct full resolution 0.038
+    "similarity": 0.17,
+    "layers": 0.26,
+    "refine": 0.025,
+    "direct": 0.10,
+    "polish": 0.45,
+    "full resolution": 0.021,
+    "direct full resolution": 0.011,
 }
 #: A grouping job's phases, as shares of its run: the mean wall-clock shares of nine runs
 #: with the service's process pool, 50, 100 and 200 generated impressions three times each
