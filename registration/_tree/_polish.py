@@ -336,7 +336,6 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
                          halfway=mid is not None)
         if mid is not None:
             edge_info["halfway_error"] = mid.error
-        if mid is not None:
             chain = mid
         elif other.error <= chain.error:
             chain = other
@@ -387,9 +386,11 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
     if out.from_parent is not None:
         polish["from_parent"] = out.from_parent
     if out.edge_steps:
-        reason = (f"{old.reason}; polished: its edge registered again from the parent as "
-                  f"polished, {len(out.quality)} more CPD (e {old.error:.3g} -> "
-                  f"{out.error:.3g})")
+        how = ("halfway between its chain's registration and its edge's registered again "
+               "from the parent as polished" if (out.from_parent or {}).get("halfway")
+               else "its edge registered again from the parent as polished")
+        reason = (f"{old.reason}; polished: {how}, {len(out.quality)} more CPD "
+                  f"(e {old.error:.3g} -> {out.error:.3g})")
     if out.consensus is not None:
         polish["consensus"] = out.consensus
         if out.consensus["kept"]:
@@ -417,10 +418,10 @@ def _polish_subjects(
 ) -> None:
     """Polish every attached subject at layer >= `min_layer` in place (see the module doc),
     a tree level at a time, parents first: a subject at layer >=
-    :data:`POLISH_FROM_PARENT_MIN_LAYER` whose parent's polish moved it first registers
-    its edge again from there (`_edge_from_parent`). `direct(s)`: the root's registration
-    onto subject `s` (to run, or already run), for the consensus of the subjects at layer
-    >= :data:`POLISH_CONSENSUS_MIN_LAYER` (None: no consensus)."""
+    :data:`POLISH_FROM_PARENT_MIN_LAYER` whose parent's polish moved it also registers
+    its edge again from there (`_edge_from_parent`, `_polish_task`). `direct(s)`: the
+    root's registration onto subject `s` (to run, or already run), for the consensus of
+    the subjects at layer >= :data:`POLISH_CONSENSUS_MIN_LAYER` (None: no consensus)."""
     todo = [
         s for s, r in sorted(results.items())
         if r.warped is not None and r.layer is not None and r.layer >= min_layer
