@@ -38,8 +38,8 @@ extended by the polish's steps (the chain's stages, the step halfway, the stages
 there), so the stored-resolution stage reads the edge the tree built and the polish apart
 (:mod:`._resolution`).
 Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine), 0.0000
-(layer 2, skipping) and 0.0000000 (the consensus); 7.4 (accelerated EM) and 7.5 (the
-consensus's e rule).
+(layer 2, skipping) and 0.0000000 (the consensus); 7.4 (accelerated EM), 7.5 (the
+consensus's e rule) and 7.7 (edges from polished parents, the halfway step).
 """
 
 from __future__ import annotations
