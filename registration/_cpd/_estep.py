@@ -76,11 +76,11 @@ ENGINE_REUSE_FACTOR = 1.25
 #: where its fixed costs do not show), the truncated one 0.27 ms after 1.4 ms for its
 #: neighbour list (25 永 glyphs' tree, every CPD: bench/RESULTS.md 7.6).
 DENSE_ONLY_MAX_PAIRS = 1 << 18
-#: Smallest exponent the final correspondence pass and the float64 dense E-step evaluate
-#: (see `_posterior_max_dense` and :meth:`_EStep.dense`).
+#: Smallest exponent the float64 kernels are evaluated at (see `_kernel_in_place`).
 _EXP_MIN = -700.0
-#: ... and its kernel, by numpy's vector exp (the one the pass runs; ``math.exp`` may
-#: differ in the last bit, which would leave the clipped kernels at +-1e-320, not 0)
+#: ... and its kernel, by numpy's vector exp (the one `_kernel_in_place` runs;
+#: ``math.exp`` may differ in the last bit, which would leave the clipped kernels at
+#: +-1e-320, not 0)
 _KERNEL_MIN = float(np.exp(np.full(8, _EXP_MIN))[0])
 #: The final correspondence pass is dense up to this many (model, subject) pairs.
 POSTERIOR_DENSE_MAX_PAIRS = 1 << 21
@@ -127,6 +127,24 @@ def _max_exponent(t: FloatArray, x: FloatArray, sigma2: float) -> float:
     return float(np.sum((hi - lo) ** 2)) / (2.0 * sigma2)
 
 
+def _kernel_in_place(e: NDArray[Any], clip: bool) -> None:
+    """The kernel ``exp(e)`` of exponents whose exact values are <= 0, in place.
+
+    ``-|e|`` drops the rounding above 0 (``np.minimum(e, 0)``, which propagates NaNs, cost
+    as much as the exp; abs and negate 0.15x of it). With `clip` (float64, where some
+    exponent may lie below -708: numpy's float64 exp leaves its vector path there, 7.5 ns
+    a value against 0.85) the exponents are clipped at :data:`_EXP_MIN` and the clipped
+    kernel is taken off after the exp: every kernel moves by at most 1e-304 and the
+    clipped ones are 0, as they underflowed before."""
+    np.abs(e, out=e)
+    if clip:
+        np.minimum(e, -_EXP_MIN, out=e)
+    np.negative(e, out=e)
+    np.exp(e, out=e)
+    if clip:
+        e -= _KERNEL_MIN
+
+
 def _outlier_const(sigma2: float, w: float, m: int, n: int) -> float:
     # (2 pi sigma2)^(D/2) w/(1-w) M/N with D = 2
     return 2.0 * math.pi * sigma2 * w / (1.0 - w) * m / n
@@ -168,11 +186,7 @@ class _EStep:
     def dense(self, t: FloatArray, sigma2: float) -> _EStepOut:
         m, n, x = self.m, self.n, self.x
         c = _outlier_const(sigma2, self.w, m, n)
-        # numpy's float64 exp leaves its vector path for arguments below about -708 (7.5 ns
-        # a value against 0.85): where the two sets' box allows such exponents, they are
-        # clipped at _EXP_MIN and the clipped kernel subtracted after the exp, so the
-        # kernels change by at most 1e-304 and those clipped are 0 (exactly, below 1e-304);
-        # float32's exp keeps its vector path
+        # float32's exp keeps its vector path below -708 (see _kernel_in_place)
         clip = self.dtype == np.float64 and _max_exponent(t, x, sigma2) > -_EXP_MIN
         ta = _exponent_rows(t, sigma2)
         p1 = np.zeros(m)
@@ -191,15 +205,7 @@ class _EStep:
                 e[...] = e64
             else:
                 e = e64
-            # the exact value is <= 0: -|e| drops the rounding above it (np.minimum, which
-            # propagates NaNs, cost as much as the exp; abs and negate 0.15x of it)
-            np.abs(e, out=e)
-            if clip:
-                np.minimum(e, -_EXP_MIN, out=e)
-            np.negative(e, out=e)
-            np.exp(e, out=e)
-            if clip:
-                e -= _KERNEL_MIN
+            _kernel_in_place(e, clip)
             colsum = (ones @ e).astype(np.float64)
             den = colsum + c
             np.maximum(den, _DEN_FLOOR, out=den)
@@ -467,6 +473,7 @@ def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float
     c = _outlier_const(sigma2, w, m, n)
     ta = _exponent_rows(t, sigma2)
     xsq = np.einsum("ij,ij->i", x, x)
+    clip = _max_exponent(t, x, sigma2) > -_EXP_MIN
     rows = np.arange(m)
     best = np.full(m, -1.0)
     arg = np.zeros(m, dtype=np.intp)
@@ -474,15 +481,9 @@ def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float
     for a in range(0, n, step):
         b = min(n, a + step)
         e = ta @ _exponent_cols(x[a:b], xsq[a:b], sigma2)
-        # the exact exponent is <= 0 (the clip drops rounding above it); numpy's float64
-        # exp leaves its vector path for inputs below about -708 (7.5 ns a value instead
-        # of 0.85: most pairs at a small sigma), so exponents are clipped at -700 and
-        # exp(-700) ~ 1e-304 taken off again: a kernel that small is 0, as it underflowed
-        # before (with w = 0, a subject point far from every centroid keeps its floored,
-        # zero posteriors), and every other moves by 1e-304
-        np.clip(e, _EXP_MIN, 0.0, out=e)
-        np.exp(e, out=e)
-        e -= _KERNEL_MIN
+        # as in the dense E-step (with w = 0, a subject point far from every centroid keeps
+        # its floored, zero posteriors: its clipped kernels are 0)
+        _kernel_in_place(e, clip)
         den = e.sum(axis=0) + c
         np.maximum(den, _DEN_FLOOR, out=den)
         e *= 1.0 / den
