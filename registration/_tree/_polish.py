@@ -246,13 +246,11 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
         return None, info
     other = _stages(direct.warped, direct.error, task.y, task.cpd, task.spacing2)
     info["direct_polished_error"] = other.error
-    step = interpolating_field(chain.warped, 0.5 * (chain.warped + other.warped),
-                               CONSENSUS_KERNEL_FACTOR * task.cpd.beta, CONSENSUS_RIDGE)
-    start, jac = step.apply_with_jacobian(chain.warped)
-    if not float(np.linalg.det(jac).min()) > 0:
+    moved = _polished_halfway(task, chain.warped, other.warped)
+    if moved is None:
         info["reason"] = "the step halfway folds"
         return None, info
-    found = _stages(start, registration_error(start, task.y), task.y, task.cpd, task.spacing2)
+    step, found = moved
     info["error"] = found.error
     if not found.steps:
         info["reason"] = "no stage from halfway passed the checks"
@@ -302,17 +300,30 @@ def _edge_from_parent(task: _PolishTask
     return None, None, info
 
 
-def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
-    """`b` moved halfway to `a` (by CPD's field through those points, as the consensus
-    steps, :func:`_consensus`) and polished from there: its steps after `b`'s, or None when
-    the step folds, no stage passes its checks or the e reached is above
-    :data:`CONSENSUS_MAX_E_RATIO` times the lower of the two."""
-    step = interpolating_field(b.warped, 0.5 * (a.warped + b.warped),
+def _polished_halfway(task: _PolishTask, points: FloatArray, other: FloatArray
+                      ) -> tuple[PointTransform, _Stages] | None:
+    """`points` moved halfway to `other` (by CPD's field through those points, :func:`~
+    registration._cpd.interpolating_field`, at :data:`CONSENSUS_KERNEL_FACTOR` of the
+    tree's beta) and the polish's stages from there: the step and the stages, or None when
+    the step folds."""
+    step = interpolating_field(points, 0.5 * (points + other),
                                CONSENSUS_KERNEL_FACTOR * task.cpd.beta, CONSENSUS_RIDGE)
-    start, jac = step.apply_with_jacobian(b.warped)
+    start, jac = step.apply_with_jacobian(points)
     if not float(np.linalg.det(jac).min()) > 0:
         return None
-    found = _stages(start, registration_error(start, task.y), task.y, task.cpd, task.spacing2)
+    return step, _stages(start, registration_error(start, task.y), task.y, task.cpd,
+                         task.spacing2)
+
+
+def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
+    """`b` moved halfway to `a` and polished from there (:func:`_polished_halfway`, as
+    the consensus does): its steps after `b`'s, or None when the step folds, no stage
+    passes its checks or the e reached is above :data:`CONSENSUS_MAX_E_RATIO` times the
+    lower of the two."""
+    moved = _polished_halfway(task, b.warped, a.warped)
+    if moved is None:
+        return None
+    step, found = moved
     if not found.steps or not found.error <= CONSENSUS_MAX_E_RATIO * min(a.error, b.error):
         return None
     return replace(found, steps=(*b.steps, step, *found.steps),
