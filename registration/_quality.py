@@ -52,7 +52,8 @@ from ._points import farthest_point_indices, mean_spacing2
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["GOOD_ERROR", "RegistrationQuality", "measure_quality"]
+__all__ = ["GOOD_ERROR", "RegistrationQuality", "measure_quality", "nearest_spacing",
+           "spacing_distortion"]
 
 #: A registration counts as good when its RMS ground-truth correspondence error is below
 #: this fraction of the subject's RMS radius (what the confidence estimates).
@@ -183,3 +184,34 @@ def measure_quality(
         cpd_rotation=_similarity_rotation(prealigned, warped),
         coverage=float(np.mean(dist <= 2.0 * h)),
     )
+
+
+def nearest_spacing(points: FloatArray) -> FloatArray:
+    """Each point's distance to the nearest other point of the same set (floored at 1e-12:
+    coincident points count as a spacing of 1e-12, so their log ratios stay finite)."""
+    d, _ = cKDTree(points).query(points, k=2)
+    return np.maximum(d[:, 1], 1e-12)
+
+
+def spacing_distortion(warped: FloatArray, model_spacing: FloatArray) -> float:
+    """V: the variance, over the model's points, of ``log(d_warped / d_model)``, each point's
+    distance to its nearest neighbour in the warped model over that in the model.
+
+    A registration maps the model's own sampling along with its shape: a smooth map
+    stretches neighbouring spacings alike, so their log ratios vary slowly and V stays
+    small whatever the overall stretch (its mean drops out). A registration that slides
+    the model along the subject's curves, or pulls its points onto the subject's own
+    samples, squeezes some spacings and opens others: V grows while e (eq. 10), which sees
+    only how closely the model lies on the subject, can fall. Unlike ``distortion`` (the
+    Jacobian of one CPD step), V is taken on the whole map from the model, so
+    registrations reached along different paths compare.
+
+    Parameters
+    ----------
+    warped : ndarray, shape (N, 2)
+        The model as the registration places it.
+    model_spacing : ndarray, shape (N,)
+        :func:`nearest_spacing` of the model (any coordinates: a common scale drops out).
+    """
+    r = np.log(nearest_spacing(warped) / model_spacing)
+    return float(np.var(r))

@@ -80,3 +80,30 @@ def test_the_checks_do_not_depend_on_how_densely_the_shapes_are_sampled():
     assert conf[300] > 0.8
     assert abs(conf[2400] - conf[300]) < 0.1
     assert QUALITY_POINTS < 2400  # the dense case is the subsampled one
+
+
+def test_spacing_distortion_is_zero_under_a_similarity_and_small_under_a_smooth_warp():
+    """V compares each point's nearest-neighbour spacing after and before: a similarity
+    scales every spacing alike (V = 0 whatever the scale), a smooth warp changes
+    neighbouring spacings alike (V small), points pulled onto a coarser set of samples
+    squeeze some spacings to nothing and open others (V large)."""
+    from registration._quality import nearest_spacing, spacing_distortion
+
+    rng = np.random.default_rng(0)
+    t = np.sort(rng.uniform(0, 2 * np.pi, 300))
+    model = np.c_[np.cos(t), 0.6 * np.sin(t)]
+    spacing = nearest_spacing(model)
+    angle = 0.4
+    rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    assert spacing_distortion(3.7 * model @ rot.T + [5.0, -2.0], spacing) < 1e-20
+    smooth = model + 0.08 * np.c_[np.sin(2 * model[:, 1]), np.cos(3 * model[:, 0])]
+    v_smooth = spacing_distortion(smooth, spacing)
+    u = np.linspace(0, 2 * np.pi, 120, endpoint=False)
+    samples = np.c_[np.cos(u), 0.6 * np.sin(u)]  # the model's points snapped onto these
+    snapped = samples[np.argmin(((model[:, None] - samples[None]) ** 2).sum(-1), axis=1)]
+    v_snapped = spacing_distortion(snapped, spacing)
+    assert v_smooth < 0.05 and v_snapped > 100 * v_smooth
+    # coincident points keep V finite (spacings floored at 1e-12)
+    assert np.isfinite(v_snapped)
+    twice = np.r_[model, model[:5]]
+    assert np.isfinite(spacing_distortion(twice, nearest_spacing(twice)))
