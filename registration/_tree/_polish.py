@@ -83,18 +83,17 @@ POLISH_MIN_LAYER = 2
 #: when it passes the checks; a rejected one is skipped.
 POLISH_BETA_FACTORS = (1.0, 0.5)
 #: A stage with a finer kernel than the first is kept only when its e is at most this
-#: fraction of its start's (e penalised by the spacing distortion since session 15: see
-#: :data:`POLISH_SPACING_WEIGHT`; the figures below are e alone). A finer kernel always
-#: lowers e a little: it fits where the subject's own points happen to lie, sliding the
-#: model's points along the outline. Over the finer stages of seven ground-truth families
-#: (bench/RESULTS.md 0.000000; geometric mean change of the correspondence error), those
-#: that lowered e by less than a fifth worsened the correspondences on MPEG-7 (x1.21, 68
-#: stages) and on lmfree2d / Momocs outlines of 80-120 randomly subsampled points (x1.14,
-#: 137) and did next to nothing on the 永 edges and skeletons (x0.98, 26); those that
-#: lowered it by more than 30 % improved them on every family but those outlines (MPEG-7
-#: x0.81, edges x0.75, skeletons x0.85, Chui x0.14-0.19). With the rule the MPEG-7 chains
-#: go from 0.81 to 0.75 of plain CPD (worst run 1.28 -> 1.12) and those outlines from 1.16
-#: to 1.12; every other family moves by at most 0.015.
+#: fraction of its start's. A finer kernel always lowers e a little: it fits where the
+#: subject's own points happen to lie, sliding the model's points along the outline. Over
+#: the finer stages of seven ground-truth families (bench/RESULTS.md 0.000000; geometric
+#: mean change of the correspondence error), those that lowered e by less than a fifth
+#: worsened the correspondences on MPEG-7 (x1.21, 68 stages) and on lmfree2d / Momocs
+#: outlines of 80-120 randomly subsampled points (x1.14, 137) and did next to nothing on
+#: the 永 edges and skeletons (x0.98, 26); those that lowered it by more than 30 % improved
+#: them on every family but those outlines (MPEG-7 x0.81, edges x0.75, skeletons x0.85,
+#: Chui x0.14-0.19). With the rule the MPEG-7 chains go from 0.81 to 0.75 of plain CPD
+#: (worst run 1.28 -> 1.12) and those outlines from 1.16 to 1.12; every other family
+#: moves by at most 0.015.
 POLISH_FINER_MAX_E_RATIO = 0.8
 #: Subjects at this layer or deeper (two links or more from the root) are also registered
 #: from the root directly, for a consensus with their chain (see `_consensus`). At layer 2
