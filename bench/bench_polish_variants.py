@@ -133,16 +133,11 @@ def _polish(variant: str, start: Array, y: Array, h2: float) -> Array:
     return out if ok else start
 
 
-def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[str],
-             root: Array) -> Array:
-    """The library's polish of one subject (see ``library`` in the module doc); `root`:
-    the root model, normalised (its spacing for the stages' penalised e)."""
+def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[str]
+             ) -> Array:
+    """The library's polish of one subject (see ``library`` in the module doc)."""
     from registration._cpd import interpolating_field
-    from registration._quality import nearest_spacing
     from registration._tree import _polish as pm
-
-    task = pm._PolishTask(subject=-1, start=start, error=registration_error(start, y), y=y,
-                          cpd=CPD, spacing2=h2, root_spacing=nearest_spacing(root))
 
     real = pm.cpd_nonrigid
 
@@ -152,7 +147,7 @@ def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[
 
     pm.cpd_nonrigid = run
     try:
-        chain = pm._stages(task, start, registration_error(start, y))
+        chain = pm._stages(start, registration_error(start, y), y, CPD, h2)
         if other is None:
             return chain.warped
         factors = pm.POLISH_BETA_FACTORS
@@ -162,7 +157,7 @@ def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[
             if "d1" in opts:
                 pm.POLISH_BETA_FACTORS = factors[1:]
             try:
-                polished = pm._stages(task, other, registration_error(other, y)).warped
+                polished = pm._stages(other, registration_error(other, y), y, CPD, h2).warped
             finally:
                 pm.POLISH_BETA_FACTORS = factors
         weight = next((float(o[1:]) for o in opts if o.startswith("w")), 0.5)
@@ -171,7 +166,7 @@ def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[
         half, jac = step.apply_with_jacobian(chain.warped)
         if not float(np.linalg.det(jac).min()) > 0:
             return chain.warped
-        found = pm._stages(task, half, registration_error(half, y))
+        found = pm._stages(half, registration_error(half, y), y, CPD, h2)
         tol = next((float(o[3:]) for o in opts if o.startswith("tol")),
                    pm.CONSENSUS_MAX_E_RATIO)
         return (found.warped if found.steps and found.error <= tol * chain.error
@@ -208,8 +203,7 @@ def run_variant(variant: str, case: bg.Case, d: dict[str, Any]) -> list[tuple[fl
         kind, min_layer = variant, 3
         if kind.startswith("library") and layer is not None and layer >= 2:
             other = nm.apply(plain[k]) if layer >= 3 else None
-            out[k] = nm.invert(_library(start, y, h2[k], other, kind.split(":")[1:],
-                                        nrm[case.root][0]))
+            out[k] = nm.invert(_library(start, y, h2[k], other, kind.split(":")[1:]))
             continue
         if variant.startswith("l2/"):  # the same variant from layer 2 on
             kind, min_layer = variant[3:], 2
