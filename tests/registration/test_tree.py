@@ -549,7 +549,7 @@ def test_a_finer_polish_stage_must_lower_e_by_the_set_fraction(family, monkeypat
         spacing2=mean_spacing2(y), root_spacing=nearest_spacing(y))
     polish_module._polish_task(task)  # where each stage lands, with the library's rule
     e1, e2 = (registration_error(w, y) for w in warped)
-    p1, p2 = (polish_module._penalised(task, w, e) for w, e in zip(warped, (e1, e2), strict=True))
+    p1, p2 = (polish_module._penalised(task, w, e) for w, e in zip(warped, (e1, e2)))
     assert p1 <= polish_module._penalised(task, start, task.error), \
         "the first stage is kept in this setting"
     warped.clear()
