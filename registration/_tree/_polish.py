@@ -16,13 +16,10 @@ starts aligned), and its EM accelerated (``cpd_nonrigid(accelerate=True)``; see 
 A stage is kept only when it passes the checks the tree holds every registration to: its
 warp does not fold, its e is no larger than its start's, and its own confidence is at least
 ``MIN_CONFIDENCE``; a finer stage must also lower e by a fifth
-(``POLISH_FINER_MAX_E_RATIO``). Here e is penalised by the spacing distortion of the
-whole map from the root model (``POLISH_SPACING_WEIGHT``): near the subject's sampling
-floor a stage lowers e by pulling the model onto the subject's own samples. A rejected
-stage is skipped: the next starts where the last kept one (or the chain) left the points.
-A chain's composed field has more freedom than one CPD's, so its e can be lower than a
-wide stage's while its points have slid: there the finer stage, from the chain, still
-lowers e and the correspondence error.
+(``POLISH_FINER_MAX_E_RATIO``). A rejected stage is skipped: the next starts
+where the last kept one (or the chain) left the points. A chain's composed field has more
+freedom than one CPD's, so its e can be lower than a wide stage's while its points have
+slid: there the finer stage, from the chain, still lowers e and the correspondence error.
 
 Subjects are polished a tree level at a time, parents first. At layer >=
 ``POLISH_FROM_PARENT_MIN_LAYER`` a subject whose parent's polish moved it also registers
@@ -58,7 +55,7 @@ from .._cpd import CPDOptions, cpd_nonrigid, interpolating_field
 from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._pointmap import PointTransform
-from .._quality import RegistrationQuality, measure_quality, nearest_spacing, spacing_distortion
+from .._quality import RegistrationQuality, measure_quality
 from .._result import SubjectResult
 from .._similarity import ProgressCallback
 from .._transform import AffineTransform, ChainTransform
@@ -134,25 +131,6 @@ CONSENSUS_MAX_E_RATIO = 1.1
 #: 0.682 -> 0.655, generated 0.430 -> 0.406; Chui Chinese 0.333 -> 0.360 and randomly
 #: subsampled outlines 1.139 -> 1.155 lose.
 POLISH_FROM_PARENT_MIN_LAYER = 3
-#: The polish's stages compare e penalised by the spacing distortion V of the whole map
-#: from the root model (:func:`~registration._quality.spacing_distortion`), ``e * (1 +
-#: POLISH_SPACING_WEIGHT * V)``: a stage is kept when it lowers that (by a fifth for the
-#: finer stage), not e alone. Near the subject's sampling floor a CPD stage lowers e by
-#: pulling the model's points onto the subject's own samples or sliding them along its
-#: curves, which squeezes some of the model's spacings and opens others: e of the true
-#: correspondences is 0.57 h^2 on the 永 chains and 0.96 h^2 on outlines sampled as random
-#: subsets, where 93 % of the polished registrations ended below it (at larger GT errors
-#: than the chain's). Over every registration the polish makes of a subject
-#: (bench/bench_polish_scores.py; pairs whose GT errors differ by 10 % or more), the
-#: penalised e orders GT correctly more often than e: 永 0.783 -> 0.807, MPEG-7 0.761 ->
-#: 0.779, random subsets 0.375 -> 0.545, other characters (held out) 0.767 -> 0.791;
-#: evenly sampled outlines (held out) 0.803 -> 0.791. In the stages, ground truth
-#: (bench/RESULTS.md 7.8, tree / plain CPD): MPEG-7 0.706 -> 0.686 (worst run 1.069 ->
-#: 0.986), random subsets 1.155 -> 1.061, other characters 0.736 -> 0.724; 永 edges 0.554
-#: -> 0.558 and skeletons 0.606 -> 0.623 lose. Used in the polish's other choices as well
-#: (which registration of the subject to keep), it lost more on the skeletons (0.627) and
-#: gained nothing on the other characters; weight 30 was worse on four families.
-POLISH_SPACING_WEIGHT = 10.0
 
 
 @dataclass(frozen=True)
@@ -163,7 +141,6 @@ class _PolishTask:
     y: FloatArray  # the subject, normalised coordinates
     cpd: CPDOptions
     spacing2: float
-    root_spacing: FloatArray  # nearest_spacing of the root model's points (see `_stages`)
     # the root's registration onto the subject directly (to run, or already run), for the
     # consensus (layer >= POLISH_CONSENSUS_MIN_LAYER; see `_consensus`), else None
     direct: _RegTask | _RegOutcome | None = None
@@ -195,7 +172,6 @@ class _PolishOutcome:
     probability: FloatArray
     steps: tuple[PointTransform, ...]  # the transform's steps after the chain (none: rejected)
     quality: tuple[RegistrationQuality, ...]  # of each CPD stage among them
-    spacing_distortion: float  # V of `warped` (see `_stages`)
     consensus: dict[str, Any] | None = None  # what the consensus found (see `_consensus`)
     # the edge registered again from the parent's polished points, when kept: its steps
     # (they lead `steps`, which then extend the parent's polished chain), and what it found
@@ -204,17 +180,10 @@ class _PolishOutcome:
     from_parent: dict[str, Any] | None = None
 
 
-def _penalised(task: _PolishTask, warped: FloatArray, error: float) -> float:
-    """e penalised by the spacing distortion V of the map from the root model: ``e * (1 +
-    w V)``, w = :data:`POLISH_SPACING_WEIGHT`."""
-    return error * (1.0 + POLISH_SPACING_WEIGHT
-                    * spacing_distortion(warped, task.root_spacing))
-
-
-def _stages(task: _PolishTask, start: FloatArray, e_start: float) -> _Stages:
-    """The polish's CPD stages (:data:`POLISH_BETA_FACTORS`) from `start` onto `task`'s
-    subject, each kept only when it passes the checks (see the module doc), e penalised
-    by the spacing distortion (`_penalised`).
+def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
+            spacing2: float) -> _Stages:
+    """The polish's CPD stages (:data:`POLISH_BETA_FACTORS`) from `start`, each kept only
+    when it passes the checks (see the module doc).
 
     Each stage's EM is accelerated: started aligned, plain EM converges linearly (the
     objective's relative change falls about 0.8x per iteration on the 永 glyphs), and
@@ -224,9 +193,7 @@ def _stages(task: _PolishTask, start: FloatArray, e_start: float) -> _Stages:
     polish of 73 glyphs in 0.68x the CPU). The tree's own edges, which start far from
     their subject and whose EM path through the shrinking variance matters, are not
     accelerated."""
-    y, o, spacing2 = task.y, task.cpd, task.spacing2
     cur, e_cur = start, e_start
-    p_cur = _penalised(task, start, e_start)
     steps: list[PointTransform] = []
     quality: list[RegistrationQuality] = []
     corr: IntArray = np.zeros(0, dtype=np.intp)
@@ -243,13 +210,12 @@ def _stages(task: _PolishTask, start: FloatArray, e_start: float) -> _Stages:
         warped = np.asarray(res.warped, dtype=np.float64)
         e = registration_error(warped, y)
         q = measure_quality(cur, warped, y, res.transform, e, spacing2)
-        p = _penalised(task, warped, e)
-        max_p = p_cur if stage == 0 else POLISH_FINER_MAX_E_RATIO * p_cur  # finer: see above
-        if not (q.min_jacobian > 0 and p <= max_p and q.confidence >= MIN_CONFIDENCE):
+        max_e = e_cur if stage == 0 else POLISH_FINER_MAX_E_RATIO * e_cur  # finer: see above
+        if not (q.min_jacobian > 0 and e <= max_e and q.confidence >= MIN_CONFIDENCE):
             continue  # this stage is not kept; the next starts where the last kept left
         steps.append(res.transform)
         quality.append(q)
-        cur, e_cur, p_cur = warped, e, p
+        cur, e_cur = warped, e
         corr = np.asarray(res.correspondence, dtype=np.intp)
         prob = np.asarray(res.probability, dtype=np.float64)
     return _Stages(warped=cur, error=e_cur, steps=tuple(steps), quality=tuple(quality),
@@ -278,7 +244,7 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
     if not direct.min_jacobian > 0:
         info["reason"] = "the direct registration folds"
         return None, info
-    other = _stages(task, direct.warped, direct.error)
+    other = _stages(direct.warped, direct.error, task.y, task.cpd, task.spacing2)
     info["direct_polished_error"] = other.error
     moved = _polished_halfway(task, chain.warped, other.warped)
     if moved is None:
@@ -345,7 +311,8 @@ def _polished_halfway(task: _PolishTask, points: FloatArray, other: FloatArray
     start, jac = step.apply_with_jacobian(points)
     if not float(np.linalg.det(jac).min()) > 0:
         return None
-    return step, _stages(task, start, registration_error(start, task.y))
+    return step, _stages(start, registration_error(start, task.y), task.y, task.cpd,
+                         task.spacing2)
 
 
 def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
@@ -364,13 +331,13 @@ def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
 
 
 def _polish_task(task: _PolishTask) -> _PolishOutcome:
-    chain = _stages(task, task.start, task.error)
+    chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2)
     edge, edge_q, edge_info = None, None, None
     if task.from_parent is not None:
         edge, edge_q, edge_info = _edge_from_parent(task)
     if edge is not None and edge_info is not None:
         # the edge from the polished parent, polished (or alone, when no stage passes)
-        other = _stages(task, edge.warped, edge.error)
+        other = _stages(edge.warped, edge.error, task.y, task.cpd, task.spacing2)
         if not other.steps:
             other = replace(edge, steps=(), quality=())
         # the two polished registrations of the edge err differently: halfway, polished
@@ -395,9 +362,7 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
                            quality=(*chain.quality, *found.quality))
     return _PolishOutcome(subject=task.subject, warped=best.warped, error=best.error,
                           correspondence=best.correspondence, probability=best.probability,
-                          steps=best.steps, quality=best.quality,
-                          spacing_distortion=spacing_distortion(best.warped, task.root_spacing),
-                          consensus=info,
+                          steps=best.steps, quality=best.quality, consensus=info,
                           edge_steps=() if edge is None else edge.steps, edge_quality=edge_q,
                           from_parent=edge_info)
 
@@ -425,7 +390,6 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
     confidence = min([confidence, *(q.confidence for q in out.quality)])
     polish = {
         "error_before": old.error, "steps": len(out.steps), **quality[-1].to_dict(),
-        "spacing_distortion": out.spacing_distortion,
         "confidence": min(q.confidence for q in quality),
         "min_jacobian": min(q.min_jacobian for q in quality)}
     reason = (f"{old.reason}; polished: {len(out.quality)} more CPD from the chained model "
@@ -477,7 +441,6 @@ def _polish_subjects(
     if not todo:
         return
     built = {s: r.transform for s, r in results.items() if r.transform is not None}
-    root_spacing = nearest_spacing(coll.normed[results[todo[0]].path[0]])
     levels: dict[int, list[int]] = {}
     for s in todo:
         levels.setdefault(len(results[s].path), []).append(s)
@@ -487,8 +450,8 @@ def _polish_subjects(
         if progress is not None:
             progress("polish", 0, len(todo))
         for level in sorted(levels):
-            tasks = [_polish_subject_task(coll, results, built, moved, s, cpd, direct,
-                                          root_spacing) for s in levels[level]]
+            tasks = [_polish_subject_task(coll, results, built, moved, s, cpd, direct)
+                     for s in levels[level]]
             for _, out in ex.map_unordered(_polish_task, tasks):
                 if out.steps or out.edge_steps:
                     old = results[out.subject]
@@ -509,7 +472,6 @@ def _polish_subject_task(
     s: int,
     cpd: CPDOptions,
     direct: Callable[[int], _RegTask | _RegOutcome] | None,
-    root_spacing: FloatArray,
 ) -> _PolishTask:
     r = results[s]
     assert r.warped is not None and r.layer is not None and r.error is not None
@@ -527,7 +489,7 @@ def _polish_subject_task(
         edge_affine = tuple(edge[:lead])
     return _PolishTask(
         subject=s, start=coll.norms[s].apply(r.warped), error=r.error, y=coll.normed[s],
-        cpd=cpd, spacing2=coll.spacing2[s], root_spacing=root_spacing,
+        cpd=cpd, spacing2=coll.spacing2[s],
         direct=direct(s) if direct is not None and r.layer >= POLISH_CONSENSUS_MIN_LAYER
         else None,
         from_parent=from_parent, edge_affine=edge_affine)
