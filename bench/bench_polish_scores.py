@@ -19,9 +19,10 @@ and for each subject the distinct ones (RMS apart by 1e-4 or more) are compared:
 Scores: ``e``; its halves ``e_ms`` (model to subject) and ``e_sm``; ``V``, the spacing
 distortion of the whole map from the root model
 (:func:`registration._quality.spacing_distortion`); the penalised e ``e(1+kV)`` for
-several k (the library's weight is ``POLISH_SPACING_WEIGHT``). Also printed: e of the
-true correspondences in units of the subject's h^2, and how often the final e lies below
-it (the registration fitting the subject's own samples closer than the truth does).
+several k (bench/RESULTS.md 7.8: weight 10 in the polish's stages, measured and
+reverted). Also printed: e of the true correspondences in units of the subject's h^2,
+and how often the final e lies below it (the registration fitting the subject's own
+samples closer than the truth does).
 
     .venv/bin/python bench/bench_polish_scores.py [--families yong-edge yong-skel mpeg7 ...]
 """
@@ -144,7 +145,6 @@ def main() -> None:
     args = ap.parse_args()
     if not bg.DATA.is_dir():
         raise SystemExit(f"NOTE: {bg.DATA} is missing: this benchmark needs ../shared/data")
-    print(f"library's weight (POLISH_SPACING_WEIGHT): {polish.POLISH_SPACING_WEIGHT:g}")
     rec = Recorder()
     for family in args.families:
         print(f"\n{family}")
