@@ -204,7 +204,10 @@ def spacing_distortion(warped: FloatArray, model_spacing: FloatArray) -> float:
     samples, squeezes some spacings and opens others: V grows while e (eq. 10), which sees
     only how closely the model lies on the subject, can fall. Unlike ``distortion`` (the
     Jacobian of one CPD step), V is taken on the whole map from the model, so
-    registrations reached along different paths compare.
+    registrations reached along different paths compare. The tree does not use it: as a
+    penalty on e in the polish it helped on smooth deformations with ground truth and
+    refused the fits that differences between real font designs need (bench/RESULTS.md
+    7.8; ``bench/bench_polish_scores.py`` measures it).
 
     Parameters
     ----------
