@@ -184,7 +184,12 @@ def farthest_point_indices(points: FloatArray, n: int) -> IntArray:
     return np.sort(chosen)
 
 
+def nearest_distances(points: FloatArray) -> FloatArray:
+    """Each point's distance to the nearest other point of the same set."""
+    d, _ = cKDTree(points).query(points, k=2)
+    return np.asarray(d[:, 1], dtype=np.float64)
+
+
 def mean_spacing2(points: FloatArray) -> float:
     """Mean squared nearest-neighbour spacing h^2 of a shape's points."""
-    d, _ = cKDTree(points).query(points, k=2)
-    return float(np.mean(d[:, 1] ** 2))
+    return float(np.mean(nearest_distances(points) ** 2))

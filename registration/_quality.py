@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 
 from ._error import registration_error
 from ._pointmap import PointTransform, jacobian_matrices
-from ._points import farthest_point_indices, mean_spacing2
+from ._points import farthest_point_indices, mean_spacing2, nearest_distances
 
 FloatArray = NDArray[np.float64]
 
@@ -189,8 +189,7 @@ def measure_quality(
 def nearest_spacing(points: FloatArray) -> FloatArray:
     """Each point's distance to the nearest other point of the same set (floored at 1e-12:
     coincident points count as a spacing of 1e-12, so their log ratios stay finite)."""
-    d, _ = cKDTree(points).query(points, k=2)
-    return np.maximum(d[:, 1], 1e-12)
+    return np.maximum(nearest_distances(points), 1e-12)
 
 
 def spacing_distortion(warped: FloatArray, model_spacing: FloatArray) -> float:
