@@ -194,8 +194,8 @@ def cpd_nonrigid(
         ``M > AUTO_LOW_RANK_MIN_M`` (150).
     num_eig : int, optional
         Rank of the low-rank kernel.  ``None``: a pivoted Cholesky factor of ``G`` (never
-        formed) grown until the trace of what it leaves out is ``<= 1e-12 M`` (numerically
-        the exact kernel; ``O(M k^2)``).
+        formed) grown until the trace of what it leaves out is ``<= 1e-10 M`` (the warped
+        points within about 1e-5 of the subject's size of the exact kernel's; ``O(M k^2)``).
     dtype : {"float64", "float32"}, default "float64"
         Precision of the dense E-step's exponentials and products (exponents are always
         formed in float64; the M-step is always float64).
