@@ -170,7 +170,7 @@ class _EStep:
         self._pj: NDArray[np.intp] | None = None
         self._xj: FloatArray | None = None
         self._kmat: scipy.sparse.csr_matrix | None = None
-        self._kmat_t: Any = None  # its transpose (CSC, sharing its arrays), float64 only
+        self._kmat_t: Any = None  # its transpose (CSC, sharing its arrays)
         self._ones_m = np.ones(m)
         self._counts: NDArray[np.intp] = np.zeros(m, dtype=np.intp)
         self._t_build: FloatArray | None = None
@@ -324,8 +324,8 @@ class _EStep:
         if not self._list_valid(t, r) and not self._prune_list(t, TRUNCATION_SKIN * r):
             if not self._build_list(t, TRUNCATION_SKIN * r):
                 return None
-        j, xj, kmat = self._pj, self._xj, self._kmat
-        assert j is not None and xj is not None and kmat is not None
+        xj, kmat = self._xj, self._kmat
+        assert xj is not None and kmat is not None
         c = _outlier_const(sigma2, self.w, m, n)
         # |t_i - x_j|^2 on the listed pairs, one coordinate at a time (1-D passes are
         # several times faster than a (P, 2) einsum); np.repeat = t[i] as rows are sorted
@@ -337,30 +337,25 @@ class _EStep:
         np.square(dy, out=dy)
         e64 += dy
         e64 *= -0.5 / sigma2
-        # the kernel on the listed pairs (rows sorted by centroid), and its column sums in
-        # float64 (a float32 sum moved e by 2 % on a tree test's polished subject)
-        if self._kmat_t is not None:
-            # float64: the kernel written into the list's own array, which its transpose
-            # (CSC) shares: the column sums are one compiled product over int32 indices,
-            # 0.9-0.95x the time of the whole step at 8000 points against np.bincount
-            e = kmat.data
-            np.exp(e64, out=e)
-            colsum = self._kmat_t @ self._ones_m
-        else:
-            e = e64.astype(self.dtype, copy=False)
-            np.exp(e, out=e)
-            kmat.data = e
-            colsum = np.bincount(j, weights=e, minlength=n)
+        # the kernel on the listed pairs (rows sorted by centroid), in float64 whatever the
+        # dtype (a float32 list costs more in casts than its exp saves), written into the
+        # list's own array, which its transpose (CSC) shares: the column sums are one
+        # compiled product over int32 indices, the same sums as np.bincount's in 0.5-0.8x
+        # its time. At 8000 points the step takes 0.87-0.92x the time it took with
+        # np.bincount in float64, 0.89-0.90x in float32 (bench/RESULTS.md 7.9)
+        e = kmat.data
+        np.exp(e64, out=e)
+        colsum = self._kmat_t @ self._ones_m
         # then one sparse product per vector: scipy's CSR times a 3-column block costs
         # 3.8 ns a pair against 2.6 for three vectors (8000 points, ~100 pairs each)
         den = colsum + c
         np.maximum(den, _DEN_FLOOR, out=den)
         inv = 1.0 / den
         xinv = self.x * inv[:, None]
-        p1 = np.asarray(kmat @ inv.astype(self.dtype), dtype=np.float64)
+        p1 = kmat @ inv
         px = np.empty((m, 2))
-        px[:, 0] = kmat @ xinv[:, 0].astype(self.dtype)
-        px[:, 1] = kmat @ xinv[:, 1].astype(self.dtype)
+        px[:, 0] = kmat @ xinv[:, 0]
+        px[:, 1] = kmat @ xinv[:, 1]
         pt1 = colsum * inv
         nll = -float(np.sum(np.log(den))) + n * math.log(sigma2)
         return _EStepOut(p1, pt1, px, nll, len(e))
@@ -413,8 +408,8 @@ class _EStep:
         indptr = np.zeros(self.m + 1, dtype=np.intp)
         np.cumsum(counts, out=indptr[1:])
         self._kmat = scipy.sparse.csr_matrix(
-            (np.zeros(len(pj), dtype=self.dtype), pj, indptr), shape=(self.m, self.n))
-        self._kmat_t = self._kmat.T if self.dtype == np.float64 else None
+            (np.zeros(len(pj)), pj, indptr), shape=(self.m, self.n))
+        self._kmat_t = self._kmat.T
         self._t_build = t.copy()
         self._r_build = r_build
 

@@ -198,7 +198,7 @@ def cpd_nonrigid(
         points within about 1e-5 of the subject's size of the exact kernel's; ``O(M k^2)``).
     dtype : {"float64", "float32"}, default "float64"
         Precision of the dense E-step's exponentials and products (exponents are always
-        formed in float64; the M-step is always float64).
+        formed in float64; the truncated E-step and the M-step are always float64).
     truncate : bool, optional
         Truncated (sparse) E-step: only pairs within a radius of roughly 9 sigma are
         evaluated, chosen so that no posterior changes by more than ``1e-10`` relatively
