@@ -26,11 +26,14 @@ _BLOCK_ELEMS = 1 << 18
 FIELD_FGT_EXTRA = 8
 #: The field's kernel product goes through the Chebyshev Gauss transform when its cost,
 #: ``FIELD_FGT_NODE_COST * (K + M) * r_x * r_y + FIELD_FGT_FIXED``, is below the dense
-#: product's ``K * M`` (in kernel entries; fitted on 永 glyphs at beta 1 and 2, 200-1200
-#: points each side, 6 weight columns: 1205 x 1205 points 40 ms dense, 3-5 ms by the grid;
-#: 200 x 200 points 0.4-0.7 ms dense, 0.9-1.3 ms by the grid).
-FIELD_FGT_NODE_COST = 0.1
-FIELD_FGT_FIXED = 25_000
+#: product's ``K * M`` (in kernel entries). Fitted on 永 glyphs at beta 1 and 2, 100-2000
+#: points a side, 2 and 6 weight columns, against the dense kernel of one product and an
+#: exp (:func:`_gauss_kernel`; bench/RESULTS.md 7.9): the estimate within 0.6-1.7x of the
+#: measured ratio of the two, on the same side of 1 in every case: 400 x 400 points
+#: 0.41-0.44 ms dense, 0.61-1.02 ms by the grid; 800 x 800 1.7-1.9 ms dense, 0.95-1.5 ms
+#: by the grid; 2000 x 2000 8-11 ms dense, 2.1-3.5 ms by the grid.
+FIELD_FGT_NODE_COST = 0.33
+FIELD_FGT_FIXED = 82_500
 
 
 def _readonly(a: ArrayLike, dtype: Any = np.float64) -> NDArray[Any]:
@@ -40,7 +43,41 @@ def _readonly(a: ArrayLike, dtype: Any = np.float64) -> NDArray[Any]:
 
 
 def _gauss_kernel(a: FloatArray, b: FloatArray, beta: float) -> FloatArray:
-    """``exp(-|a_i - b_j|^2 / (2 beta^2))`` computed from coordinate differences."""
+    """``exp(-|a_i - b_j|^2 / (2 beta^2))``.
+
+    The exponents come from one product, ``(a_i . b_j - |a_i|^2 / 2 - |b_j|^2 / 2) /
+    beta^2`` (rows ``[a s, -|a|^2 s / 2, 1]`` times columns ``[b, 1, -|b|^2 s / 2]``, ``s =
+    1 / beta^2``), clamped at 0 against rounding, then one exp: 0.2-0.6x the time of the
+    coordinate differences' six passes at 400-1200 points a side (their temporaries the
+    size of the kernel), the kernel within 3e-14 relative of theirs at beta 0.25-2 on unit
+    shapes (the rounding of the expansion grows with ``|a|^2 / beta^2``). Rows or columns
+    of points whose squared norm is not finite (infinite, NaN or beyond 1e154) are taken
+    from the differences, as before: 0 at infinity, NaN for NaN."""
+    s = 1.0 / (beta * beta)
+    rows = np.empty((len(a), 4))
+    rows[:, :2] = a * s
+    rows[:, 2] = -0.5 * s * np.einsum("ij,ij->i", a, a)
+    rows[:, 3] = 1.0
+    cols = np.empty((4, len(b)))
+    cols[:2] = b.T
+    cols[2] = 1.0
+    cols[3] = -0.5 * s * np.einsum("ij,ij->i", b, b)
+    with np.errstate(invalid="ignore", over="ignore"):
+        k = rows @ cols
+    np.minimum(k, 0.0, out=k)
+    np.exp(k, out=k)
+    bad_a = ~np.isfinite(rows[:, 2])
+    bad_b = ~np.isfinite(cols[3])
+    if bad_a.any() or bad_b.any():
+        if bad_a.any():
+            k[bad_a] = _gauss_kernel_by_differences(a[bad_a], b, beta)
+        if bad_b.any():
+            k[:, bad_b] = _gauss_kernel_by_differences(a, b[bad_b], beta)
+    return k
+
+
+def _gauss_kernel_by_differences(a: FloatArray, b: FloatArray, beta: float) -> FloatArray:
+    """:func:`_gauss_kernel` from the coordinate differences (any points)."""
     k = np.subtract.outer(a[:, 0], b[:, 0])
     np.square(k, out=k)
     d1 = np.subtract.outer(a[:, 1], b[:, 1])
