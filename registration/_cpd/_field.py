@@ -55,14 +55,14 @@ def _gauss_kernel(a: FloatArray, b: FloatArray, beta: float) -> FloatArray:
     from the differences, as before: 0 at infinity, NaN for NaN."""
     s = 1.0 / (beta * beta)
     rows = np.empty((len(a), 4))
-    rows[:, :2] = a * s
-    rows[:, 2] = -0.5 * s * np.einsum("ij,ij->i", a, a)
-    rows[:, 3] = 1.0
     cols = np.empty((4, len(b)))
-    cols[:2] = b.T
-    cols[2] = 1.0
-    cols[3] = -0.5 * s * np.einsum("ij,ij->i", b, b)
-    with np.errstate(invalid="ignore", over="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):  # such rows are redone below
+        rows[:, :2] = a * s
+        rows[:, 2] = -0.5 * s * np.einsum("ij,ij->i", a, a)
+        rows[:, 3] = 1.0
+        cols[:2] = b.T
+        cols[2] = 1.0
+        cols[3] = -0.5 * s * np.einsum("ij,ij->i", b, b)
         k = rows @ cols
     np.minimum(k, 0.0, out=k)
     np.exp(k, out=k)
