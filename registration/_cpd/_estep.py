@@ -37,9 +37,10 @@ DENSE_PAIR_COST_F32 = 0.6
 #: Cost of one pair of the truncated E-step relative to the float64 dense E-step (measured
 #: CPU time at 4000 points: 19-27 ns against 15 ns, and 9.4 ns for the float32 dense one).
 #: The dense E-step has since become several times cheaper (2.7-3.6 ns a pair) and the
-#: truncated one 7-10 ns: a ratio of 2.0-3.8 (median 2.4). The grid's and the box's
-#: constants are off by the same kind of factor; fitted again together they changed no
-#: whole run beyond the machine's noise (bench/RESULTS.md 7.7), so they stay.
+#: truncated one 7-10 ns: a ratio of 2.0-3.8 (median 2.4); with its column sums from the
+#: list's transpose, 5.5-6.3 ns at 8000 points (bench/RESULTS.md 7.9). The grid's and the
+#: box's constants are off by the same kind of factor; fitted again together they changed
+#: no whole run beyond the machine's noise (bench/RESULTS.md 7.7), so they stay.
 TRUNCATED_PAIR_COST = 1.5
 #: Building the truncated E-step's neighbour list (a cell-list search at the larger
 #: radius, the CSR index) costs 1.4-4.5 evaluations of the list (measured at 2000 and 8000
