@@ -18,7 +18,13 @@ from scipy.spatial import cKDTree
 
 from ._boxfgt import BOX_WIDTHS, BoxGrid, box_rank, box_work
 from ._fgt import FGT_MAX_RANK, ChebGrid, bounding_box, fgt_ranks
-from ._field import _BLOCK_ELEMS, FloatArray, _gauss_kernel
+from ._field import (
+    _BLOCK_ELEMS,
+    FloatArray,
+    _exponent_cols,
+    _exponent_rows,
+    _gauss_kernel,
+)
 from ._neighbours import near_pairs
 
 #: Cost of the grid E-step per point, ``FGT_NODE_COST * (r_x r_y) ** FGT_NODE_POWER``, in
@@ -98,27 +104,6 @@ class _EStepOut:
     px: FloatArray  # (M, 2) P @ X
     nll: float  # -sum(log den) + N D/2 log sigma2 (MATLAB's cpd_P objective)
     nnz: int  # pairs evaluated (M*N when dense)
-
-
-def _exponent_rows(t: FloatArray, sigma2: float) -> FloatArray:
-    """The centroids' factor of the Gaussian exponent as one product: ``exponent[m, n] =
-    (t_m . x_n) / s2 - |t_m|^2 / (2 s2) - |x_n|^2 / (2 s2) = rows @ cols`` (with
-    :func:`_exponent_cols`)."""
-    rows = np.empty((len(t), 4))
-    rows[:, :2] = t
-    rows[:, 2] = -0.5 / sigma2 * np.einsum("ij,ij->i", t, t)
-    rows[:, 3] = 1.0
-    return rows
-
-
-def _exponent_cols(x: FloatArray, xsq: FloatArray, sigma2: float) -> FloatArray:
-    """The subject points' factor (``xsq``: their squared norms), see
-    :func:`_exponent_rows`."""
-    cols = np.empty((4, len(x)))
-    cols[:2] = x.T / sigma2
-    cols[2] = 1.0
-    cols[3] = -0.5 / sigma2 * xsq
-    return cols
 
 
 def _max_exponent(t: FloatArray, x: FloatArray, sigma2: float) -> float:

@@ -42,37 +42,52 @@ def _readonly(a: ArrayLike, dtype: Any = np.float64) -> NDArray[Any]:
     return out
 
 
+def _exponent_rows(t: FloatArray, sigma2: float) -> FloatArray:
+    """The centroids' factor of the Gaussian exponent as one product: ``exponent[m, n] =
+    (t_m . x_n) / s2 - |t_m|^2 / (2 s2) - |x_n|^2 / (2 s2) = rows @ cols`` (with
+    :func:`_exponent_cols`)."""
+    rows = np.empty((len(t), 4))
+    rows[:, :2] = t
+    rows[:, 2] = -0.5 / sigma2 * np.einsum("ij,ij->i", t, t)
+    rows[:, 3] = 1.0
+    return rows
+
+
+def _exponent_cols(x: FloatArray, xsq: FloatArray, sigma2: float) -> FloatArray:
+    """The subject points' factor (``xsq``: their squared norms), see
+    :func:`_exponent_rows`."""
+    cols = np.empty((4, len(x)))
+    cols[:2] = x.T / sigma2
+    cols[2] = 1.0
+    cols[3] = -0.5 / sigma2 * xsq
+    return cols
+
+
 def _gauss_kernel(a: FloatArray, b: FloatArray, beta: float) -> FloatArray:
     """``exp(-|a_i - b_j|^2 / (2 beta^2))``.
 
     The exponents come from one product, ``(a_i . b_j - |a_i|^2 / 2 - |b_j|^2 / 2) /
-    beta^2`` (rows ``[a s, -|a|^2 s / 2, 1]`` times columns ``[b, 1, -|b|^2 s / 2]``, ``s =
-    1 / beta^2``), clamped at 0 against rounding, then one exp: 0.2-0.6x the time of the
-    coordinate differences' six passes at 400-1200 points a side (their temporaries the
-    size of the kernel), the kernel within 3e-14 relative of theirs at beta 0.25-2 on unit
-    shapes (the rounding of the expansion grows with ``|a|^2 / beta^2``). Rows or columns
+    beta^2`` (the dense E-step's factors, :func:`_exponent_rows` and
+    :func:`_exponent_cols`, at ``sigma^2 = beta^2``), clamped at 0 against rounding, then
+    one exp: 0.2-0.6x the time of the coordinate differences' six passes at 400-1200
+    points a side (their temporaries the size of the kernel), the kernel within 3e-14
+    relative of theirs at beta 0.25-2 on unit shapes (the rounding of the expansion grows
+    with ``|a|^2 / beta^2``). Rows or columns
     of points whose squared norm is not finite (infinite, NaN or beyond 1e154) are taken
     from the differences, as before: 0 at infinity, NaN for NaN."""
-    s = 1.0 / (beta * beta)
-    rows = np.empty((len(a), 4))
-    cols = np.empty((4, len(b)))
+    s2 = beta * beta
     with np.errstate(invalid="ignore", over="ignore"):  # such rows are redone below
-        rows[:, :2] = a * s
-        rows[:, 2] = -0.5 * s * np.einsum("ij,ij->i", a, a)
-        rows[:, 3] = 1.0
-        cols[:2] = b.T
-        cols[2] = 1.0
-        cols[3] = -0.5 * s * np.einsum("ij,ij->i", b, b)
+        rows = _exponent_rows(a, s2)
+        cols = _exponent_cols(b, np.einsum("ij,ij->i", b, b), s2)
         k = rows @ cols
     np.minimum(k, 0.0, out=k)
     np.exp(k, out=k)
     bad_a = ~np.isfinite(rows[:, 2])
+    if bad_a.any():
+        k[bad_a] = _gauss_kernel_by_differences(a[bad_a], b, beta)
     bad_b = ~np.isfinite(cols[3])
-    if bad_a.any() or bad_b.any():
-        if bad_a.any():
-            k[bad_a] = _gauss_kernel_by_differences(a[bad_a], b, beta)
-        if bad_b.any():
-            k[:, bad_b] = _gauss_kernel_by_differences(a, b[bad_b], beta)
+    if bad_b.any():
+        k[:, bad_b] = _gauss_kernel_by_differences(a, b[bad_b], beta)
     return k
 
 
