@@ -27,7 +27,15 @@ COPY pyproject.toml README.md alembic.ini ./
 COPY registration ./registration
 COPY service ./service
 COPY migrations ./migrations
-RUN pip install '.[server,postgres]' \
+COPY setup.py ./
+# A C compiler for the install only: CPD's compiled truncated E-step (setup.py; without it
+# the library would run numpy's slower passes), then removed again.
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && pip install '.[server,postgres]' \
+    && python -c "import registration._cpd._ckernel" \
+    && apt-get purge -y --auto-remove gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/* \
     && useradd --create-home --uid 10001 regtree \
     && mkdir -p /app/var \
     && chown regtree /app/var

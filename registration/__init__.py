@@ -14,7 +14,7 @@ Typical use::
     result.transform_for(5).apply(pts)  # root-model points mapped onto subject 5
 """
 
-from ._cpd import CPDOptions, CPDResult, NonrigidTransform, cpd_nonrigid
+from ._cpd import CPDOptions, CPDResult, NonrigidTransform, compiled_kernel, cpd_nonrigid
 from ._dask import DaskClusterError, DaskExecutor
 from ._error import registration_error
 from ._executor import (
@@ -67,6 +67,7 @@ __all__ = [
     "build_dynamic_tree",
     "build_static_tree",
     "compare_instances",
+    "compiled_kernel",
     "cpd_nonrigid",
     "default_executor",
     "error_statistics",

@@ -15,7 +15,9 @@ float64 computation:
   (:mod:`._fgt`), linear in the points;
 * a truncated E-step once sigma is small: only pairs closer than a radius derived from a
   rigorous bound on the dropped mass are evaluated (pairs from a cell list,
-  :mod:`._neighbours`, kept as a CSR kernel while the centroids move little), giving a sparse ``P``.
+  :mod:`._neighbours`, kept as a CSR kernel while the centroids move little), giving a sparse ``P``;
+  its passes over the pair list are compiled (:mod:`._ckernel`, optional: numpy's when it
+  is not built).
 
 The cheapest allowed E-step is chosen on every iteration from estimated costs
 (``_estep.run_estep``).
@@ -30,9 +32,10 @@ option), :mod:`._estep` (the E-step engine), :mod:`._mstep` (dense and low-rank 
 :mod:`._field` (:class:`NonrigidTransform`) and :mod:`._pycpd` (the pycpd backend).
 """
 
+from ._estep import compiled_kernel
 from ._field import NonrigidTransform
 from ._nonrigid import CPDResult, cpd_nonrigid, interpolating_field
 from ._options import DTYPES, CPDOptions, Range
 
 __all__ = ["DTYPES", "CPDOptions", "CPDResult", "NonrigidTransform", "Range",
-           "cpd_nonrigid", "interpolating_field"]
+           "compiled_kernel", "cpd_nonrigid", "interpolating_field"]

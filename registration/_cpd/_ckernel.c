@@ -1,0 +1,190 @@
+/* The truncated E-step's passes over its pair list, compiled (registration._cpd._ckernel).
+ *
+ * Optional: `registration/_cpd/_estep.py` runs the same computation with numpy when this
+ * module is not built (no C compiler at install time) or when REGTREE_NO_CKERNEL=1.  The
+ * numpy version makes ten passes over the list (repeat, subtract, square, ... and four
+ * sparse products), 5.5-6 ns a pair at 8000 points; these two functions and numpy's exp
+ * between them make four, 2.5-3 ns a pair (bench/RESULTS.md 7.10).
+ *
+ * The list: pairs (m, j) grouped by centroid m, `indptr` (M + 1, int64) the CSR row
+ * pointers, `j` (P, int32) the subject point of each pair and `xj` (2, P, float64) its
+ * coordinates (row 0 the x's, row 1 the y's).  Arrays are passed through the buffer
+ * protocol (no numpy headers needed to build); the sizes are checked here, the dtypes
+ * and C order by the caller (`_estep._EStep._truncated_compiled`).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+static int check_len(Py_buffer *b, Py_ssize_t items, Py_ssize_t itemsize, const char *name) {
+    if (b->len != items * itemsize) {
+        PyErr_Format(PyExc_ValueError, "_ckernel: %s holds %zd bytes, expected %zd",
+                     name, b->len, items * itemsize);
+        return -1;
+    }
+    return 0;
+}
+
+static int check_indptr(const int64_t *ip, Py_ssize_t m, int64_t nnz) {
+    if (ip[0] != 0 || ip[m] != nnz) {
+        PyErr_SetString(PyExc_ValueError, "_ckernel: indptr must run from 0 to the pair count");
+        return -1;
+    }
+    for (Py_ssize_t i = 0; i < m; i++) {
+        if (ip[i + 1] < ip[i]) {
+            PyErr_SetString(PyExc_ValueError, "_ckernel: indptr must not decrease");
+            return -1;
+        }
+    }
+    return 0;
+}
+
+/* exponents(t, xj, indptr, scale, out): out[k] = -scale * |t_m - xj_k|^2 for every pair
+ * k of centroid m.  t (M, 2), xj (2, P), out (P,), float64. */
+static PyObject *exponents(PyObject *self, PyObject *args) {
+    Py_buffer bt, bx, bp, be;
+    double scale;
+    if (!PyArg_ParseTuple(args, "y*y*y*dw*", &bt, &bx, &bp, &scale, &be))
+        return NULL;
+    PyObject *ret = NULL;
+    Py_ssize_t m = bp.len / 8 - 1;
+    Py_ssize_t nnz = be.len / 8;
+    if (m < 0 || check_len(&bp, m + 1, 8, "indptr") || check_len(&bt, 2 * m, 8, "t")
+        || check_len(&bx, 2 * nnz, 8, "xj") || check_len(&be, nnz, 8, "out")
+        || check_indptr(bp.buf, m, nnz))
+        goto done;
+    {
+        const double *t = bt.buf, *x0 = bx.buf, *x1 = (const double *)bx.buf + nnz;
+        const int64_t *ip = bp.buf;
+        double *e = be.buf;
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t i = 0; i < m; i++) {
+            const double tx = t[2 * i], ty = t[2 * i + 1];
+            for (int64_t k = ip[i]; k < ip[i + 1]; k++) {
+                const double dx = tx - x0[k], dy = ty - x1[k];
+                e[k] = -scale * (dx * dx + dy * dy);
+            }
+        }
+        Py_END_ALLOW_THREADS
+    }
+    ret = Py_NewRef(Py_None);
+done:
+    PyBuffer_Release(&bt);
+    PyBuffer_Release(&bx);
+    PyBuffer_Release(&bp);
+    PyBuffer_Release(&be);
+    return ret;
+}
+
+/* sums(kern, indptr, j, x, c, floor, colsum, q, p1, px, pt1) -> sum_n log den_n
+ *
+ * kern (P,) the kernel on the pairs; x (N, 2) the subject; c the outlier constant.
+ * colsum (N,) = sum over each subject point's pairs, den = max(colsum + c, floor),
+ * pt1 = colsum / den, p1 (M,) = K (1 / den), px (M, 2) = K (x / den); q (N, 3) is
+ * workspace.  Every output is overwritten. */
+static PyObject *sums(PyObject *self, PyObject *args) {
+    Py_buffer be, bp, bj, bx, bcs, bq, bp1, bpx, bpt1;
+    double c, floor_;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*ddw*w*w*w*w*", &be, &bp, &bj, &bx, &c, &floor_,
+                          &bcs, &bq, &bp1, &bpx, &bpt1))
+        return NULL;
+    PyObject *ret = NULL;
+    Py_ssize_t m = bp.len / 8 - 1, n = bx.len / 16, nnz = be.len / 8;
+    if (m < 0 || check_len(&bp, m + 1, 8, "indptr") || check_len(&bj, nnz, 4, "j")
+        || check_len(&bx, 2 * n, 8, "x") || check_len(&bcs, n, 8, "colsum")
+        || check_len(&bq, 3 * n, 8, "q") || check_len(&bp1, m, 8, "p1")
+        || check_len(&bpx, 2 * m, 8, "px") || check_len(&bpt1, n, 8, "pt1")
+        || check_indptr(bp.buf, m, nnz))
+        goto done;
+    {
+        const double *kern = be.buf, *x = bx.buf;
+        const int64_t *ip = bp.buf;
+        const int32_t *j = bj.buf;
+        double *cs = bcs.buf, *q = bq.buf, *p1 = bp1.buf, *px = bpx.buf, *pt1 = bpt1.buf;
+        double sumlog = 0.0;
+        int bad = 0;
+        Py_BEGIN_ALLOW_THREADS
+        memset(cs, 0, (size_t)n * sizeof(double));
+        for (Py_ssize_t k = 0; k < nnz; k++) {
+            const uint32_t jk = (uint32_t)j[k];
+            if (jk >= (uint32_t)n) {
+                bad = 1;
+                break;
+            }
+            cs[jk] += kern[k];
+        }
+        if (!bad) {
+            for (Py_ssize_t a = 0; a < n; a++) {
+                double den = cs[a] + c;
+                if (!(den >= floor_))
+                    den = floor_;
+                const double inv = 1.0 / den;
+                sumlog += log(den);
+                q[3 * a] = inv;
+                q[3 * a + 1] = x[2 * a] * inv;
+                q[3 * a + 2] = x[2 * a + 1] * inv;
+                pt1[a] = cs[a] * inv;
+            }
+            for (Py_ssize_t i = 0; i < m; i++) {
+                /* two partial sums each: the adds' latency, not the loads, bound one */
+                double a0 = 0.0, a1 = 0.0, a2 = 0.0, b0 = 0.0, b1 = 0.0, b2 = 0.0;
+                int64_t k = ip[i];
+                const int64_t end = ip[i + 1];
+                for (; k + 1 < end; k += 2) {
+                    const double *qa = q + 3 * (int64_t)j[k], *qb = q + 3 * (int64_t)j[k + 1];
+                    const double va = kern[k], vb = kern[k + 1];
+                    a0 += va * qa[0];
+                    a1 += va * qa[1];
+                    a2 += va * qa[2];
+                    b0 += vb * qb[0];
+                    b1 += vb * qb[1];
+                    b2 += vb * qb[2];
+                }
+                if (k < end) {
+                    const double *qa = q + 3 * (int64_t)j[k];
+                    const double va = kern[k];
+                    a0 += va * qa[0];
+                    a1 += va * qa[1];
+                    a2 += va * qa[2];
+                }
+                p1[i] = a0 + b0;
+                px[2 * i] = a1 + b1;
+                px[2 * i + 1] = a2 + b2;
+            }
+        }
+        Py_END_ALLOW_THREADS
+        if (bad) {
+            PyErr_SetString(PyExc_ValueError, "_ckernel: a pair's subject index is out of range");
+            goto done;
+        }
+        ret = PyFloat_FromDouble(sumlog);
+    }
+done:
+    PyBuffer_Release(&be);
+    PyBuffer_Release(&bp);
+    PyBuffer_Release(&bj);
+    PyBuffer_Release(&bx);
+    PyBuffer_Release(&bcs);
+    PyBuffer_Release(&bq);
+    PyBuffer_Release(&bp1);
+    PyBuffer_Release(&bpx);
+    PyBuffer_Release(&bpt1);
+    return ret;
+}
+
+static PyMethodDef methods[] = {
+    {"exponents", exponents, METH_VARARGS,
+     "exponents(t, xj, indptr, scale, out): out[k] = -scale |t_m - xj_k|^2"},
+    {"sums", sums, METH_VARARGS,
+     "sums(kern, indptr, j, x, c, floor, colsum, q, p1, px, pt1) -> sum log den"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "_ckernel",
+    "The truncated E-step's passes over its pair list, compiled.", -1, methods,
+};
+
+PyMODINIT_FUNC PyInit__ckernel(void) { return PyModule_Create(&module); }
