@@ -174,11 +174,165 @@ done:
     return ret;
 }
 
+
+/* The cell list's scan (`_neighbours.near_pairs`): every centroid m reads the runs
+ * [starts[m, r], starts[m, r] + lens[m, r]) of the subject points sorted by cell (xs0,
+ * xs1, their original indices `order`), r = 0..R-1, and keeps the points within
+ * sqrt(r2), in that order.
+ *
+ * pair_counts(t, xs0, xs1, starts, lens, r2, cap, counts) -> total, or -1 as soon as
+ * the total exceeds cap (cap < 0: no cap).  counts (M,) int64.
+ * pair_fill(t, xs0, xs1, order, starts, lens, r2, j, xj, d2): the kept pairs' subject
+ * index j (P,) int64, coordinates xj (2, P) float64 and squared distance d2 (P,) float64
+ * (None: not asked), P the total pair_counts gave. */
+static int scan_args(Py_buffer *bt, Py_buffer *bx0, Py_buffer *bx1, Py_buffer *bs,
+                     Py_buffer *bl, Py_ssize_t *m, Py_ssize_t *n, Py_ssize_t *rows) {
+    *m = bt->len / 16;
+    *n = bx0->len / 8;
+    if (check_len(bt, 2 * *m, 8, "t") || check_len(bx1, *n, 8, "xs1"))
+        return -1;
+    if (*m == 0 || bs->len % (*m * 8) != 0) {
+        if (*m == 0 && bs->len == 0 && bl->len == 0) {
+            *rows = 0;
+            return 0;
+        }
+        PyErr_SetString(PyExc_ValueError, "_ckernel: starts must hold whole rows of int64");
+        return -1;
+    }
+    *rows = bs->len / (*m * 8);
+    if (check_len(bl, *m * *rows, 8, "lens"))
+        return -1;
+    const int64_t *st = bs->buf, *ln = bl->buf;
+    for (Py_ssize_t a = 0; a < *m * *rows; a++) {
+        if (ln[a] < 0 || st[a] < 0 || st[a] + ln[a] > *n) {
+            PyErr_SetString(PyExc_ValueError, "_ckernel: a run lies outside the points");
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static PyObject *pair_counts(PyObject *self, PyObject *args) {
+    Py_buffer bt, bx0, bx1, bs, bl, bc;
+    double r2;
+    long long cap;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*dLw*", &bt, &bx0, &bx1, &bs, &bl, &r2, &cap, &bc))
+        return NULL;
+    PyObject *ret = NULL;
+    Py_ssize_t m, n, rows;
+    if (scan_args(&bt, &bx0, &bx1, &bs, &bl, &m, &n, &rows) || check_len(&bc, m, 8, "counts"))
+        goto done;
+    {
+        const double *t = bt.buf, *xs0 = bx0.buf, *xs1 = bx1.buf;
+        const int64_t *st = bs.buf, *ln = bl.buf;
+        int64_t *counts = bc.buf, total = 0;
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t i = 0; i < m; i++) {
+            const double tx = t[2 * i], ty = t[2 * i + 1];
+            int64_t c = 0;
+            for (Py_ssize_t r = 0; r < rows; r++) {
+                const int64_t a = st[i * rows + r], e = a + ln[i * rows + r];
+                for (int64_t k = a; k < e; k++) {
+                    const double dx = xs0[k] - tx, dy = xs1[k] - ty;
+                    c += (dx * dx + dy * dy <= r2);
+                }
+            }
+            counts[i] = c;
+            total += c;
+            if (cap >= 0 && total > cap) {
+                total = -1;
+                break;
+            }
+        }
+        Py_END_ALLOW_THREADS
+        ret = PyLong_FromLongLong(total);
+    }
+done:
+    PyBuffer_Release(&bt);
+    PyBuffer_Release(&bx0);
+    PyBuffer_Release(&bx1);
+    PyBuffer_Release(&bs);
+    PyBuffer_Release(&bl);
+    PyBuffer_Release(&bc);
+    return ret;
+}
+
+static PyObject *pair_fill(PyObject *self, PyObject *args) {
+    Py_buffer bt, bx0, bx1, bo, bs, bl, bj, bxj, bd = {0};
+    double r2;
+    PyObject *d2obj;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*dw*w*O", &bt, &bx0, &bx1, &bo, &bs, &bl, &r2,
+                          &bj, &bxj, &d2obj))
+        return NULL;
+    PyObject *ret = NULL;
+    int with_d = d2obj != Py_None;
+    if (with_d && PyObject_GetBuffer(d2obj, &bd, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0) {
+        with_d = 0;
+        goto done;
+    }
+    Py_ssize_t m, n, rows, p = bj.len / 8;
+    if (scan_args(&bt, &bx0, &bx1, &bs, &bl, &m, &n, &rows) || check_len(&bo, n, 8, "order")
+        || check_len(&bxj, 2 * p, 8, "xj") || (with_d && check_len(&bd, p, 8, "d2")))
+        goto done;
+    {
+        const double *t = bt.buf, *xs0 = bx0.buf, *xs1 = bx1.buf;
+        const int64_t *order = bo.buf, *st = bs.buf, *ln = bl.buf;
+        int64_t *j = bj.buf;
+        double *x0 = bxj.buf, *x1 = (double *)bxj.buf + p, *d2 = with_d ? bd.buf : NULL;
+        int64_t w = 0;
+        int overflow = 0;
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t i = 0; i < m && !overflow; i++) {
+            const double tx = t[2 * i], ty = t[2 * i + 1];
+            for (Py_ssize_t r = 0; r < rows && !overflow; r++) {
+                const int64_t a = st[i * rows + r], e = a + ln[i * rows + r];
+                for (int64_t k = a; k < e; k++) {
+                    const double dx = xs0[k] - tx, dy = xs1[k] - ty, dd = dx * dx + dy * dy;
+                    if (dd <= r2) {
+                        if (w >= p) {
+                            overflow = 1;
+                            break;
+                        }
+                        j[w] = order[k];
+                        x0[w] = xs0[k];
+                        x1[w] = xs1[k];
+                        if (d2)
+                            d2[w] = dd;
+                        w++;
+                    }
+                }
+            }
+        }
+        Py_END_ALLOW_THREADS
+        if (overflow || w != p) {
+            PyErr_SetString(PyExc_ValueError, "_ckernel: the output does not hold the pairs");
+            goto done;
+        }
+        ret = Py_NewRef(Py_None);
+    }
+done:
+    PyBuffer_Release(&bt);
+    PyBuffer_Release(&bx0);
+    PyBuffer_Release(&bx1);
+    PyBuffer_Release(&bo);
+    PyBuffer_Release(&bs);
+    PyBuffer_Release(&bl);
+    PyBuffer_Release(&bj);
+    PyBuffer_Release(&bxj);
+    if (with_d)
+        PyBuffer_Release(&bd);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"exponents", exponents, METH_VARARGS,
      "exponents(t, xj, indptr, scale, out): out[k] = -scale |t_m - xj_k|^2"},
     {"sums", sums, METH_VARARGS,
      "sums(kern, indptr, j, x, c, floor, colsum, q, p1, px, pt1) -> sum log den"},
+    {"pair_counts", pair_counts, METH_VARARGS,
+     "pair_counts(t, xs0, xs1, starts, lens, r2, cap, counts) -> total, or -1 over cap"},
+    {"pair_fill", pair_fill, METH_VARARGS,
+     "pair_fill(t, xs0, xs1, order, starts, lens, r2, j, xj, d2 or None)"},
     {NULL, NULL, 0, NULL},
 };
 

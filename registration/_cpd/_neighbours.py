@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -92,6 +93,8 @@ def near_pairs(t: FloatArray, x: FloatArray, r: float, cap: int | None = None,
     ends = np.cumsum(per_centroid)
 
     r2 = r * r
+    if _estep_ckernel() is not None:
+        return _scan_compiled(t, xs0, xs1, order, starts, lens, r2, cap, distances)
     counts = np.zeros(m, dtype=np.intp)
     j_parts: list[NDArray[np.intp]] = []
     x0_parts: list[FloatArray] = []
@@ -138,3 +141,39 @@ def near_pairs(t: FloatArray, x: FloatArray, r: float, cap: int | None = None,
     if distances:
         dist = np.concatenate(d_parts) if d_parts else np.zeros(0)
     return NearPairs(counts, j.astype(np.intp, copy=False), xj, dist)
+
+
+def _estep_ckernel() -> Any:
+    """The compiled passes the E-step uses (None: numpy's), looked up at each call so
+    that switching them (tests, ``REGTREE_NO_CKERNEL``) switches both."""
+    from . import _estep
+
+    return _estep._CKERNEL
+
+
+def _scan_compiled(t: FloatArray, xs0: FloatArray, xs1: FloatArray,
+                   order: NDArray[np.intp], starts: NDArray[np.int64],
+                   lens: NDArray[np.int64], r2: float, cap: int | None,
+                   distances: bool) -> NearPairs | None:
+    """The candidates' scan of :func:`near_pairs` by :mod:`._ckernel`: a pass that counts
+    each centroid's pairs (stopping once over ``cap``), then one that writes them, in the
+    same order as numpy's scan (3-5 ns a candidate against 20-25)."""
+    ck = _estep_ckernel()
+    m = len(t)
+    tc = np.ascontiguousarray(t, dtype=np.float64)
+    st = np.ascontiguousarray(starts, dtype=np.int64)
+    ln = np.ascontiguousarray(lens, dtype=np.int64)
+    counts = np.empty(m, dtype=np.int64)
+    total = ck.pair_counts(tc, xs0, xs1, st, ln, r2, -1 if cap is None else cap, counts)
+    if total < 0:
+        return None
+    j = np.empty(total, dtype=np.int64)
+    xj = np.empty((2, total))
+    d2 = np.empty(total) if distances else None
+    ck.pair_fill(tc, xs0, xs1, np.ascontiguousarray(order, dtype=np.int64), st, ln, r2, j,
+                 xj, d2)
+    dist = None
+    if d2 is not None:
+        dist = np.sqrt(d2, out=d2)
+    return NearPairs(counts.astype(np.intp, copy=False), j.astype(np.intp, copy=False), xj,
+                     dist)

@@ -1,12 +1,30 @@
-"""The cell-list pair search of the truncated E-step against a brute-force search."""
+"""The cell-list pair search of the truncated E-step against a brute-force search, with
+its scan compiled (``_ckernel``) and with numpy's."""
 
 from __future__ import annotations
+
+import os
 
 import numpy as np
 import pytest
 
-from registration._cpd import _neighbours
+from registration._cpd import _estep, _neighbours
 from registration._cpd._neighbours import near_pairs
+
+COMPILED = _estep._CKERNEL
+
+
+@pytest.fixture(autouse=True, params=["compiled", "numpy"])
+def engine(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    if request.param == "compiled":
+        if COMPILED is None:
+            if os.environ.get("REGTREE_REQUIRE_CKERNEL") == "1":
+                pytest.fail("REGTREE_REQUIRE_CKERNEL=1 but _ckernel is not importable")
+            pytest.skip("registration._cpd._ckernel not built")
+        monkeypatch.setattr(_estep, "_CKERNEL", COMPILED)
+    else:
+        monkeypatch.setattr(_estep, "_CKERNEL", None)
+    return str(request.param)
 
 
 def brute(t: np.ndarray, x: np.ndarray, r: float) -> set[tuple[int, int]]:
@@ -86,3 +104,39 @@ def test_cap_stops_the_search(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_rejects_a_radius_that_is_not_positive_and_finite(r: float) -> None:
     with pytest.raises(ValueError, match="radius must be positive and finite"):
         near_pairs(np.zeros((2, 2)), np.zeros((2, 2)), r)
+
+
+def test_both_scans_list_the_same_pairs_in_the_same_order(
+        engine: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    if engine == "numpy" or COMPILED is None:
+        pytest.skip("compares the compiled scan with numpy's (run once, as 'compiled')")
+    x = contour(1500, 7)
+    t = contour(1200, 8) * 1.02
+    for r in (0.01, 0.08, 0.4):
+        got = near_pairs(t, x, r)
+        monkeypatch.setattr(_estep, "_CKERNEL", None)
+        want = near_pairs(t, x, r)
+        monkeypatch.setattr(_estep, "_CKERNEL", COMPILED)
+        assert got is not None and want is not None
+        for a, b in ((got.counts, want.counts), (got.j, want.j), (got.xj, want.xj),
+                     (got.dist, want.dist)):
+            np.testing.assert_array_equal(a, b)
+            assert a.dtype == b.dtype  # type: ignore[union-attr]
+
+
+def test_the_compiled_scan_checks_its_runs(engine: str) -> None:
+    if engine == "numpy" or COMPILED is None:
+        pytest.skip("the compiled scan's own checks")
+    t, xs = np.zeros((2, 2)), np.zeros(4)
+    counts = np.empty(2, dtype=np.int64)
+    lens = np.ones((2, 5), dtype=np.int64)
+    assert COMPILED.pair_counts(t, xs, xs, np.zeros((2, 5), dtype=np.int64), lens, 1.0, -1,
+                                counts) == 10
+    with pytest.raises(ValueError, match="a run lies outside the points"):
+        COMPILED.pair_counts(t, xs, xs, np.full((2, 5), 4, dtype=np.int64), lens, 1.0, -1,
+                             counts)
+    with pytest.raises(ValueError, match="whole rows"):
+        COMPILED.pair_counts(t, xs, xs, np.zeros(3, dtype=np.int64), lens, 1.0, -1, counts)
+    with pytest.raises(ValueError, match="the output does not hold the pairs"):
+        COMPILED.pair_fill(t, xs, xs, np.arange(4), np.zeros((2, 5), dtype=np.int64), lens,
+                           1.0, np.empty(9, dtype=np.int64), np.empty((2, 9)), None)
