@@ -146,6 +146,7 @@ def main() -> None:
             for size in args.sizes:
                 runs[size].append(one_run(size, dtype, args.iters))
         prev: tuple[int, float, float, float] | None = None
+        first: tuple[int, float] | None = None
         for size in args.sizes:
             best = min(runs[size], key=lambda r: r["all_cpu"])
             cpu_it = min(r["cpu_it"] for r in runs[size])
@@ -167,6 +168,13 @@ def main() -> None:
                 spread = ", ".join(f"{r['all_cpu'] * 1e3:.2f}" for r in runs[size])
                 print(f"{'':8} {'':>6} all cpu of each round: {spread}")
             prev = (size, cpu_it, dense, all_cpu)
+            first = first or (size, all_cpu)
+        if prev is not None and first is not None and prev[0] > first[0]:
+            growth = prev[3] / first[1]
+            k = math.log(growth) / math.log(prev[0] / first[0])
+            print(f"{dtype}: whole run's CPU per iteration {first[0]} -> {prev[0]} points "
+                  f"{growth:.1f}x = n^{k:.2f} (issue 9: <= n^1.3; least of "
+                  f"{args.repeat} round(s) each)")
         source = runs[args.sizes[-1]][0]["source"]
     print(f"data: {source}")
 
