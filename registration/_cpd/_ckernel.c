@@ -41,31 +41,59 @@ static int check_indptr(const int64_t *ip, Py_ssize_t m, int64_t nnz) {
     return 0;
 }
 
+/* The pair count of a list from its row pointers (checked), or -1 with an exception. */
+static Py_ssize_t list_pairs(Py_buffer *bp, Py_ssize_t *m) {
+    *m = bp->len / 8 - 1;
+    if (*m < 0 || check_len(bp, *m + 1, 8, "indptr"))
+        return -1;
+    const int64_t nnz = ((const int64_t *)bp->buf)[*m];
+    if (nnz < 0 || check_indptr(bp->buf, *m, nnz))
+        return -1;
+    return (Py_ssize_t)nnz;
+}
+
+/* 1 when a buffer holds float32 per pair, 0 for float64, -1 (exception) otherwise. */
+static int pair_dtype(Py_buffer *b, Py_ssize_t nnz, const char *name) {
+    if (b->len == 8 * nnz)
+        return 0;
+    if (b->len == 4 * nnz)
+        return 1;
+    PyErr_Format(PyExc_ValueError, "_ckernel: %s holds %zd bytes, expected 8 or 4 a pair (%zd)",
+                 name, b->len, nnz);
+    return -1;
+}
+
+#define EXPONENTS(T)                                                                      \
+    for (Py_ssize_t i = 0; i < m; i++) {                                                  \
+        const double tx = t[2 * i], ty = t[2 * i + 1];                                    \
+        for (int64_t k = ip[i]; k < ip[i + 1]; k++) {                                     \
+            const double dx = tx - x0[k], dy = ty - x1[k];                                \
+            ((T *)be.buf)[k] = (T)(-scale * (dx * dx + dy * dy));                         \
+        }                                                                                 \
+    }
+
 /* exponents(t, xj, indptr, scale, out): out[k] = -scale * |t_m - xj_k|^2 for every pair
- * k of centroid m.  t (M, 2), xj (2, P), out (P,), float64. */
+ * k of centroid m.  t (M, 2), xj (2, P) float64; out (P,) float64 or float32 (rounded
+ * once, from the float64 value). */
 static PyObject *exponents(PyObject *self, PyObject *args) {
     Py_buffer bt, bx, bp, be;
     double scale;
     if (!PyArg_ParseTuple(args, "y*y*y*dw*", &bt, &bx, &bp, &scale, &be))
         return NULL;
     PyObject *ret = NULL;
-    Py_ssize_t m = bp.len / 8 - 1;
-    Py_ssize_t nnz = be.len / 8;
-    if (m < 0 || check_len(&bp, m + 1, 8, "indptr") || check_len(&bt, 2 * m, 8, "t")
-        || check_len(&bx, 2 * nnz, 8, "xj") || check_len(&be, nnz, 8, "out")
-        || check_indptr(bp.buf, m, nnz))
+    Py_ssize_t m, nnz = list_pairs(&bp, &m);
+    int f32 = -1;
+    if (nnz < 0 || check_len(&bt, 2 * m, 8, "t") || check_len(&bx, 2 * nnz, 8, "xj")
+        || (f32 = pair_dtype(&be, nnz, "out")) < 0)
         goto done;
     {
         const double *t = bt.buf, *x0 = bx.buf, *x1 = (const double *)bx.buf + nnz;
         const int64_t *ip = bp.buf;
-        double *e = be.buf;
         Py_BEGIN_ALLOW_THREADS
-        for (Py_ssize_t i = 0; i < m; i++) {
-            const double tx = t[2 * i], ty = t[2 * i + 1];
-            for (int64_t k = ip[i]; k < ip[i + 1]; k++) {
-                const double dx = tx - x0[k], dy = ty - x1[k];
-                e[k] = -scale * (dx * dx + dy * dy);
-            }
+        if (f32) {
+            EXPONENTS(float)
+        } else {
+            EXPONENTS(double)
         }
         Py_END_ALLOW_THREADS
     }
@@ -78,12 +106,52 @@ done:
     return ret;
 }
 
+#define SCATTER(T)                                                                        \
+    for (Py_ssize_t k = 0; k < nnz; k++) {                                                \
+        const uint32_t jk = (uint32_t)j[k];                                               \
+        if (jk >= (uint32_t)n) {                                                          \
+            bad = 1;                                                                      \
+            break;                                                                        \
+        }                                                                                 \
+        cs[jk] += (double)((const T *)be.buf)[k];                                         \
+    }
+
+/* two partial sums each: the adds' latency, not the loads, bound one */
+#define ROWS(T)                                                                           \
+    for (Py_ssize_t i = 0; i < m; i++) {                                                  \
+        const T *kern = be.buf;                                                           \
+        double a0 = 0.0, a1 = 0.0, a2 = 0.0, b0 = 0.0, b1 = 0.0, b2 = 0.0;               \
+        int64_t k = ip[i];                                                                \
+        const int64_t end = ip[i + 1];                                                    \
+        for (; k + 1 < end; k += 2) {                                                     \
+            const double *qa = q + 3 * (int64_t)j[k], *qb = q + 3 * (int64_t)j[k + 1];    \
+            const double va = (double)kern[k], vb = (double)kern[k + 1];                  \
+            a0 += va * qa[0];                                                             \
+            a1 += va * qa[1];                                                             \
+            a2 += va * qa[2];                                                             \
+            b0 += vb * qb[0];                                                             \
+            b1 += vb * qb[1];                                                             \
+            b2 += vb * qb[2];                                                             \
+        }                                                                                 \
+        if (k < end) {                                                                    \
+            const double *qa = q + 3 * (int64_t)j[k];                                     \
+            const double va = (double)kern[k];                                            \
+            a0 += va * qa[0];                                                             \
+            a1 += va * qa[1];                                                             \
+            a2 += va * qa[2];                                                             \
+        }                                                                                 \
+        p1[i] = a0 + b0;                                                                  \
+        px[2 * i] = a1 + b1;                                                              \
+        px[2 * i + 1] = a2 + b2;                                                          \
+    }
+
 /* sums(kern, indptr, j, x, c, floor, colsum, q, p1, px, pt1) -> sum_n log den_n
  *
- * kern (P,) the kernel on the pairs; x (N, 2) the subject; c the outlier constant.
- * colsum (N,) = sum over each subject point's pairs, den = max(colsum + c, floor),
- * pt1 = colsum / den, p1 (M,) = K (1 / den), px (M, 2) = K (x / den); q (N, 3) is
- * workspace.  Every output is overwritten. */
+ * kern (P,) the kernel on the pairs, float64 or float32; x (N, 2) the subject; c the
+ * outlier constant.  colsum (N,) = sum over each subject point's pairs, den =
+ * max(colsum + c, floor), pt1 = colsum / den, p1 (M,) = K (1 / den), px (M, 2) =
+ * K (x / den), all summed in float64; q (N, 3) is workspace.  Every output is
+ * overwritten. */
 static PyObject *sums(PyObject *self, PyObject *args) {
     Py_buffer be, bp, bj, bx, bcs, bq, bp1, bpx, bpt1;
     double c, floor_;
@@ -91,15 +159,15 @@ static PyObject *sums(PyObject *self, PyObject *args) {
                           &bcs, &bq, &bp1, &bpx, &bpt1))
         return NULL;
     PyObject *ret = NULL;
-    Py_ssize_t m = bp.len / 8 - 1, n = bx.len / 16, nnz = be.len / 8;
-    if (m < 0 || check_len(&bp, m + 1, 8, "indptr") || check_len(&bj, nnz, 4, "j")
+    Py_ssize_t m, n = bx.len / 16, nnz = list_pairs(&bp, &m);
+    int f32 = -1;
+    if (nnz < 0 || (f32 = pair_dtype(&be, nnz, "kern")) < 0 || check_len(&bj, nnz, 4, "j")
         || check_len(&bx, 2 * n, 8, "x") || check_len(&bcs, n, 8, "colsum")
         || check_len(&bq, 3 * n, 8, "q") || check_len(&bp1, m, 8, "p1")
-        || check_len(&bpx, 2 * m, 8, "px") || check_len(&bpt1, n, 8, "pt1")
-        || check_indptr(bp.buf, m, nnz))
+        || check_len(&bpx, 2 * m, 8, "px") || check_len(&bpt1, n, 8, "pt1"))
         goto done;
     {
-        const double *kern = be.buf, *x = bx.buf;
+        const double *x = bx.buf;
         const int64_t *ip = bp.buf;
         const int32_t *j = bj.buf;
         double *cs = bcs.buf, *q = bq.buf, *p1 = bp1.buf, *px = bpx.buf, *pt1 = bpt1.buf;
@@ -107,13 +175,10 @@ static PyObject *sums(PyObject *self, PyObject *args) {
         int bad = 0;
         Py_BEGIN_ALLOW_THREADS
         memset(cs, 0, (size_t)n * sizeof(double));
-        for (Py_ssize_t k = 0; k < nnz; k++) {
-            const uint32_t jk = (uint32_t)j[k];
-            if (jk >= (uint32_t)n) {
-                bad = 1;
-                break;
-            }
-            cs[jk] += kern[k];
+        if (f32) {
+            SCATTER(float)
+        } else {
+            SCATTER(double)
         }
         if (!bad) {
             for (Py_ssize_t a = 0; a < n; a++) {
@@ -127,31 +192,10 @@ static PyObject *sums(PyObject *self, PyObject *args) {
                 q[3 * a + 2] = x[2 * a + 1] * inv;
                 pt1[a] = cs[a] * inv;
             }
-            for (Py_ssize_t i = 0; i < m; i++) {
-                /* two partial sums each: the adds' latency, not the loads, bound one */
-                double a0 = 0.0, a1 = 0.0, a2 = 0.0, b0 = 0.0, b1 = 0.0, b2 = 0.0;
-                int64_t k = ip[i];
-                const int64_t end = ip[i + 1];
-                for (; k + 1 < end; k += 2) {
-                    const double *qa = q + 3 * (int64_t)j[k], *qb = q + 3 * (int64_t)j[k + 1];
-                    const double va = kern[k], vb = kern[k + 1];
-                    a0 += va * qa[0];
-                    a1 += va * qa[1];
-                    a2 += va * qa[2];
-                    b0 += vb * qb[0];
-                    b1 += vb * qb[1];
-                    b2 += vb * qb[2];
-                }
-                if (k < end) {
-                    const double *qa = q + 3 * (int64_t)j[k];
-                    const double va = kern[k];
-                    a0 += va * qa[0];
-                    a1 += va * qa[1];
-                    a2 += va * qa[2];
-                }
-                p1[i] = a0 + b0;
-                px[2 * i] = a1 + b1;
-                px[2 * i + 1] = a2 + b2;
+            if (f32) {
+                ROWS(float)
+            } else {
+                ROWS(double)
             }
         }
         Py_END_ALLOW_THREADS
@@ -173,7 +217,6 @@ done:
     PyBuffer_Release(&bpt1);
     return ret;
 }
-
 
 /* The cell list's scan (`_neighbours.near_pairs`): every centroid m reads the runs
  * [starts[m, r], starts[m, r] + lens[m, r]) of the subject points sorted by cell (xs0,

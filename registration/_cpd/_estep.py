@@ -183,7 +183,7 @@ class _EStep:
         self._xj: FloatArray | None = None
         self._indptr: NDArray[np.int64] | None = None  # CSR row pointers of the list
         self._j32: NDArray[np.int32] | None = None  # its subject indices, for _ckernel
-        self._kern: FloatArray | None = None  # the kernel on its pairs, for _ckernel
+        self._kern: NDArray[Any] | None = None  # the kernel on its pairs, for _ckernel
         self._kmat: scipy.sparse.csr_matrix | None = None  # numpy's passes: the list as CSR
         self._kmat_t: Any = None  # its transpose (CSC, sharing its arrays)
         self._ones_m = np.ones(m)
@@ -452,7 +452,9 @@ class _EStep:
         # the list: a fresh one each step costs its page faults, ~1 ms at 2M pairs)
         compiled = _CKERNEL is not None and self.n < 2**31
         self._j32 = pj.astype(np.int32) if compiled else None
-        self._kern = np.empty(len(pj)) if compiled else None
+        # float32 runs keep the kernel in float32 here (no casts to pay for, unlike numpy's
+        # passes: the exp and the list's traffic halve); every sum is float64
+        self._kern = np.empty(len(pj), dtype=self.dtype) if compiled else None
         self._kmat = self._kmat_t = None
         self._t_build = t.copy()
         self._r_build = r_build

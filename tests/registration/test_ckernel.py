@@ -38,11 +38,11 @@ def ckernel() -> object:
 
 
 def truncated(x: np.ndarray, t: np.ndarray, s2: float, w: float,
-              engine: object) -> _estep._EStepOut:
+              engine: object, dtype: str = "float64") -> _estep._EStepOut:
     saved = _estep._CKERNEL
     _estep._CKERNEL = engine
     try:
-        est = _EStep(x, len(t), w, "float64")
+        est = _EStep(x, len(t), w, dtype)
         est.force_truncate = True
         out = est.truncated(t, s2, est.radius(t, s2))
         assert out is not None
@@ -61,6 +61,17 @@ def test_compiled_sums_equal_numpy_and_exact(ckernel: object, sigma: float, w: f
     assert got.nnz == want.nnz < len(t) * len(x)
     close(got, want, 1e-13)  # the same sums, up to their order
     close(got, naive_sums(t, x, s2, w), 1e-8)  # and the stated tolerance of the dense ones
+
+
+@pytest.mark.parametrize("sigma", [0.01, 0.05])
+def test_compiled_float32_kernel_within_float32_tolerance(ckernel: object, sigma: float) -> None:
+    """In float32 runs the compiled step keeps the kernel in float32 (the sums in float64):
+    within the truncated float32 E-step's stated 1e-5 of the dense sums."""
+    x, t = curve(700, 1), curve(600, 2, wobble=0.05)
+    s2 = sigma * sigma
+    got = truncated(x, t, s2, 0.1, ckernel, "float32")
+    close(got, naive_sums(t, x, s2, 0.1), 1e-5)
+    close(got, truncated(x, t, s2, 0.1, ckernel, "float64"), 1e-6)
 
 
 def test_compiled_step_on_a_pruned_list(ckernel: object) -> None:
@@ -103,7 +114,14 @@ def test_compiled_passes_check_their_arrays(ckernel: object) -> None:
     with pytest.raises(ValueError, match="xj holds"):
         ck.exponents(t, np.zeros((2, 3)), ip, 1.0, out)  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="indptr must run from 0 to the pair count"):
+        ck.exponents(t, xj, np.array([1, 1, 3, 4]), 1.0, out)  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="xj holds 64 bytes, expected 80"):  # 5 pairs
         ck.exponents(t, xj, np.array([0, 1, 3, 5]), 1.0, out)  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="out holds 24 bytes, expected 8 or 4 a pair"):
+        ck.exponents(t, xj, ip, 1.0, np.empty(3))  # type: ignore[attr-defined]
+    out32 = np.empty(4, dtype=np.float32)
+    ck.exponents(t, xj + 1.0, ip, 0.5, out32)  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(out32, -1.0)
     with pytest.raises(ValueError, match="indptr must not decrease"):
         ck.exponents(t, xj, np.array([0, 3, 1, 4]), 1.0, out)  # type: ignore[attr-defined]
     with pytest.raises(TypeError, match="read-write"):  # strided or read-only output
