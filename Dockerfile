@@ -33,7 +33,7 @@ COPY setup.py ./
 RUN apt-get update \
     && apt-get install -y --no-install-recommends gcc libc6-dev \
     && pip install '.[server,postgres]' \
-    && python -c "import registration._cpd._ckernel" \
+    && python -I -c "import registration._cpd._ckernel" \
     && apt-get purge -y --auto-remove gcc libc6-dev \
     && rm -rf /var/lib/apt/lists/* \
     && useradd --create-home --uid 10001 regtree \
