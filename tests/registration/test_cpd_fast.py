@@ -194,6 +194,24 @@ def test_truncated_estep_matches_dense(dtype: str, rel: float,
     close(got, dense_sums(moved, x, s2 / 4, 0.1), rel)
 
 
+@pytest.mark.parametrize("w", [0.1, 0.0])
+def test_float32_truncation_radius_follows_its_precision(w: float) -> None:
+    """float32 runs truncate at TRUNCATION_EPS_F32 (their own rounding), float64 at
+    TRUNCATION_EPS: a smaller radius, fewer pairs, still within the float32 tolerance."""
+    x, t = curve(500, 5), curve(450, 6, wobble=0.05)
+    s2 = 0.02**2
+    e32, e64 = _EStep(x, len(t), w, "float32"), _EStep(x, len(t), w, "float64")
+    r32, r64 = e32.radius(t, s2), e64.radius(t, s2)
+    assert r32 < r64
+    # r^2 = (a term without eps) - 2 sigma^2 log(eps), for w > 0 and w = 0 alike
+    want = 2 * s2 * math.log(_estep.TRUNCATION_EPS / _estep.TRUNCATION_EPS_F32)
+    assert r32**2 - r64**2 == pytest.approx(want, rel=1e-9)
+    e32.force_truncate = e64.force_truncate = True
+    got32, got64 = e32.truncated(t, s2, r32), e64.truncated(t, s2, r64)
+    assert got32 is not None and got64 is not None and got32.nnz < got64.nnz
+    close(got32, dense_sums(t, x, s2, w), 1e-5)
+
+
 def test_estimated_choice_is_reused_while_sigma_stays_close(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """A method chosen by the estimated costs runs again without new estimates while
