@@ -1,0 +1,29 @@
+"""A worker says at start whether CPD's compiled E-step is in use, and warns when not."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pytest
+
+from registration._cpd import _estep
+from service.worker import Worker
+
+from .conftest import make_settings
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_worker_start_reports_the_compiled_kernel(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch,
+        compiled: bool) -> None:
+    monkeypatch.setattr(_estep, "_CKERNEL", object() if compiled else None)
+    worker = Worker(make_settings(tmp_path), worker_id="w-test")
+    with caplog.at_level(logging.INFO, logger="regtree"):
+        worker.run(burst=True)
+    started = [r for r in caplog.records if r.getMessage() == "worker started"]
+    assert len(started) == 1 and started[0].compiled_kernel is compiled  # type: ignore[attr-defined]
+    warned = [r for r in caplog.records if "numpy's passes" in r.getMessage()]
+    assert len(warned) == (0 if compiled else 1)
+    if warned:
+        assert warned[0].levelno == logging.WARNING
