@@ -131,6 +131,22 @@ def _normalisation(pts: FloatArray) -> tuple[FloatArray, float]:
     return shift, scale
 
 
+def _checked_frame(frame: Any) -> tuple[FloatArray, float]:
+    """A caller's ``model_frame``, validated: a finite shift of shape (2,) and a finite
+    positive scale."""
+    try:
+        shift, scale = frame
+        shift = np.asarray(shift, dtype=np.float64)
+        scale = float(scale)
+    except (TypeError, ValueError):
+        raise ValueError(f"model_frame must be (shift, scale); got {frame!r}") from None
+    if shift.shape != (2,) or not np.isfinite(shift).all():
+        raise ValueError(f"model_frame's shift must be 2 finite numbers; got {shift!r}")
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"model_frame's scale must be finite and > 0; got {scale!r}")
+    return shift, scale
+
+
 # ----------------------------------------------------------------------------------------
 # main entry point
 # ----------------------------------------------------------------------------------------
@@ -155,6 +171,7 @@ def cpd_nonrigid(
     init_warped: ArrayLike | None = None,
     control: ArrayLike | None = None,
     accelerate: bool = False,
+    model_frame: tuple[ArrayLike, float] | None = None,
 ) -> CPDResult:
     """Non-rigid Coherent Point Drift: move ``model`` onto ``subject``.
 
@@ -257,6 +274,12 @@ def cpd_nonrigid(
         iterations, at an objective no larger.  Meant for such starts: from far away the
         path through the shrinking sigma^2 matters, and a long step can skip it.  Native
         backend only.
+    model_frame : (shift, scale), optional
+        With ``normalize``: the shift (shape ``(2,)``) and scale the model is normalised by,
+        instead of its own centroid and RMS radius (the subject keeps its own).  For a
+        model already placed near its subject, whose centroid and radius would compare
+        with the subject's only if both shapes were sampled alike (see the tree's polish).
+        The returned transform carries it (``model_shift``, ``model_scale``).
 
     Returns
     -------
@@ -294,7 +317,7 @@ def cpd_nonrigid(
                              low_rank=low_rank, num_eig=num_eig, dtype=dtype,
                              truncate=truncate, gauss_grid=gauss_grid, backend=backend,
                              callback=callback, init_warped=init_warped, control=control,
-                             accelerate=accelerate)
+                             accelerate=accelerate, model_frame=model_frame)
 
 
 def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any, w: Any,
@@ -303,7 +326,8 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
                   callback: Callable[[int, float, float], None] | None,
                   init_warped: ArrayLike | None = None,
                   control: ArrayLike | None = None,
-                  accelerate: Any = False) -> CPDResult:
+                  accelerate: Any = False,
+                  model_frame: tuple[ArrayLike, float] | None = None) -> CPDResult:
     y_in = as_points(model, name="model")
     x_in = as_points(subject, name="subject")
     idx = _control_indices(control, len(y_in), backend)
@@ -318,9 +342,11 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
     beta, lmbda, w, tol = float(beta), float(lmbda), float(w), float(tol)
     max_iter = int(max_iter)
 
+    if model_frame is not None and not normalize:
+        raise ValueError("model_frame needs normalize=True")
     if normalize:
         xd, xs = _normalisation(x_in)
-        yd, ys = _normalisation(y_in)
+        yd, ys = _normalisation(y_in) if model_frame is None else _checked_frame(model_frame)
     else:
         xd = x_in.mean(axis=0)
         yd, xs, ys = xd, 1.0, 1.0

@@ -71,3 +71,37 @@ def test_every_option_has_a_rule_and_a_default_that_passes_it() -> None:
         assert CPDOptions.check(name, value) == value
     assert CPDOptions.RANGES["w"].rule("w") == "satisfy 0 <= w < 1"
     assert CPDOptions.RANGES["max_iter"].rule("max_iter") == "be an integer >= 1"
+
+
+def test_model_frame_normalises_the_model_as_given() -> None:
+    """``model_frame`` replaces the model's own centroid and radius in the normalisation;
+    its own gives the default run, bit for bit, and the transform carries the frame."""
+    from registration._cpd._nonrigid import _normalisation
+
+    t = np.linspace(0, 2 * np.pi, 60, endpoint=False)
+    model = np.c_[np.cos(t), 0.6 * np.sin(t)]
+    subject = 1.2 * model + 0.1 * np.c_[np.sin(3 * t), np.cos(2 * t)] + [0.3, -0.2]
+    own = cpd_nonrigid(model, subject, max_iter=30)
+    same = cpd_nonrigid(model, subject, max_iter=30, model_frame=_normalisation(model))
+    assert np.array_equal(own.warped, same.warped)
+    shift, scale = np.array([0.3, -0.2]), 1.2 * float(_normalisation(model)[1])
+    framed = cpd_nonrigid(model, subject, max_iter=30, model_frame=(shift, scale))
+    assert np.array_equal(framed.transform.model_shift, shift)
+    assert framed.transform.model_scale == scale
+    assert np.allclose(framed.transform.apply(model), framed.warped, atol=1e-8)
+    assert not np.allclose(framed.warped, own.warped, atol=1e-6)
+
+
+@pytest.mark.parametrize("frame, normalize, message", [
+    (([0.0, 0.0], 1.0), False, "model_frame needs normalize=True"),
+    (([0.0, 0.0, 0.0], 1.0), True, "model_frame's shift must be 2 finite numbers"),
+    (([0.0, np.nan], 1.0), True, "model_frame's shift must be 2 finite numbers"),
+    (([0.0, 0.0], 0.0), True, "model_frame's scale must be finite and > 0"),
+    (([0.0, 0.0], np.inf), True, "model_frame's scale must be finite and > 0"),
+    ("frame", True, "model_frame must be (shift, scale)"),
+])
+def test_a_bad_model_frame_is_refused(frame: Any, normalize: bool, message: str) -> None:
+    t = np.linspace(0, 2 * np.pi, 20, endpoint=False)
+    model = np.c_[np.cos(t), np.sin(t)]
+    with pytest.raises(ValueError, match=re.escape(message)):
+        cpd_nonrigid(model, model, model_frame=frame, normalize=normalize)
