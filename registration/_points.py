@@ -193,3 +193,31 @@ def nearest_distances(points: FloatArray) -> FloatArray:
 def mean_spacing2(points: FloatArray) -> float:
     """Mean squared nearest-neighbour spacing h^2 of a shape's points."""
     return float(np.mean(nearest_distances(points) ** 2))
+
+
+#: :func:`sampling_irregularity` of points drawn independently and uniformly along a curve:
+#: 0.293-0.297 at 100, 400 and 10^5 points on an ellipse (0.31 at 30), whatever the curve's
+#: length or the number of points; evenly spaced points give 0.
+IID_SAMPLING_IRREGULARITY = 0.3
+
+
+def sampling_irregularity(points: FloatArray) -> float:
+    """How unevenly a shape's points sample its outline: 0 evenly spaced, about 1 drawn
+    independently at random, more when clustered.
+
+    Each point's spacing (its mean distance to its two nearest neighbours, about the
+    outline length it stands for) is compared with its two neighbours' spacings: the mean
+    of ``log(w_i / mean(w_j, w_k))^2``, divided by its value for independent uniform
+    points (:data:`IID_SAMPLING_IRREGULARITY`). Only the point-to-point variation counts:
+    an even sampling later stretched by a smooth deformation stays near 0. Fewer than 4
+    points: 0 (nothing to compare)."""
+    if len(points) < 4:
+        return 0.0
+    d, i = cKDTree(points).query(points, k=3)
+    w = d[:, 1:].mean(axis=1)
+    around = 0.5 * (w[i[:, 1]] + w[i[:, 2]])
+    ok = (w > 0) & (around > 0)
+    if not ok.any():
+        return 0.0
+    r = np.log(w[ok] / around[ok])
+    return float(np.mean(r * r)) / IID_SAMPLING_IRREGULARITY

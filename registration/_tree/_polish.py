@@ -12,7 +12,9 @@ the stages of ``POLISH_BETA_FACTORS``: each stage's CPD moves the root's points,
 previous stage (first: the chain) left them, onto the subject (the tree's CPD options but
 a kernel width beta scaled by the stage's factor; the points keep the root's order), with
 sigma^2 starting from that start's residual rather than from the spread of all pairs (it
-starts aligned), and its EM accelerated (``cpd_nonrigid(accelerate=True)``; see `_stages`).
+starts aligned), its EM accelerated (``cpd_nonrigid(accelerate=True)``; see `_stages`),
+and the model normalised by CPD's own frame only as far as the difference of the two
+shapes' centroids and radii is more than their samplings' noise (`_model_frame`).
 A stage is kept only when it passes the checks the tree holds every registration to: its
 warp does not fold, its e is no larger than its start's, and its own confidence is at least
 ``MIN_CONFIDENCE``; a finer stage must also lower e by a fifth
@@ -39,11 +41,13 @@ there), so the stored-resolution stage reads the edge the tree built and the pol
 (:mod:`._resolution`).
 Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine), 0.0000
 (layer 2, skipping) and 0.0000000 (the consensus); 7.4 (accelerated EM), 7.5 (the
-consensus's e rule) and 7.7 (edges from polished parents, the halfway step).
+consensus's e rule), 7.7 (edges from polished parents, the halfway step) and 7.11 (the
+stages' normalisation).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
@@ -55,6 +59,7 @@ from .._cpd import CPDOptions, cpd_nonrigid, interpolating_field
 from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._pointmap import PointTransform
+from .._points import sampling_irregularity
 from .._quality import RegistrationQuality, measure_quality
 from .._result import SubjectResult
 from .._similarity import ProgressCallback
@@ -141,6 +146,8 @@ class _PolishTask:
     y: FloatArray  # the subject, normalised coordinates
     cpd: CPDOptions
     spacing2: float
+    # the root's sampling_irregularity (the model's points keep the root's sampling)
+    model_irregularity: float
     # the root's registration onto the subject directly (to run, or already run), for the
     # consensus (layer >= POLISH_CONSENSUS_MIN_LAYER; see `_consensus`), else None
     direct: _RegTask | _RegOutcome | None = None
@@ -180,8 +187,51 @@ class _PolishOutcome:
     from_parent: dict[str, Any] | None = None
 
 
+def _model_frame(cur: FloatArray, y: FloatArray, model_irregularity: float,
+                 irregularity: float) -> tuple[FloatArray, float]:
+    """The shift and scale a polish stage's CPD normalises the model `cur` by (the
+    subject `y` keeps its own centroid and RMS radius).
+
+    CPD normalises each set by its own centroid and radius, which moves `cur` by the
+    difference of the two centroids and scales it by the ratio of the two radii. Started
+    on the subject, that difference is the model's drift (the field penalises a shift; the
+    normalisation is what lets CPD undo one) plus the two shapes' sampling noise: two
+    independent random samples of one outline, of m and n points, differ in centroid by
+    about ``s^2 (1/m + 1/n)`` in square (``s`` the radius) and in log radius by ``k (1/m +
+    1/n) / 4`` (``k`` the relative variance of the squared radii), where evenly spaced
+    samples differ by next to nothing. So each difference is shrunk by the part that
+    sampling noise explains (``d -> d max(0, 1 - v / d^2)``, ``v`` that noise, each set's
+    share weighted by the square of its :func:`~registration._points.
+    sampling_irregularity`, at most 1): an evenly sampled pair is normalised as CPD would
+    (the full difference), a pair of sparse random samples about as one frame. Squared,
+    because a centroid's noise comes from the sampling's long-range unevenness, which
+    nearly even samples (jittered spacing, irregularity 0.1-0.4) lack: with the weight
+    linear in the irregularity the 永 chains lost 0.01 of plain CPD's error, squared they
+    do not (bench/RESULTS.md 7.11, where the ground truth of both is)."""
+    cc, cy = cur.mean(axis=0), y.mean(axis=0)
+    r2c = np.sum((cur - cc) ** 2, axis=1)
+    r2y = np.sum((y - cy) ** 2, axis=1)
+    sc, sy = float(np.sqrt(r2c.mean())), float(np.sqrt(r2y.mean()))
+    rho_m, rho_y = min(1.0, model_irregularity) ** 2, min(1.0, irregularity) ** 2
+    m, n = len(cur), len(y)
+    d = cy - cc
+    d2 = float(d @ d)
+    noise = rho_m * sc * sc / m + rho_y * sy * sy / n
+    k_shift = max(0.0, d2 - noise) / d2 if d2 > 0 else 0.0
+    ds = math.log(sy / sc)
+    noise = (rho_m * float(r2c.var()) / float(r2c.mean()) ** 2 / (4 * m)
+             + rho_y * float(r2y.var()) / float(r2y.mean()) ** 2 / (4 * n))
+    k_scale = max(0.0, ds * ds - noise) / (ds * ds) if ds != 0 else 0.0
+    f = math.exp(k_scale * ds)  # the model's scale change, as CPD's normalisation sees it
+    # normalised model (cur - shift) / scale == the moved model normalised by the subject's
+    # own frame: moved = cc + k_shift d + f (cur - cc)
+    scale = sy / f
+    shift = cc + (1.0 - k_shift) * d / f
+    return shift, scale
+
+
 def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
-            spacing2: float) -> _Stages:
+            spacing2: float, model_irregularity: float) -> _Stages:
     """The polish's CPD stages (:data:`POLISH_BETA_FACTORS`) from `start`, each kept only
     when it passes the checks (see the module doc).
 
@@ -192,7 +242,11 @@ def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
     CPD within 0.007 of plain EM's on seven families, 0.017 better on the eighth; the
     polish of 73 glyphs in 0.68x the CPU). The tree's own edges, which start far from
     their subject and whose EM path through the shrinking variance matters, are not
-    accelerated."""
+    accelerated.
+
+    Each stage normalises the model by :func:`_model_frame` (`model_irregularity`: the
+    root's :func:`~registration._points.sampling_irregularity`)."""
+    irregularity = sampling_irregularity(y)
     cur, e_cur = start, e_start
     steps: list[PointTransform] = []
     quality: list[RegistrationQuality] = []
@@ -206,7 +260,8 @@ def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
         sigma2 = max(0.5 * e_cur, spacing2)
         res = cpd_nonrigid(cur, y, beta=factor * o.beta, lmbda=o.lmbda, w=o.w,
                            max_iter=o.max_iter, tol=o.tol, dtype=o.dtype, sigma2=sigma2,
-                           accelerate=True)
+                           accelerate=True,
+                           model_frame=_model_frame(cur, y, model_irregularity, irregularity))
         warped = np.asarray(res.warped, dtype=np.float64)
         e = registration_error(warped, y)
         q = measure_quality(cur, warped, y, res.transform, e, spacing2)
@@ -244,7 +299,8 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
     if not direct.min_jacobian > 0:
         info["reason"] = "the direct registration folds"
         return None, info
-    other = _stages(direct.warped, direct.error, task.y, task.cpd, task.spacing2)
+    other = _stages(direct.warped, direct.error, task.y, task.cpd, task.spacing2,
+                    task.model_irregularity)
     info["direct_polished_error"] = other.error
     moved = _polished_halfway(task, chain.warped, other.warped)
     if moved is None:
@@ -312,7 +368,7 @@ def _polished_halfway(task: _PolishTask, points: FloatArray, other: FloatArray
     if not float(np.linalg.det(jac).min()) > 0:
         return None
     return step, _stages(start, registration_error(start, task.y), task.y, task.cpd,
-                         task.spacing2)
+                         task.spacing2, task.model_irregularity)
 
 
 def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
@@ -331,13 +387,15 @@ def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
 
 
 def _polish_task(task: _PolishTask) -> _PolishOutcome:
-    chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2)
+    chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2,
+                    task.model_irregularity)
     edge, edge_q, edge_info = None, None, None
     if task.from_parent is not None:
         edge, edge_q, edge_info = _edge_from_parent(task)
     if edge is not None and edge_info is not None:
         # the edge from the polished parent, polished (or alone, when no stage passes)
-        other = _stages(edge.warped, edge.error, task.y, task.cpd, task.spacing2)
+        other = _stages(edge.warped, edge.error, task.y, task.cpd, task.spacing2,
+                        task.model_irregularity)
         if not other.steps:
             other = replace(edge, steps=(), quality=())
         # the two polished registrations of the edge err differently: halfway, polished
@@ -445,12 +503,14 @@ def _polish_subjects(
     for s in todo:
         levels.setdefault(len(results[s].path), []).append(s)
     moved: set[int] = set()  # subjects whose polish moved them
+    model_irregularity = sampling_irregularity(coll.normed[coll.root])
     done = 0
     with owned_executor(executor, 8 * len(todo)) as ex:
         if progress is not None:
             progress("polish", 0, len(todo))
         for level in sorted(levels):
-            tasks = [_polish_subject_task(coll, results, built, moved, s, cpd, direct)
+            tasks = [_polish_subject_task(coll, results, built, moved, s, cpd, direct,
+                                          model_irregularity)
                      for s in levels[level]]
             for _, out in ex.map_unordered(_polish_task, tasks):
                 if out.steps or out.edge_steps:
@@ -472,6 +532,7 @@ def _polish_subject_task(
     s: int,
     cpd: CPDOptions,
     direct: Callable[[int], _RegTask | _RegOutcome] | None,
+    model_irregularity: float,
 ) -> _PolishTask:
     r = results[s]
     assert r.warped is not None and r.layer is not None and r.error is not None
@@ -489,7 +550,7 @@ def _polish_subject_task(
         edge_affine = tuple(edge[:lead])
     return _PolishTask(
         subject=s, start=coll.norms[s].apply(r.warped), error=r.error, y=coll.normed[s],
-        cpd=cpd, spacing2=coll.spacing2[s],
+        cpd=cpd, spacing2=coll.spacing2[s], model_irregularity=model_irregularity,
         direct=direct(s) if direct is not None and r.layer >= POLISH_CONSENSUS_MIN_LAYER
         else None,
         from_parent=from_parent, edge_affine=edge_affine)

@@ -43,3 +43,27 @@ def test_resample_keeps_evenly_spaced_points():
     assert resample(p, 200) is not None and resample(p, 200).shape == (100, 2)
     with pytest.raises(ValueError, match="at least 3"):
         resample(p, 2)
+
+
+def test_sampling_irregularity_tells_even_from_random_sampling():
+    from registration._points import sampling_irregularity
+
+    rng = np.random.default_rng(4)
+
+    def ellipse(t):
+        return np.c_[np.cos(t), 0.5 * np.sin(t)]
+
+    even = ellipse(np.linspace(0, 2 * np.pi, 400, endpoint=False))
+    assert sampling_irregularity(even) < 1e-3
+    # an even sampling stretched by a smooth map: the spacing varies, but only slowly
+    t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    assert sampling_irregularity(ellipse(t + 0.4 * np.sin(t))) < 0.02
+    # independent uniform points: about 1 at any number of points and any size
+    for n in (100, 400):
+        values = [sampling_irregularity(7.0 * ellipse(np.sort(rng.uniform(0, 2 * np.pi, n))))
+                  for _ in range(100)]
+        assert 0.85 < float(np.mean(values)) < 1.1
+    # clustered: more than random
+    clustered = ellipse(np.sort(2 * np.pi * rng.beta(0.3, 0.3, 400)))
+    assert sampling_irregularity(clustered) > 1.0
+    assert sampling_irregularity(even[:3]) == 0.0
