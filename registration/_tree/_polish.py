@@ -212,6 +212,8 @@ def _model_frame(cur: FloatArray, y: FloatArray, model_irregularity: float,
     r2c = np.sum((cur - cc) ** 2, axis=1)
     r2y = np.sum((y - cy) ** 2, axis=1)
     sc, sy = float(np.sqrt(r2c.mean())), float(np.sqrt(r2y.mean()))
+    if not (sc > 0 and sy > 0):  # a collapsed set: CPD's own frame (scale 1 if none)
+        return cc, sc if sc > 0 else 1.0
     rho_m, rho_y = min(1.0, model_irregularity) ** 2, min(1.0, irregularity) ** 2
     m, n = len(cur), len(y)
     d = cy - cc

@@ -685,6 +685,9 @@ def test_a_polish_stage_undoes_a_drift_but_not_the_samplings_noise():
         moved.append(np.linalg.norm(applied(cur, y)))
         differences.append(np.linalg.norm(y.mean(axis=0) - cur.mean(axis=0)))
     assert np.mean(moved) < 0.5 * np.mean(differences)
+    # a model collapsed onto one point keeps CPD's own frame (its centroid, scale 1)
+    shift, scale = _model_frame(np.ones((5, 2)), y, 0.0, 0.0)
+    assert np.array_equal(shift, [1.0, 1.0]) and scale == 1.0
 
 
 def test_the_polish_keeps_sparse_random_samples_where_they_are(monkeypatch):
