@@ -58,7 +58,7 @@ from numpy.typing import NDArray
 from .._cpd import CPDOptions, cpd_nonrigid, interpolating_field
 from .._error import registration_error
 from .._executor import Executor, owned_executor
-from .._pointmap import PointTransform
+from .._pointmap import PointTransform, jacobian_determinants
 from .._points import sampling_irregularity
 from .._quality import RegistrationQuality, measure_quality
 from .._result import SubjectResult
@@ -136,6 +136,14 @@ CONSENSUS_MAX_E_RATIO = 1.1
 #: 0.682 -> 0.655, generated 0.430 -> 0.406; Chui Chinese 0.333 -> 0.360 and randomly
 #: subsampled outlines 1.139 -> 1.155 lose.
 POLISH_FROM_PARENT_MIN_LAYER = 3
+#: The finish (see `_finish`): the kernel width of its CPD as a fraction of the tree's
+#: beta, and its regulariser as a multiple of the tree's lambda.
+FINISH_BETA_FACTOR = 0.5
+FINISH_LMBDA_FACTOR = 2.0
+#: The finish is kept when its e is at most this multiple of the e it started from: like
+#: the consensus (:data:`CONSENSUS_MAX_E_RATIO`), it undoes part of a slide the subject's
+#: own sampling let the chain settle into, at an e that may be a little higher.
+FINISH_MAX_E_RATIO = 1.1
 
 
 @dataclass(frozen=True)
@@ -148,6 +156,8 @@ class _PolishTask:
     spacing2: float
     # the root's sampling_irregularity (the model's points keep the root's sampling)
     model_irregularity: float
+    # the root model itself (its normalised coordinates), for the finish (see `_finish`)
+    model: FloatArray
     # the root's registration onto the subject directly (to run, or already run), for the
     # consensus (layer >= POLISH_CONSENSUS_MIN_LAYER; see `_consensus`), else None
     direct: _RegTask | _RegOutcome | None = None
@@ -185,6 +195,7 @@ class _PolishOutcome:
     edge_steps: tuple[PointTransform, ...] = ()
     edge_quality: RegistrationQuality | None = None
     from_parent: dict[str, Any] | None = None
+    finish: dict[str, Any] | None = None  # what the finish found (see `_finish`)
 
 
 def _model_frame(cur: FloatArray, y: FloatArray, model_irregularity: float,
@@ -388,6 +399,57 @@ def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
                    quality=(*b.quality, *found.quality))
 
 
+def _finish(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
+    """The finish: one CPD from the root model itself onto the subject, started where the
+    polish left it, its kernel :data:`FINISH_BETA_FACTOR` of the tree's beta and its
+    regulariser :data:`FINISH_LMBDA_FACTOR` times the tree's lambda.
+
+    Every registration before it penalises its field from where it started (an edge from
+    its parent's warped model, a polish stage from the chain), so a slide along the
+    subject's outline that an earlier link settled into is never undone: nothing in the
+    data term resists a slide, and each later field is measured from the slid points. The
+    finish's field is measured from the root model (``cpd_nonrigid(init_warped=...)``):
+    one field for the whole deformation, penalised as a whole, at half the edges' kernel
+    width so that it can follow the local differences between the root and a far subject
+    that the edges' smooth fields leave to slides. From the polished points it starts in
+    the right basin (from the root's own pose, as plain CPD, the same field at that width
+    wanders). The subject's transform extends its chain by CPD's field through the
+    polished points to the finished ones (:func:`~registration._cpd.interpolating_field`,
+    as the consensus's step; its points are what is reported). Kept when neither field
+    folds, the step's confidence is at least :data:`MIN_CONFIDENCE` and its e is at most
+    :data:`FINISH_MAX_E_RATIO` times the polished e; else `best` is returned as it is.
+    Ground truth: bench/RESULTS.md 7.12."""
+    o = task.cpd
+    info: dict[str, Any] = {"kept": False, "error_before": best.error}
+    res = cpd_nonrigid(task.model, task.y, beta=FINISH_BETA_FACTOR * o.beta,
+                       lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w, max_iter=o.max_iter,
+                       tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * best.error, task.spacing2),
+                       init_warped=best.warped, accelerate=True)
+    if not float(jacobian_determinants(res.transform, task.model).min()) > 0:
+        info["reason"] = "its field from the root folds"
+        return best, info
+    step = interpolating_field(best.warped, np.asarray(res.warped, dtype=np.float64),
+                               CONSENSUS_KERNEL_FACTOR * o.beta, CONSENSUS_RIDGE)
+    moved = step.apply(best.warped)
+    e = registration_error(moved, task.y)
+    q = measure_quality(best.warped, moved, task.y, step, e, task.spacing2)
+    info["error"] = e
+    if not q.min_jacobian > 0:
+        info["reason"] = "the step to it folds"
+    elif not q.confidence >= MIN_CONFIDENCE:
+        info["reason"] = f"confidence below {MIN_CONFIDENCE:g}"
+    elif not e <= FINISH_MAX_E_RATIO * best.error:
+        info["reason"] = f"e above {FINISH_MAX_E_RATIO:g}x the polished e"
+    else:
+        info["kept"] = True
+        info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x the polished e"
+        return _Stages(warped=moved, error=e, steps=(*best.steps, step),
+                       quality=(*best.quality, q),
+                       correspondence=np.asarray(res.correspondence, dtype=np.intp),
+                       probability=np.asarray(res.probability, dtype=np.float64)), info
+    return best, info
+
+
 def _polish_task(task: _PolishTask) -> _PolishOutcome:
     chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2,
                     task.model_irregularity)
@@ -420,11 +482,12 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
         if found is not None:
             best = replace(found, steps=(*chain.steps, *found.steps),
                            quality=(*chain.quality, *found.quality))
+    best, finish = _finish(task, best)
     return _PolishOutcome(subject=task.subject, warped=best.warped, error=best.error,
                           correspondence=best.correspondence, probability=best.probability,
                           steps=best.steps, quality=best.quality, consensus=info,
                           edge_steps=() if edge is None else edge.steps, edge_quality=edge_q,
-                          from_parent=edge_info)
+                          from_parent=edge_info, finish=finish)
 
 
 def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
@@ -470,6 +533,10 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
             reason = (f"{old.reason}; polished: the consensus of {start} and the root's "
                       f"direct registration, {len(out.quality)} more CPD "
                       f"(e {old.error:.3g} -> {out.error:.3g})")
+    if out.finish is not None:
+        polish["finish"] = out.finish
+        if out.finish["kept"]:
+            reason += "; finished by one CPD from the root model"
     return replace(
         old, error=out.error, warped=coll.norms[out.subject].invert(out.warped),
         correspondence=out.correspondence, probability=out.probability, transform=chain,
@@ -553,6 +620,7 @@ def _polish_subject_task(
     return _PolishTask(
         subject=s, start=coll.norms[s].apply(r.warped), error=r.error, y=coll.normed[s],
         cpd=cpd, spacing2=coll.spacing2[s], model_irregularity=model_irregularity,
+        model=coll.normed[coll.root],
         direct=direct(s) if direct is not None and r.layer >= POLISH_CONSENSUS_MIN_LAYER
         else None,
         from_parent=from_parent, edge_affine=edge_affine)

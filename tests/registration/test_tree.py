@@ -16,6 +16,7 @@ from registration import (
     register_direct,
 )
 from registration._tree._polish import (
+    FINISH_MAX_E_RATIO,
     POLISH_BETA_FACTORS,
     POLISH_CONSENSUS_MIN_LAYER,
     POLISH_FROM_PARENT_MIN_LAYER,
@@ -392,7 +393,16 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
             continue
         assert s.layer is not None and s.layer >= 2
         p = s.quality["polish"]
-        assert p["error_before"] == before.error and s.error <= before.error
+        # the finish (one CPD from the root model, last) adds one step when kept, at an e
+        # up to 1.1x the polished one
+        finish = p["finish"]
+        fin = 1 if finish["kept"] else 0
+        polished_e = finish["error_before"]
+        assert finish["kept"] == (s.error != polished_e)
+        if finish["kept"]:
+            assert finish["error"] == s.error <= FINISH_MAX_E_RATIO * polished_e
+            assert "finished by one CPD from the root model" in s.reason
+        assert p["error_before"] == before.error and polished_e <= before.error
         assert p["min_jacobian"] > 0 and p["confidence"] >= 0.2
         assert "polished" in s.reason
         # the reported transform still maps the root model onto the reported warped model
@@ -422,12 +432,12 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
         halfway = s.index in rebuilt and from_parent is not None and from_parent["halfway"]
         chain_steps = 2 * stages + 1 if halfway else stages
         if consensus is None or not consensus["kept"]:
-            assert (0 if s.index in rebuilt else 1) <= p["steps"] <= chain_steps
+            assert (0 if s.index in rebuilt else 1) <= p["steps"] - fin <= chain_steps
             continue
         # the chain's stages kept, the step halfway to the direct registration, then the
         # stages from there; kept only at no larger an e than the chain's
-        assert 2 <= p["steps"] <= chain_steps + 1 + stages
-        assert consensus["error"] == s.error and "consensus" in s.reason
+        assert 2 <= p["steps"] - fin <= chain_steps + 1 + stages
+        assert consensus["error"] == polished_e and "consensus" in s.reason
     assert any((s.quality or {}).get("polish", {}).get("consensus") for s in res.subjects), \
         "no subject deep enough for the consensus"
     assert rebuilt, "no edge registered again from a polished parent"
@@ -476,11 +486,13 @@ def test_a_rejected_polish_stage_is_skipped_not_the_end(family, monkeypatch):
         return real(x, y, **kw)
 
     monkeypatch.setattr(polish_module, "cpd_nonrigid", first_stage_misses)
+    monkeypatch.setattr(polish_module, "_finish", lambda task, best: (best, None))
     y, _ = normalise(family.shapes[3])
     start = y + 0.01 * np.sin(7 * y[:, ::-1])  # near the subject, slightly off
     task = polish_module._PolishTask(
         subject=3, start=start, error=registration_error(start, y), y=y, cpd=FAST_CPD,
-        spacing2=mean_spacing2(y), model_irregularity=sampling_irregularity(start))
+        spacing2=mean_spacing2(y), model_irregularity=sampling_irregularity(start),
+        model=start)
     out = polish_module._polish_task(task)
     assert betas == [f * FAST_CPD.beta for f in POLISH_BETA_FACTORS]
     # the first stage was rejected, the second kept: one step, from the chain's points
@@ -508,11 +520,13 @@ def test_a_finer_polish_stage_must_lower_e_by_the_set_fraction(family, monkeypat
         return res
 
     monkeypatch.setattr(polish_module, "cpd_nonrigid", recording)
+    monkeypatch.setattr(polish_module, "_finish", lambda task, best: (best, None))
     y, _ = normalise(family.shapes[3])
     start = y + 0.02 * np.sin(5 * y[:, ::-1])
     task = polish_module._PolishTask(
         subject=3, start=start, error=registration_error(start, y), y=y, cpd=FAST_CPD,
-        spacing2=mean_spacing2(y), model_irregularity=sampling_irregularity(start))
+        spacing2=mean_spacing2(y), model_irregularity=sampling_irregularity(start),
+        model=start)
     polish_module._polish_task(task)  # where each stage lands, with the library's rule
     e1, e2 = (registration_error(w, y) for w in warped)
     assert e1 <= task.error, "the first stage is kept in this setting"
@@ -569,7 +583,7 @@ def _consensus_task(family, subject):
                                      error=registration_error(start, y), y=y, cpd=FAST_CPD,
                                      spacing2=mean_spacing2(y),
                                      model_irregularity=sampling_irregularity(q),
-                                     direct=direct)
+                                     model=q, direct=direct)
 
 
 @pytest.mark.parametrize("above", [False, True])
@@ -594,6 +608,7 @@ def test_the_consensus_is_kept_only_up_to_its_e_ratio_to_the_chains(family, monk
         return out
 
     monkeypatch.setattr(polish_module, "_stages", stages)
+    monkeypatch.setattr(polish_module, "_finish", lambda task, best: (best, None))
     task = _consensus_task(family, 4)
     out = polish_module._polish_task(task)
     chain, found = runs[0], runs[2]
@@ -712,3 +727,71 @@ def test_the_polish_keeps_sparse_random_samples_where_they_are(monkeypatch):
     monkeypatch.setattr(polish_module, "sampling_irregularity", lambda p: 0.0)
     own = drift_after(lambda p: 0.0)  # even: CPD's own normalisation
     assert library < 0.9 * own  # measured: 0.062 against 0.081
+
+
+def _finish_setting(family, subject=4):
+    """A polish task for `subject` (no consensus) and where its chain's stages leave it."""
+    from dataclasses import replace
+
+    from registration._tree import _polish as polish_module
+
+    task = replace(_consensus_task(family, subject), direct=None)
+    best = polish_module._stages(task.start, task.error, task.y, task.cpd, task.spacing2,
+                                 task.model_irregularity)
+    return task, best
+
+
+@pytest.mark.parametrize("above", [False, True])
+def test_the_finish_is_one_cpd_from_the_root_model_kept_up_to_its_e_ratio(family, monkeypatch,
+                                                                          above):
+    """The finish registers the root model itself (not the chain's warped points) onto the
+    subject, started where the polish left it, at FINISH_BETA_FACTOR of the kernel and
+    FINISH_LMBDA_FACTOR times the regulariser; it is kept when its e is at most
+    FINISH_MAX_E_RATIO times the polished e (set just above, then just below the ratio it
+    reaches here), as one more step of the subject's transform."""
+    from registration._tree import _polish as polish_module
+
+    task, best = _finish_setting(family)
+    real = polish_module.cpd_nonrigid
+    calls: list = []
+
+    def recording(x, y, **kw):
+        calls.append((x, kw))
+        return real(x, y, **kw)
+
+    monkeypatch.setattr(polish_module, "cpd_nonrigid", recording)
+    _, info = polish_module._finish(task, best)
+    (model, kw), = calls
+    assert model is task.model and np.array_equal(kw["init_warped"], best.warped)
+    assert kw["beta"] == polish_module.FINISH_BETA_FACTOR * FAST_CPD.beta
+    assert kw["lmbda"] == polish_module.FINISH_LMBDA_FACTOR * FAST_CPD.lmbda
+    assert kw["sigma2"] == max(0.5 * best.error, task.spacing2) and kw["accelerate"]
+    assert info["error_before"] == best.error and "error" in info, info
+    ratio = info["error"] / best.error
+    monkeypatch.setattr(polish_module, "FINISH_MAX_E_RATIO", ratio * (1 - 1e-9 if above
+                                                                      else 1 + 1e-9))
+    out, info = polish_module._finish(task, best)
+    assert info["kept"] is (not above)
+    if above:
+        assert out is best and info["reason"].startswith("e above")
+        return
+    assert out.error == info["error"] and out.steps[:-1] == best.steps
+    assert len(out.quality) == len(best.quality) + 1
+    # the step maps the polished points onto the reported ones
+    assert np.allclose(out.steps[-1].apply(best.warped), out.warped, atol=1e-12)
+    p = task.start
+    for step in out.steps:
+        p = step.apply(p)
+    assert np.allclose(p, out.warped, atol=1e-8)
+
+
+def test_a_finish_whose_field_folds_is_not_kept(family, monkeypatch):
+    from registration._tree import _polish as polish_module
+
+    task, best = _finish_setting(family)
+    monkeypatch.setattr(polish_module, "jacobian_determinants",
+                        lambda transform, points: np.full(len(points), -0.1))
+    out, info = polish_module._finish(task, best)
+    assert out is best
+    assert info == {"kept": False, "error_before": best.error,
+                    "reason": "its field from the root folds"}
