@@ -5,7 +5,8 @@ The dynamic tree is built once per run with ``polish=False`` (cached under
 attached subject at layer >= 3 from where the chain left the root model, with the
 acceptance checks of ``registration/_tree/_polish.py`` (no fold, e no larger than the
 start's, confidence >= 0.2; a rejected stage ends the variant). With ``stages:2,1`` this
-reproduces the library's default polish offline (same GT errors as bench_groundtruth.py).
+reproduced the library's polish of its first sessions offline (same GT errors as
+bench_groundtruth.py then); the library's polish has grown since (``library`` below).
 Printed: GT correspondence error / plain CPD's (all subjects / far half) per run, pooled
 per family, and the worst run.
 
@@ -31,7 +32,8 @@ Variants (comma-separated, ``--variants``):
   / ``library:d1``: the direct registration not polished / polished by the finer stage
   only; ``library:tolX``: the consensus kept at an e up to X times the chain's (default:
   the library's); ``library:wX``: the start moved X of the way to the direct registration
-  (default 0.5).
+  (default 0.5). Not reproduced: the edge registered again from a polished parent
+  (bench/RESULTS.md 7.7) and the finish from the root model (7.12).
 
     .venv/bin/python bench/bench_polish_variants.py --data /work/shared/data \\
         --families edge skel fish chinese --designs 0 --seeds 1 \\
@@ -57,7 +59,7 @@ from registration import CPDOptions, build_dynamic_tree, cpd_nonrigid, register_
 from registration._cpd import _nonrigid
 from registration._error import registration_error
 from registration._points import mean_spacing2 as _spacing2
-from registration._points import normalise
+from registration._points import normalise, sampling_irregularity
 from registration._quality import measure_quality
 from registration._tree._rules import MIN_CONFIDENCE
 
@@ -133,8 +135,8 @@ def _polish(variant: str, start: Array, y: Array, h2: float) -> Array:
     return out if ok else start
 
 
-def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[str]
-             ) -> Array:
+def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[str],
+             model_irregularity: float) -> Array:
     """The library's polish of one subject (see ``library`` in the module doc)."""
     from registration._cpd import interpolating_field
     from registration._tree import _polish as pm
@@ -147,7 +149,8 @@ def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[
 
     pm.cpd_nonrigid = run
     try:
-        chain = pm._stages(start, registration_error(start, y), y, CPD, h2)
+        chain = pm._stages(start, registration_error(start, y), y, CPD, h2,
+                           model_irregularity)
         if other is None:
             return chain.warped
         factors = pm.POLISH_BETA_FACTORS
@@ -157,7 +160,8 @@ def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[
             if "d1" in opts:
                 pm.POLISH_BETA_FACTORS = factors[1:]
             try:
-                polished = pm._stages(other, registration_error(other, y), y, CPD, h2).warped
+                polished = pm._stages(other, registration_error(other, y), y, CPD, h2,
+                                      model_irregularity).warped
             finally:
                 pm.POLISH_BETA_FACTORS = factors
         weight = next((float(o[1:]) for o in opts if o.startswith("w")), 0.5)
@@ -166,7 +170,7 @@ def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[
         half, jac = step.apply_with_jacobian(chain.warped)
         if not float(np.linalg.det(jac).min()) > 0:
             return chain.warped
-        found = pm._stages(half, registration_error(half, y), y, CPD, h2)
+        found = pm._stages(half, registration_error(half, y), y, CPD, h2, model_irregularity)
         tol = next((float(o[3:]) for o in opts if o.startswith("tol")),
                    pm.CONSENSUS_MAX_E_RATIO)
         return (found.warped if found.steps and found.error <= tol * chain.error
@@ -203,7 +207,8 @@ def run_variant(variant: str, case: bg.Case, d: dict[str, Any]) -> list[tuple[fl
         kind, min_layer = variant, 3
         if kind.startswith("library") and layer is not None and layer >= 2:
             other = nm.apply(plain[k]) if layer >= 3 else None
-            out[k] = nm.invert(_library(start, y, h2[k], other, kind.split(":")[1:]))
+            out[k] = nm.invert(_library(start, y, h2[k], other, kind.split(":")[1:],
+                                        sampling_irregularity(nrm[case.root][0])))
             continue
         if variant.startswith("l2/"):  # the same variant from layer 2 on
             kind, min_layer = variant[3:], 2

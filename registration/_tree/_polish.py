@@ -39,10 +39,13 @@ halfway to those and polished again (`_consensus`): kept when that e is at most
 extended by the polish's steps (the chain's stages, the step halfway, the stages from
 there), so the stored-resolution stage reads the edge the tree built and the polish apart
 (:mod:`._resolution`).
+Last, every polished subject is finished by one CPD from the root model itself, started
+where the polish left it (`_finish`): every registration before it penalised its field
+from its own start, the finish's from the root.
 Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine), 0.0000
 (layer 2, skipping) and 0.0000000 (the consensus); 7.4 (accelerated EM), 7.5 (the
-consensus's e rule), 7.7 (edges from polished parents, the halfway step) and 7.11 (the
-stages' normalisation).
+consensus's e rule), 7.7 (edges from polished parents, the halfway step), 7.11 (the
+stages' normalisation) and 7.12 (the finish).
 """
 
 from __future__ import annotations
