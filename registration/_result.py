@@ -87,7 +87,11 @@ class SubjectResult:
     quality : dict or None
         The checks of the last registration on the path (e/h^2, distortion, anisotropy,
         CPD rotation, coverage, min Jacobian), the pose it started from and the e every
-        pose reached.
+        pose reached; for a polished subject (see ``build_dynamic_tree(polish=...)``)
+        also ``polish``: the e before it, its steps and checks, and what its consensus
+        with the root's direct registration, its edge registered again from the polished
+        parent and its finish from the root model found (each with ``kept`` and a
+        ``reason``).
     """
 
     index: int
