@@ -372,17 +372,27 @@ def _edge_from_parent(task: _PolishTask
     return None, None, info
 
 
-def _polished_halfway(task: _PolishTask, points: FloatArray, other: FloatArray
-                      ) -> tuple[PointTransform, _Stages] | None:
-    """`points` moved halfway to `other` (by CPD's field through those points, :func:`~
-    registration._cpd.interpolating_field`, at :data:`CONSENSUS_KERNEL_FACTOR` of the
-    tree's beta) and the polish's stages from there: the step and the stages, or None when
-    the step folds."""
-    step = interpolating_field(points, 0.5 * (points + other),
-                               CONSENSUS_KERNEL_FACTOR * task.cpd.beta, CONSENSUS_RIDGE)
-    start, jac = step.apply_with_jacobian(points)
+def _step_onto(points: FloatArray, targets: FloatArray, o: CPDOptions
+               ) -> tuple[PointTransform, FloatArray] | None:
+    """CPD's field through `points` onto `targets` (:func:`~registration._cpd.
+    interpolating_field`, at :data:`CONSENSUS_KERNEL_FACTOR` of the tree's beta) and where
+    it puts `points`; None when it folds at any of them."""
+    step = interpolating_field(points, targets, CONSENSUS_KERNEL_FACTOR * o.beta,
+                               CONSENSUS_RIDGE)
+    moved, jac = step.apply_with_jacobian(points)
     if not float(np.linalg.det(jac).min()) > 0:
         return None
+    return step, moved
+
+
+def _polished_halfway(task: _PolishTask, points: FloatArray, other: FloatArray
+                      ) -> tuple[PointTransform, _Stages] | None:
+    """`points` moved halfway to `other` (:func:`_step_onto`) and the polish's stages from
+    there: the step and the stages, or None when the step folds."""
+    moved = _step_onto(points, 0.5 * (points + other), task.cpd)
+    if moved is None:
+        return None
+    step, start = moved
     return step, _stages(start, registration_error(start, task.y), task.y, task.cpd,
                          task.spacing2, task.model_irregularity)
 
@@ -417,8 +427,8 @@ def _finish(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
     that the edges' smooth fields leave to slides. From the polished points it starts in
     the right basin (from the root's own pose, as plain CPD, the same field at that width
     wanders). The subject's transform extends its chain by CPD's field through the
-    polished points to the finished ones (:func:`~registration._cpd.interpolating_field`,
-    as the consensus's step; its points are what is reported). Kept when neither field
+    polished points to the finished ones (:func:`_step_onto`, as the consensus's step; its
+    points are what is reported). Kept when neither field
     folds, the step's confidence is at least :data:`MIN_CONFIDENCE` and its e is at most
     :data:`FINISH_MAX_E_RATIO` times the polished e; else `best` is returned as it is.
     Ground truth: bench/RESULTS.md 7.12."""
@@ -431,15 +441,15 @@ def _finish(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
     if not float(jacobian_determinants(res.transform, task.model).min()) > 0:
         info["reason"] = "its field from the root folds"
         return best, info
-    step = interpolating_field(best.warped, np.asarray(res.warped, dtype=np.float64),
-                               CONSENSUS_KERNEL_FACTOR * o.beta, CONSENSUS_RIDGE)
-    moved = step.apply(best.warped)
+    found = _step_onto(best.warped, np.asarray(res.warped, dtype=np.float64), o)
+    if found is None:
+        info["reason"] = "the step to it folds"
+        return best, info
+    step, moved = found
     e = registration_error(moved, task.y)
     q = measure_quality(best.warped, moved, task.y, step, e, task.spacing2)
     info["error"] = e
-    if not q.min_jacobian > 0:
-        info["reason"] = "the step to it folds"
-    elif not q.confidence >= MIN_CONFIDENCE:
+    if not q.confidence >= MIN_CONFIDENCE:
         info["reason"] = f"confidence below {MIN_CONFIDENCE:g}"
     elif not e <= FINISH_MAX_E_RATIO * best.error:
         info["reason"] = f"e above {FINISH_MAX_E_RATIO:g}x the polished e"
