@@ -130,10 +130,11 @@ def test_coarse_to_fine_matches_a_full_resolution_run(runs, family):
         return np.mean([correspondence_error(s.warped, truth[s.index], family.shapes[s.index])
                         for s in res.subjects])
 
-    # measured 0.042 (coarse to fine) vs 0.034 (full resolution) here, 1.23x (1.16x before
+    # measured 0.042 (coarse to fine) vs 0.034 (full resolution) here, 1.22x (1.16x before
     # the polish's sampling-aware frame, which improved the full-resolution run more);
-    # over seeds 0-3 of this family the ratio runs 0.68-1.23 (mean 0.99; before 0.91), the
-    # two means 0.053 and 0.059 (before 0.053 and 0.064)
+    # over seeds 0-3 of this family the ratio runs 0.67-1.22 (mean 0.98; before the frame
+    # 0.91), the two means 0.052 and 0.059 (before the frame 0.053 and 0.064; measured
+    # again with the polish's finish)
     assert gt(c2f) <= 1.3 * gt(full)
 
 
