@@ -53,6 +53,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -170,6 +171,12 @@ class _PolishTask:
     from_parent: FloatArray | None = None
     edge_affine: tuple[PointTransform, ...] = ()
 
+    @cached_property
+    def irregularity(self) -> float:
+        """The subject's :func:`~registration._points.sampling_irregularity`, computed
+        once for the polish's several calls of :func:`_stages`."""
+        return sampling_irregularity(self.y)
+
 
 @dataclass(frozen=True)
 class _Stages:
@@ -247,7 +254,8 @@ def _model_frame(cur: FloatArray, y: FloatArray, model_irregularity: float,
 
 
 def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
-            spacing2: float, model_irregularity: float) -> _Stages:
+            spacing2: float, model_irregularity: float,
+            irregularity: float | None = None) -> _Stages:
     """The polish's CPD stages (:data:`POLISH_BETA_FACTORS`) from `start`, each kept only
     when it passes the checks (see the module doc).
 
@@ -261,8 +269,10 @@ def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
     accelerated.
 
     Each stage normalises the model by :func:`_model_frame` (`model_irregularity`: the
-    root's :func:`~registration._points.sampling_irregularity`)."""
-    irregularity = sampling_irregularity(y)
+    root's :func:`~registration._points.sampling_irregularity`; `irregularity`: the
+    subject's, computed here when not given)."""
+    if irregularity is None:
+        irregularity = sampling_irregularity(y)
     cur, e_cur = start, e_start
     steps: list[PointTransform] = []
     quality: list[RegistrationQuality] = []
@@ -316,7 +326,7 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
         info["reason"] = "the direct registration folds"
         return None, info
     other = _stages(direct.warped, direct.error, task.y, task.cpd, task.spacing2,
-                    task.model_irregularity)
+                    task.model_irregularity, task.irregularity)
     info["direct_polished_error"] = other.error
     moved = _polished_halfway(task, chain.warped, other.warped)
     if moved is None:
@@ -394,7 +404,7 @@ def _polished_halfway(task: _PolishTask, points: FloatArray, other: FloatArray
         return None
     step, start = moved
     return step, _stages(start, registration_error(start, task.y), task.y, task.cpd,
-                         task.spacing2, task.model_irregularity)
+                         task.spacing2, task.model_irregularity, task.irregularity)
 
 
 def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
@@ -465,14 +475,14 @@ def _finish(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
 
 def _polish_task(task: _PolishTask) -> _PolishOutcome:
     chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2,
-                    task.model_irregularity)
+                    task.model_irregularity, task.irregularity)
     edge, edge_q, edge_info = None, None, None
     if task.from_parent is not None:
         edge, edge_q, edge_info = _edge_from_parent(task)
     if edge is not None and edge_info is not None:
         # the edge from the polished parent, polished (or alone, when no stage passes)
         other = _stages(edge.warped, edge.error, task.y, task.cpd, task.spacing2,
-                        task.model_irregularity)
+                        task.model_irregularity, task.irregularity)
         if not other.steps:
             other = replace(edge, steps=(), quality=())
         # the two polished registrations of the edge err differently: halfway, polished

@@ -597,8 +597,8 @@ def test_the_consensus_is_kept_only_up_to_its_e_ratio_to_the_chains(family, monk
     real = polish_module._stages
     runs: list = []
 
-    def stages(start, e_start, y, o, spacing2, model_irregularity):
-        out = real(start, e_start, y, o, spacing2, model_irregularity)
+    def stages(*args, **kwargs):
+        out = real(*args, **kwargs)
         runs.append(out)
         if len(runs) == 3:  # from halfway: its e set just around the chain's
             assert out.steps, "no stage from halfway passed its checks here"
@@ -739,6 +739,24 @@ def _finish_setting(family, subject=4):
     best = polish_module._stages(task.start, task.error, task.y, task.cpd, task.spacing2,
                                  task.model_irregularity)
     return task, best
+
+
+def test_the_polish_task_computes_the_subjects_irregularity_once(family):
+    """The task's cached irregularity is the subject's, and `_stages` given it reaches
+    exactly what it reaches computing it itself."""
+    from dataclasses import replace
+
+    from registration._points import sampling_irregularity
+    from registration._tree import _polish as polish_module
+
+    task = replace(_consensus_task(family, 4), direct=None)
+    assert task.irregularity == sampling_irregularity(task.y)
+    assert "irregularity" in vars(task)  # cached on the instance
+    args = (task.start, task.error, task.y, task.cpd, task.spacing2, task.model_irregularity)
+    own = polish_module._stages(*args)
+    given = polish_module._stages(*args, task.irregularity)
+    np.testing.assert_array_equal(given.warped, own.warped)
+    assert given.error == own.error
 
 
 @pytest.mark.parametrize("above", [False, True])
