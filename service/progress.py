@@ -62,7 +62,9 @@ PHASE_WEIGHTS = {
     "refine": 0.025,
     "direct": 0.10,
     "polish": 0.45,
-    "full resolution": 0.021,
+    # the tree's stored-resolution stage about doubled with its finish (session 21,
+    # bench/RESULTS.md 8.4: 3.8-4.0 -> 6.7-7.8 s of the 73 glyphs' job over HTTP)
+    "full resolution": 0.040,
     "direct full resolution": 0.011,
 }
 #: A grouping job's phases, as shares of its run: the mean wall-clock shares of nine runs

@@ -215,7 +215,7 @@ def build_dynamic_tree(
             "fold_check": fold_check,
             "polish": f"layer >= {POLISH_MIN_LAYER}" if polish else "off",
         },
-        max_candidates=max_candidates, direct_outcomes=known,
+        max_candidates=max_candidates, direct_outcomes=known, finish=polish,
     )
 
 
@@ -398,9 +398,11 @@ class _Run:
         thresholds: dict[str, Any],
         max_candidates: int = 1,
         direct_outcomes: dict[int, _RegOutcome] | None = None,
+        finish: bool = False,
     ) -> CollectionResult:
         """The method's result (with direct CPD's when ``compare_direct``: from
-        `direct_outcomes` when they were already run), at the stored resolution."""
+        `direct_outcomes` when they were already run), at the stored resolution (its
+        subjects finished there when `finish`: see :func:`._resolution._stored_finish`)."""
         direct = self.direct(sim, compare_direct, direct_outcomes)
         result = _collection_result(
             method, self.coll, sim, subjects, direct, rule,
@@ -408,7 +410,8 @@ class _Run:
             options=_options_dict(self.cpd, self.prealign, max_candidates, self.pose),
         )
         return at_stored_resolution(result, self.full, self.coll, self.cpd,
-                                    self.working_points, self.executor, self.progress)
+                                    self.working_points, self.executor, self.progress,
+                                    finish=finish)
 
 
 @takes_options(MethodOptions, ignored=dict.fromkeys(

@@ -16,7 +16,10 @@ result's warped points, correspondences, transforms and e are then those of the 
 shapes; the attempts, thresholds, similarity, confidence and quality checks keep the
 working resolution's figures the decisions were taken on (``quality`` adds
 ``working_error``, the e decided on, and ``stored_min_jacobian``, the fold check of the
-edge's warp on the stored points). The confidence is the one the decisions were taken
+edge's warp on the stored points). The dynamic tree's subjects are then finished at the
+stored resolution as the polish finished them at the working one (:func:`_stored_finish`,
+in the same task as the subject's CPD; ``quality["stored_finish"]``); their children
+start from the registration before it. The confidence is the one the decisions were taken
 with (the quality checks measure any shape at most :data:`registration._quality.
 QUALITY_POINTS` points dense, the density their model was fitted at: before that, the 73
 永 edge glyphs measured at their stored 1167-2244 points scored correct registrations near
@@ -36,7 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid
+from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid, interpolating_field
 from .._error import registration_error
 from .._executor import Executor
 from .._pointmap import PointTransform, composed_with_jacobian, jacobian_determinants
@@ -45,6 +48,13 @@ from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
 from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
+from ._polish import (
+    CONSENSUS_KERNEL_FACTOR,
+    CONSENSUS_RIDGE,
+    FINISH_BETA_FACTOR,
+    FINISH_LMBDA_FACTOR,
+    FINISH_MAX_E_RATIO,
+)
 from ._tasks import _map_tasks
 
 FloatArray = NDArray[np.float64]
@@ -52,8 +62,10 @@ IntArray = NDArray[np.intp]
 
 #: Points per shape the tree's decisions are taken at (None or 0: the stored resolution).
 #: At 400 points the 73 永 edge glyphs (1167-2244 points) build their tree in a fraction
-#: of the full-resolution time with e and correspondences matching a full-resolution run
-#: (bench/bench_resolution.py, bench/RESULTS.md section 8).
+#: of the full-resolution time with e and correspondences close to a full-resolution run
+#: (bench/bench_resolution.py, bench/RESULTS.md section 8; on 1200-point 永 edge chains
+#: the ground-truth error is 1.16x the full-resolution tree's in a third of its CPU,
+#: section 8.4).
 DEFAULT_WORKING_POINTS = 400
 #: Fewest points a working resolution may have.
 MIN_WORKING_POINTS = 20
@@ -138,6 +150,23 @@ class _FineTask:
     y: FloatArray  # the stored subject, normalised
     cpd: CPDOptions
     control: IntArray | None  # the model points the CPD is fitted with (None: all)
+    # the stored root model (normalised), when the subject is finished at the stored
+    # resolution after its CPD (see `_stored_finish`); None: not finished
+    model: FloatArray | None = None
+
+
+@dataclass(frozen=True)
+class _StoredFinish:
+    """What the finish at the stored resolution found (see :func:`_stored_finish`): its
+    record, and when kept the step that extends the subject's chain and where it puts the
+    model."""
+
+    info: dict[str, Any]
+    step: NonrigidTransform | None = None
+    warped: FloatArray | None = None
+    error: float | None = None
+    correspondence: IntArray | None = None
+    probability: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -149,6 +178,7 @@ class _FineOutcome:
     probability: FloatArray
     step: NonrigidTransform
     min_jacobian: float  # of the edge's non-rigid warp (coarse then fine) on the stored model
+    finish: _StoredFinish | None = None  # when the task asked for it
 
 
 def warm_start_sigma2(start: FloatArray, subject: FloatArray) -> float:
@@ -182,11 +212,66 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
                        control=task.control)
     warped = np.asarray(res.warped, dtype=np.float64)
     det = jacobian_determinants(_Composed((*task.steps[lead:], res.transform)), pre)
-    return _FineOutcome(subject=task.subject, warped=warped,
-                        error=registration_error(warped, task.y),
+    error = registration_error(warped, task.y)
+    finish = (None if task.model is None else
+              _stored_finish(task.model, warped, error, task.y, o, task.control))
+    return _FineOutcome(subject=task.subject, warped=warped, error=error,
                         correspondence=np.asarray(res.correspondence, dtype=np.intp),
                         probability=np.asarray(res.probability, dtype=np.float64),
-                        step=res.transform, min_jacobian=float(det.min()))
+                        step=res.transform, min_jacobian=float(det.min()), finish=finish)
+
+
+def _stored_finish(model: FloatArray, warped: FloatArray, error: float, y: FloatArray,
+                   o: CPDOptions, control: IntArray | None) -> _StoredFinish:
+    """The polish's finish (:func:`registration._tree._polish._finish`) again at the
+    stored resolution: one CPD of the stored root model itself onto the stored subject,
+    started where the subject's stored-resolution CPD left it (``init_warped``), its
+    kernel :data:`~registration._tree._polish.FINISH_BETA_FACTOR` of the tree's beta, its
+    regulariser :data:`~registration._tree._polish.FINISH_LMBDA_FACTOR` times the tree's
+    lambda, fitted with the `control` points as the stage's CPD.
+
+    The short CPD before it is penalised from the parent's warped model, so it keeps the
+    slides the working resolution settled into; the finish's field is penalised from the
+    root, and at the stored resolution the subject's own sampling noise, which sets how
+    close to the truth CPD can settle, is smaller than at the working resolution (on six
+    1200-point 永 edge chains the tree's ground-truth error went 0.0337 -> 0.0289, against
+    0.0250 for a tree run entirely at 1200 points: bench/RESULTS.md 8.4).
+
+    The subject's chain gains CPD's field through the control points (all points without
+    them) from where the stored CPD left them to where the finish puts them
+    (:func:`~registration._cpd.interpolating_field` at the consensus's width, as the
+    polish's finish); the step's image of every stored point is what is reported, so the
+    chain still maps the root onto it. Kept when neither the finish's field from the root
+    nor the step folds at any stored point and the e reached is at most
+    :data:`~registration._tree._polish.FINISH_MAX_E_RATIO` times the stored CPD's (the
+    polish's rule; its confidence check is not repeated: the quality model is the working
+    resolution's)."""
+    info: dict[str, Any] = {"kept": False, "error_before": error}
+    res = cpd_nonrigid(model, y, beta=FINISH_BETA_FACTOR * o.beta,
+                       lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w, max_iter=o.max_iter,
+                       tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * error, mean_spacing2(y)),
+                       init_warped=warped, accelerate=True, control=control)
+    if not float(jacobian_determinants(res.transform, model).min()) > 0:
+        info["reason"] = "its field from the root folds"
+        return _StoredFinish(info)
+    target = np.asarray(res.warped, dtype=np.float64)
+    through = slice(None) if control is None else control
+    step = interpolating_field(warped[through], target[through],
+                               CONSENSUS_KERNEL_FACTOR * o.beta, CONSENSUS_RIDGE)
+    moved, jac = step.apply_with_jacobian(warped)
+    if not float(np.linalg.det(jac).min()) > 0:
+        info["reason"] = "the step to it folds"
+        return _StoredFinish(info)
+    e = registration_error(moved, y)
+    info["error"] = e
+    if not e <= FINISH_MAX_E_RATIO * error:
+        info["reason"] = f"e above {FINISH_MAX_E_RATIO:g}x the stored CPD's"
+        return _StoredFinish(info)
+    info["kept"] = True
+    info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x the stored CPD's"
+    return _StoredFinish(info, step=step, warped=moved, error=e,
+                         correspondence=np.asarray(res.correspondence, dtype=np.intp),
+                         probability=np.asarray(res.probability, dtype=np.float64))
 
 
 @dataclass
@@ -236,6 +321,7 @@ def _refined_subjects(
     executor: Executor | None,
     progress: ProgressCallback | None,
     stage: str,
+    finish_model: FloatArray | None = None,
 ) -> list[SubjectResult]:
     """`subjects` (decided at the working resolution) with every registration redone at
     the stored resolution, a layer at a time from the root: one short CPD per subject,
@@ -292,7 +378,7 @@ def _refined_subjects(
             steps[s.index] = (*edges[s.index], *s.transform.steps[len(built.steps):])
             tasks.append(_FineTask(subject=s.index, q=starts[s.index].q,
                                    steps=steps[s.index], y=full.normed[s.index], cpd=cpd,
-                                   control=control))
+                                   control=control, model=finish_model))
             kinds.append("final")
             if built is not s.transform and s.index in needs_built:
                 tasks.append(_FineTask(subject=s.index, q=starts[s.index].q,
@@ -324,6 +410,22 @@ def _refined_subjects(
         s.correspondence = res.correspondence
         s.probability = res.probability
         s.transform = final_chain[index]
+        fin = res.finish
+        if fin is None:
+            continue
+        s.quality["stored_finish"] = fin.info
+        if fin.step is None:
+            continue
+        assert fin.warped is not None and fin.error is not None
+        assert fin.correspondence is not None and fin.probability is not None
+        s.error = fin.error
+        s.warped = full.norms[index].invert(fin.warped)
+        s.correspondence = fin.correspondence
+        s.probability = fin.probability
+        chain = final_chain[index]
+        s.transform = ChainTransform(source=chain.source, target=chain.target,
+                                     steps=(*chain.steps, fin.step), path=chain.path)
+        s.reason = f"{s.reason}; finished again at the stored resolution"
     return [out[s.index] for s in subjects]
 
 
@@ -348,8 +450,11 @@ def at_stored_resolution(
     working_points: int | None,
     executor: Executor | None,
     progress: ProgressCallback | None,
+    finish: bool = False,
 ) -> CollectionResult:
-    """`result`, decided on `coarse`, with its registrations at the stored resolution.
+    """`result`, decided on `coarse`, with its registrations at the stored resolution;
+    `finish`: each of its subjects (not direct CPD's) is also finished there
+    (:func:`_stored_finish`; the dynamic tree with its polish).
 
     Unchanged (but for ``options["working_points"]``) when `coarse` is `full`.
     """
@@ -362,7 +467,8 @@ def at_stored_resolution(
     control = (farthest_point_indices(root_points, n_control)
                if len(root_points) > n_control else None)
     result.subjects = _refined_subjects(full, result.subjects, cpd, control, executor,
-                                        progress, "full resolution")
+                                        progress, "full resolution",
+                                        root_points if finish else None)
     if result.direct is not None:
         result.direct = _refined_subjects(full, result.direct, cpd, control, executor,
                                           progress, "direct full resolution")
