@@ -249,7 +249,8 @@ def _stored_finish(model: FloatArray, warped: FloatArray, error: float, y: Float
     info: dict[str, Any] = {"kept": False, "error_before": error}
     res = cpd_nonrigid(model, y, beta=FINISH_BETA_FACTOR * o.beta,
                        lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w, max_iter=o.max_iter,
-                       tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * error, mean_spacing2(y)),
+                       tol=o.tol, dtype=o.dtype,
+                       sigma2=max(0.5 * error, mean_spacing2(y), 1e-12),
                        init_warped=warped, accelerate=True, control=control)
     if not float(jacobian_determinants(res.transform, model).min()) > 0:
         info["reason"] = "its field from the root folds"
