@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._cpd import CPDOptions, cpd_nonrigid, interpolating_field
+from .._cpd import CPDOptions, CPDResult, cpd_nonrigid, interpolating_field
 from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._pointmap import PointTransform, jacobian_determinants
@@ -382,12 +382,15 @@ def _edge_from_parent(task: _PolishTask
     return None, None, info
 
 
-def _step_onto(points: FloatArray, targets: FloatArray, o: CPDOptions
+def _step_onto(points: FloatArray, targets: FloatArray, o: CPDOptions,
+               through: IntArray | None = None
                ) -> tuple[PointTransform, FloatArray] | None:
     """CPD's field through `points` onto `targets` (:func:`~registration._cpd.
-    interpolating_field`, at :data:`CONSENSUS_KERNEL_FACTOR` of the tree's beta) and where
-    it puts `points`; None when it folds at any of them."""
-    step = interpolating_field(points, targets, CONSENSUS_KERNEL_FACTOR * o.beta,
+    interpolating_field`, at :data:`CONSENSUS_KERNEL_FACTOR` of the tree's beta; fitted
+    through the `through` points alone when given) and where it puts every one of
+    `points`; None when it folds at any of them."""
+    fit = slice(None) if through is None else through
+    step = interpolating_field(points[fit], targets[fit], CONSENSUS_KERNEL_FACTOR * o.beta,
                                CONSENSUS_RIDGE)
     moved, jac = step.apply_with_jacobian(points)
     if not float(np.linalg.det(jac).min()) > 0:
@@ -422,6 +425,22 @@ def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
                    quality=(*b.quality, *found.quality))
 
 
+def _cpd_from_root(model: FloatArray, y: FloatArray, start: FloatArray, sigma2: float,
+                   o: CPDOptions, control: IntArray | None = None) -> CPDResult | None:
+    """The finish's CPD: the root `model` itself onto `y`, started at `start`
+    (``init_warped``) from `sigma2`, its kernel :data:`FINISH_BETA_FACTOR` of the tree's
+    beta and its regulariser :data:`FINISH_LMBDA_FACTOR` times the tree's lambda,
+    accelerated (fitted with the `control` points when given); None when its field from
+    the root folds at any model point."""
+    res = cpd_nonrigid(model, y, beta=FINISH_BETA_FACTOR * o.beta,
+                       lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w, max_iter=o.max_iter,
+                       tol=o.tol, dtype=o.dtype, sigma2=sigma2, init_warped=start,
+                       accelerate=True, control=control)
+    if not float(jacobian_determinants(res.transform, model).min()) > 0:
+        return None
+    return res
+
+
 def _finish(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
     """The finish: one CPD from the root model itself onto the subject, started where the
     polish left it, its kernel :data:`FINISH_BETA_FACTOR` of the tree's beta and its
@@ -444,11 +463,9 @@ def _finish(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
     Ground truth: bench/RESULTS.md 7.12."""
     o = task.cpd
     info: dict[str, Any] = {"kept": False, "error_before": best.error}
-    res = cpd_nonrigid(task.model, task.y, beta=FINISH_BETA_FACTOR * o.beta,
-                       lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w, max_iter=o.max_iter,
-                       tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * best.error, task.spacing2),
-                       init_warped=best.warped, accelerate=True)
-    if not float(jacobian_determinants(res.transform, task.model).min()) > 0:
+    res = _cpd_from_root(task.model, task.y, best.warped,
+                         max(0.5 * best.error, task.spacing2), o)
+    if res is None:
         info["reason"] = "its field from the root folds"
         return best, info
     found = _step_onto(best.warped, np.asarray(res.warped, dtype=np.float64), o)

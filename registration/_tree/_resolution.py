@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid, interpolating_field
+from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid
 from .._error import registration_error
 from .._executor import Executor
 from .._pointmap import PointTransform, composed_with_jacobian, jacobian_determinants
@@ -48,13 +48,7 @@ from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
 from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
-from ._polish import (
-    CONSENSUS_KERNEL_FACTOR,
-    CONSENSUS_RIDGE,
-    FINISH_BETA_FACTOR,
-    FINISH_LMBDA_FACTOR,
-    FINISH_MAX_E_RATIO,
-)
+from ._polish import FINISH_MAX_E_RATIO, _cpd_from_root, _step_onto
 from ._tasks import _map_tasks
 
 FloatArray = NDArray[np.float64]
@@ -162,7 +156,7 @@ class _StoredFinish:
     model."""
 
     info: dict[str, Any]
-    step: NonrigidTransform | None = None
+    step: PointTransform | None = None
     warped: FloatArray | None = None
     error: float | None = None
     correspondence: IntArray | None = None
@@ -227,7 +221,9 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
 
 def _stored_finish(model: FloatArray, warped: FloatArray, error: float, y: FloatArray,
                    o: CPDOptions, control: IntArray | None) -> _StoredFinish:
-    """The polish's finish (:func:`registration._tree._polish._finish`) again at the
+    """The polish's finish (:func:`registration._tree._polish._finish`: its CPD,
+    :func:`~registration._tree._polish._cpd_from_root`, and its step,
+    :func:`~registration._tree._polish._step_onto`) again at the
     stored resolution: one CPD of the stored root model itself onto the stored subject,
     started where the subject's stored-resolution CPD left it (``init_warped``), its
     kernel :data:`~registration._tree._polish.FINISH_BETA_FACTOR` of the tree's beta, its
@@ -251,22 +247,16 @@ def _stored_finish(model: FloatArray, warped: FloatArray, error: float, y: Float
     polish's rule; its confidence check is not repeated: the quality model is the working
     resolution's)."""
     info: dict[str, Any] = {"kept": False, "error_before": error}
-    res = cpd_nonrigid(model, y, beta=FINISH_BETA_FACTOR * o.beta,
-                       lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w, max_iter=o.max_iter,
-                       tol=o.tol, dtype=o.dtype,
-                       sigma2=max(0.5 * error, mean_spacing2(y), 1e-12),
-                       init_warped=warped, accelerate=True, control=control)
-    if not float(jacobian_determinants(res.transform, model).min()) > 0:
+    res = _cpd_from_root(model, y, warped, max(0.5 * error, mean_spacing2(y), 1e-12), o,
+                         control)
+    if res is None:
         info["reason"] = "its field from the root folds"
         return _StoredFinish(info)
-    target = np.asarray(res.warped, dtype=np.float64)
-    through = slice(None) if control is None else control
-    step = interpolating_field(warped[through], target[through],
-                               CONSENSUS_KERNEL_FACTOR * o.beta, CONSENSUS_RIDGE)
-    moved, jac = step.apply_with_jacobian(warped)
-    if not float(np.linalg.det(jac).min()) > 0:
+    found = _step_onto(warped, np.asarray(res.warped, dtype=np.float64), o, control)
+    if found is None:
         info["reason"] = "the step to it folds"
         return _StoredFinish(info)
+    step, moved = found
     e = registration_error(moved, y)
     info["error"] = e
     if not e <= FINISH_MAX_E_RATIO * error:
