@@ -197,6 +197,7 @@ def run_variant(variant: str, case: bg.Case, d: dict[str, Any]) -> list[tuple[fl
     tree, plain = d["tree"], d["plain"]
     nrm = [normalise(p) for p in case.shapes]
     h2 = [_spacing2(p) for p, _ in nrm]
+    root_irregularity = sampling_irregularity(nrm[case.root][0])
     out: dict[int, Array] = {}
     for k in sorted(tree, key=lambda k: tree[k][1] or 0):
         warped, layer, parent = tree[k]
@@ -208,7 +209,7 @@ def run_variant(variant: str, case: bg.Case, d: dict[str, Any]) -> list[tuple[fl
         if kind.startswith("library") and layer is not None and layer >= 2:
             other = nm.apply(plain[k]) if layer >= 3 else None
             out[k] = nm.invert(_library(start, y, h2[k], other, kind.split(":")[1:],
-                                        sampling_irregularity(nrm[case.root][0])))
+                                        root_irregularity))
             continue
         if variant.startswith("l2/"):  # the same variant from layer 2 on
             kind, min_layer = variant[3:], 2
