@@ -22,6 +22,8 @@ __all__ = ["Attempt", "CollectionResult", "SubjectResult", "error_statistics"]
 class Attempt:
     """One registration tried while building a tree: member -> subject.
 
+    ``layer`` is the layer the subject would have through this member (the member's plus
+    one), whichever round of the tree's growth tried it.
     ``limit`` is the error threshold this attempt was held to (the collection's, or the
     subject's sampling floor when that is larger and the threshold is automatic).
     """

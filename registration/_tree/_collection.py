@@ -70,17 +70,21 @@ class _Collection:
 class _Node:
     q: FloatArray  # root model warped onto this member (normalised coords of the member)
     chain: ChainTransform
-    layer: int
+    layer: int  # its depth in the tree: the root 1, a child one more than its parent
     confidence: float = 1.0  # the weakest registration on the path from the root
+    # the round of the tree's growth in which it joined (the root 1): the layer it would
+    # have if every round grew from the one before, which a stalled tree's bridges do not
+    joined: int = 1
 
 
 def _subject_from_outcome(
-    coll: _Collection, out: _RegOutcome, parent: _Node, *, layer: int | None = None,
-    leaf: bool = False,
+    coll: _Collection, out: _RegOutcome, parent: _Node, *, joined: int, leaf: bool = False,
 ) -> tuple[SubjectResult, _Node]:
+    """The subject registered by `out` from `parent`, and its node (joined in round
+    `joined` of the tree's growth): one layer below its parent."""
     s = out.subject
     chain = parent.chain.extended(out.steps, coll.norms[s], s)
-    layer = out.layer if layer is None else layer
+    layer = parent.layer + 1
     confidence = min(parent.confidence, out.quality.confidence)
     res = SubjectResult(
         index=s,
@@ -99,7 +103,8 @@ def _subject_from_outcome(
         quality={**out.quality.to_dict(), "pose": out.pose, "pose_angle": out.pose_angle,
                  "pose_errors": dict(out.pose_errors)},
     )
-    return res, _Node(q=out.warped, chain=chain, layer=layer, confidence=confidence)
+    return res, _Node(q=out.warped, chain=chain, layer=layer, confidence=confidence,
+                      joined=joined)
 
 
 def _prepare_similarity(

@@ -125,7 +125,10 @@ def build_dynamic_tree(
     tried: set[tuple[int, int]] = set()
     rejected: dict[int, list[_RegOutcome]] = {}
     frontier = [root]
-    layer = 1
+    # the round of growth: each tries the waiting subjects from the last round's new
+    # members (from every member after a stall's bridges; a subject's layer is its depth,
+    # one below its parent's, whichever round it joined in); progress names it "layer N"
+    grown = 1
     runs = 0  # registrations so far; bridging stops at a budget (BRIDGE_TASKS_PER_SUBJECT)
 
     def bridge() -> bool:
@@ -134,8 +137,8 @@ def build_dynamic_tree(
         return bool(sim_rule.bridge(sim, nodes, waiting, tried))
 
     while waiting and frontier:
-        layer += 1
-        _ensure_frontier(sim, frontier, waiting, allowed, executor, progress, layer)
+        grown += 1
+        _ensure_frontier(sim, frontier, waiting, allowed, executor, progress, grown)
         tasks: list[_RegTask] = []
         for _ in range(2):  # once more after new bridges when nothing is left to try
             for s in sorted(waiting):
@@ -146,13 +149,13 @@ def build_dynamic_tree(
                 )[:max_candidates]
                 for _, m in cands:
                     tried.add((m, s))
-                    tasks.append(run.task(sim, m, s, layer, nodes[m].q))
+                    tasks.append(run.task(sim, m, s, nodes[m].layer + 1, nodes[m].q))
             if tasks or not bridge():
                 break
         if not tasks:
             break
         runs += len(tasks)
-        outcomes = _run_tasks(tasks, executor, progress, f"layer {layer}")
+        outcomes = _run_tasks(tasks, executor, progress, f"layer {grown}")
         if tau_err is None:
             tau_err = _auto_error_threshold(outcomes)
         best: dict[int, _RegOutcome] = {}
@@ -164,7 +167,7 @@ def build_dynamic_tree(
             if not ok:
                 rejected.setdefault(out.subject, []).append(out)
             results[out.subject].attempts.append(
-                Attempt(member=out.member, layer=layer, similarity=out.similarity,
+                Attempt(member=out.member, layer=out.layer, similarity=out.similarity,
                         error=out.error, limit=limit, min_jacobian=out.min_jacobian,
                         accepted=False,
                         reason=reason)
@@ -173,9 +176,9 @@ def build_dynamic_tree(
                 best[out.subject] = out
         new_frontier = []
         for s, out in sorted(best.items()):
-            res, node = _subject_from_outcome(coll, out, nodes[out.member])
+            res, node = _subject_from_outcome(coll, out, nodes[out.member], joined=grown)
             res.attempts = [
-                Attempt(**{**asdict(a), "accepted": a.member == out.member and a.layer == layer})
+                Attempt(**{**asdict(a), "accepted": a.member == out.member})
                 for a in results[s].attempts
             ]
             res.reason = f"registered from {coll.names[out.member]} (layer {out.layer - 1})"
@@ -274,7 +277,7 @@ def build_static_tree(
     for depth, members in enumerate(layers[1:], start=2):
         tasks = [run.task(sim, parent[s], s, depth, nodes[parent[s]].q) for s in members]
         for out in _run_tasks(tasks, executor, progress, f"layer {depth}"):
-            res, node = _subject_from_outcome(coll, out, nodes[out.member])
+            res, node = _subject_from_outcome(coll, out, nodes[out.member], joined=depth)
             res.reason = f"static edge from {coll.names[out.member]}"
             results[out.subject] = res
             nodes[out.subject] = node
@@ -382,7 +385,7 @@ class _Run:
         root_node = self.coll.root_node()
         subjects = []
         for _, out in sorted(outcomes.items()):
-            res, _ = _subject_from_outcome(self.coll, out, root_node)
+            res, _ = _subject_from_outcome(self.coll, out, root_node, joined=2)
             res.reason = "direct CPD from the root"
             subjects.append(res)
         return subjects

@@ -51,7 +51,7 @@ def _refine_parents(
         d_parent = float(sim.D[r.parent, s])
         later = sorted(
             (float(sim.D[m, s]), m) for m, node in nodes.items()
-            if m != s and node.layer >= r.layer and (m, s) not in tried
+            if m != s and node.joined >= nodes[s].joined and (m, s) not in tried
             and s not in node.chain.path and np.isfinite(sim.D[m, s])
             and sim.D[m, s] < d_parent and sim_rule.similar(sim, m, s)
         )
@@ -88,7 +88,7 @@ def _refine_parents(
         ))
         if not accepted:
             continue
-        res, node = _subject_from_outcome(coll, out, parent, layer=parent.layer + 1)
+        res, node = _subject_from_outcome(coll, out, parent, joined=nodes[s].joined)
         res.attempts = [replace(a, accepted=a is old.attempts[-1]) for a in old.attempts]
         res.reason = (f"registered from {coll.names[out.member]} (layer {parent.layer}), "
                       f"moved there from {coll.names[old.parent or 0]} by refinement")
@@ -158,7 +158,7 @@ def _attach_leaves(
         # with like; a local fold does not disqualify (a leaf is never a parent)
         best = min(pool, key=lambda o: (o.error, -nodes[o.member].confidence))
         parent = nodes[best.member]
-        res, _ = _subject_from_outcome(coll, best, parent, layer=parent.layer + 1, leaf=True)
+        res, _ = _subject_from_outcome(coll, best, parent, joined=parent.joined, leaf=True)
         why = next((a.reason for a in reversed(r.attempts) if a.member == best.member), None)
         if not best.min_jacobian > 0:
             why = (f"its warp folds the model locally (min Jacobian determinant "

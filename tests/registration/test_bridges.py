@@ -79,6 +79,45 @@ def test_tight_groups_are_bridged_and_attached_in_the_tree():
     assert all(s.parent is not None for s in static.subjects)
 
 
+def test_a_bridged_tree_gives_every_subject_its_depth_as_layer(monkeypatch):
+    # after a stall the tree grows from every member, not only the last round's: a subject
+    # that joins in a late round from a shallow member sits one layer below that member
+    # (before, it took the round's number: layer 22 under a layer-2 parent, 40 glyph images)
+    import registration._tree._methods as methods
+
+    shapes = clustered(groups=4, copies=5, n_points=30, seed=3)
+    late = 3  # a copy of the root's design, refused until the fifth round of growth
+    rounds: list[str] = []
+    run_tasks, rejection = methods._run_tasks, methods._rejection
+
+    def counting(tasks, executor, progress, stage):
+        rounds.append(stage)
+        return run_tasks(tasks, executor, progress, stage)
+
+    def refusing(out, *args, **kwargs):
+        if out.subject == late and len(rounds) < 4:
+            return "refused by the test"
+        return rejection(out, *args, **kwargs)
+
+    monkeypatch.setattr(methods, "_run_tasks", counting)
+    monkeypatch.setattr(methods, "_rejection", refusing)
+    res = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor(),
+                             polish=False, refine=False)
+    layers = {0: 1} | {s.index: s.layer for s in res.subjects}
+    attached = [s for s in res.subjects if s.parent is not None]
+    assert len(attached) == len(shapes) - 1
+    s_late = res.subject(late)
+    joined = next(a for a in s_late.attempts if a.accepted)
+    assert not s_late.leaf and rounds.index("layer 5") >= 3, (s_late, rounds)
+    for s in attached:
+        assert s.layer == len(s.path) == layers[s.parent] + 1, (s.index, s.layer, s.path)
+        accepted = [a for a in s.attempts if a.accepted]
+        assert [(a.member, a.layer) for a in accepted] == [(s.parent, s.layer)]
+    # it joined in round 5 or later, from a member less than four layers deep
+    assert joined.layer == s_late.layer < 5, s_late
+    assert f"(layer {layers[s_late.parent]})" in (s_late.reason or "")
+
+
 def test_without_bridges_the_same_groups_stay_outside_the_tree(no_bridges):
     shapes = clustered(groups=5, copies=6, n_points=40, seed=3)
     start = _start(shapes)
