@@ -44,16 +44,19 @@ def select_subjects(subjects: Sequence[Mapping[str, Any]], which: str | int) -> 
 
 
 def subjects_table(doc: Mapping[str, Any], subjects: Sequence[Mapping[str, Any]]) -> list[str]:
-    """One line per subject, in the given order: shape id, name, layer, parent, e, direct e,
-    confidence and status ("tree", "leaf" for a low-confidence leaf, "unattached")."""
+    """One line per subject, in the given order: shape id, name, layer, parent, e, direct e
+    (not for a direct job, whose e is direct CPD's), confidence and status ("tree", "leaf"
+    for a low-confidence leaf, "unattached")."""
+    compares = doc.get("method") != "direct"
     names = dict(zip(doc.get("shape_ids") or [], doc.get("names") or [], strict=False))
     for s in doc.get("subjects") or []:
         if isinstance(s, Mapping) and "shape_id" in s and s.get("name") is not None:
             names[s["shape_id"]] = s["name"]
     width = min(32, max([4, *(len(str(s.get("name", ""))) for s in subjects)]))
+    direct_e = f" {'direct e':>11}" if compares else ""
     lines = [
         f"{'shape':>8}  {_cell('name', width)}  {'layer':>5}  {_cell('parent', 16)}"
-        f" {'e':>11} {'direct e':>11} {'confidence':>10}  status"
+        f" {'e':>11}{direct_e} {'confidence':>10}  status"
     ]
     for s in subjects:
         layer = s.get("layer")
@@ -63,7 +66,8 @@ def subjects_table(doc: Mapping[str, Any], subjects: Sequence[Mapping[str, Any]]
             f"{s.get('shape_id', '?'):>8}  {_cell(str(s.get('name', '')), width)}"
             f"  {('-' if layer is None else layer):>5}"
             f"  {_cell('-' if parent is None else str(names.get(parent, parent)), 16)}"
-            f" {_num(s.get('error'))} {_num(s.get('direct_error'))}"
+            f" {_num(s.get('error'))}"
+            + (f" {_num(s.get('direct_error'))}" if compares else "")
             + (
                 f" {confidence:10.3f}"
                 if isinstance(confidence, int | float) and not isinstance(confidence, bool)
@@ -101,14 +105,22 @@ def _query_text(query: Mapping[str, Any]) -> str:
     return "; ".join(parts)
 
 
+#: The short name of each method's own e columns in :func:`summary_table`.
+_METHOD_COLUMNS = {"dynamic_tree": "tree", "static_tree": "static", "direct": "direct"}
+
+
 def summary_table(doc: Mapping[str, Any]) -> list[str]:
-    """Per-layer counts with mean / p95 of e, then layer >= 3 and all attached, for the tree
-    and for direct CPD (``-`` where the job did not compare with it)."""
+    """Per-layer counts with mean / p95 of e, then layer >= 3 and all attached, for the
+    job's method (columns named after it: tree, static, direct) and, beside a tree, for
+    direct CPD (``-`` where the job did not compare with it)."""
     from service.plots import layer_statistics
 
     subjects = [s for s in doc.get("subjects") or [] if isinstance(s, Mapping)]
     summary = doc.get("summary") or {}
     direct = summary.get("direct") or {}
+    method = str(doc.get("method"))
+    own = _METHOD_COLUMNS.get(method, "e")
+    compares = method != "direct"  # a direct job is direct CPD: nothing to compare with
     names = dict(zip(doc.get("shape_ids") or [], doc.get("names") or [], strict=False))
     root = doc.get("root_shape_id")
     counts: dict[int, int] = {}
@@ -133,29 +145,26 @@ def summary_table(doc: Mapping[str, Any]) -> list[str]:
             lines.append(
                 f"{key} threshold {thresholds[key]:.4g}  {thresholds.get(key + '_rule', '')}"
             )
-    header = f"{'layer':>12} {'subjects':>8} {'tree mean':>11} {'tree p95':>11}"
-    header += f" {'direct mean':>11} {'direct p95':>11}"
+    columns = f"{own + ' mean':>11} {own + ' p95':>11}"
+    if compares:
+        columns += f" {'direct mean':>11} {'direct p95':>11}"
+
+    def cells(t: Mapping[str, Any], d: Mapping[str, Any]) -> str:
+        out = f"{_num(t.get('mean'))} {_num(t.get('p95'))}"
+        return out + (f" {_num(d.get('mean'))} {_num(d.get('p95'))}" if compares else "")
+
+    header = f"{'layer':>12} {'subjects':>8} {columns}"
     lines += ["", "e (eq. 10) per layer", header, f"{1:>12} {1:>8}  (the model)"]
     for layer in sorted(counts):
         t, d = tree_stats.get(layer) or {}, direct_stats.get(layer) or {}
-        lines.append(
-            f"{layer:>12} {counts[layer]:>8} {_num(t.get('mean'))} {_num(t.get('p95'))}"
-            f" {_num(d.get('mean'))} {_num(d.get('p95'))}"
-        )
+        lines.append(f"{layer:>12} {counts[layer]:>8} {cells(t, d)}")
     if unattached:
         lines.append(f"{'unattached':>12} {unattached:>8}")
-    lines += [
-        "",
-        f"{'':>12} {'count':>8} {'tree mean':>11} {'tree p95':>11}"
-        f" {'direct mean':>11} {'direct p95':>11}",
-    ]
+    lines += ["", f"{'':>12} {'count':>8} {columns}"]
     for label, key in (("layer >= 3", "layer_ge_3"), ("all attached", "all")):
         t, d = summary.get(key) or {}, direct.get(key) or {}
-        lines.append(
-            f"{label:>12} {t.get('count', 0):>8} {_num(t.get('mean'))} {_num(t.get('p95'))}"
-            f" {_num(d.get('mean'))} {_num(d.get('p95'))}"
-        )
-    if not direct:
+        lines.append(f"{label:>12} {t.get('count', 0):>8} {cells(t, d)}")
+    if compares and not direct:
         lines.append("(direct CPD was not compared: the job ran with --no-compare-direct)")
     return lines
 

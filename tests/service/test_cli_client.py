@@ -407,3 +407,55 @@ def test_connection_options_before_or_after_the_command() -> None:
     )
     results = parse(["results", "#7", "--out", "d", "--subjects", "3"])
     assert (results.job, results.subjects, results.format) == (7, 3, "png")
+
+
+# --- the results tables, by method --------------------------------------------------------
+
+
+def _doc(method: str, direct: bool) -> dict[str, object]:
+    subjects = [
+        {"shape_id": 2, "name": "b", "layer": 2, "parent_shape_id": 1, "error": 0.002,
+         "direct_error": 0.003 if direct else None, "confidence": 0.9, "attached": True},
+        {"shape_id": 3, "name": "c", "layer": 3 if method != "direct" else 2,
+         "parent_shape_id": 2 if method != "direct" else 1, "error": 0.004,
+         "direct_error": 0.005 if direct else None, "confidence": 0.8, "attached": True},
+    ]  # fmt: skip
+    per = {"count": 1, "mean": 0.004, "p95": 0.004}
+    summary: dict[str, object] = {"depth": 3, "layer_ge_3": per, "all": per}
+    if direct:
+        summary["direct"] = {"layer_ge_3": per, "all": per}
+    return {"job_id": 7, "method": method, "root_shape_id": 1, "shape_ids": [1, 2, 3],
+            "names": ["a", "b", "c"], "summary": summary, "subjects": subjects}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("method", "direct", "own", "compared"),
+    [
+        ("dynamic_tree", True, "tree", True),
+        ("dynamic_tree", False, "tree", False),
+        ("static_tree", False, "static", False),
+        ("direct", False, "direct", None),
+    ],
+)
+def test_results_tables_name_the_method_and_compare_only_a_tree(
+    method: str, direct: bool, own: str, compared: bool | None
+) -> None:
+    # a direct job's e is direct CPD's: no "tree" columns, no comparison, no note about one
+    from service.cli_client import subjects_table, summary_table
+
+    doc = _doc(method, direct)
+    summary = "\n".join(summary_table(doc))
+    assert re.search(rf"^\s+layer\s+subjects\s+{own} mean\s+{own} p95", summary, re.M), summary
+    if own != "tree":
+        assert "tree mean" not in summary
+    header = next(line for line in summary.splitlines() if "subjects" in line.split())
+    note = "direct CPD was not compared"
+    if compared is None:  # the direct job itself: its own columns only
+        assert header.split()[2:] == ["direct", "mean", "direct", "p95"], header
+        assert note not in summary, summary
+    else:
+        assert header.split()[2:] == [own, "mean", own, "p95", "direct", "mean", "direct", "p95"]
+        assert (note in summary) != compared, summary
+    table = subjects_table(doc, doc["subjects"])  # type: ignore[arg-type]
+    assert ("direct e" in table[0]) == (compared is not None), table[0]
+    assert len(table[1].split()) == (8 if compared is not None else 7), table
