@@ -62,7 +62,8 @@ class SubjectResult:
     parent : int or None
         Tree parent (the root for direct CPD); None when unattached.
     layer : int or None
-        Tree layer, the root being layer 1; None when unattached.
+        Tree layer: its depth, the root being layer 1 and every subject one more than its
+        parent (the length of `path`); None when unattached.
     path : list of int
         Shape indices from the root to this subject (empty when unattached).
     similarity : float or None

@@ -187,7 +187,11 @@ class SubjectDetail(_Open):
     name: str = ""
     parent: int | None = Field(default=None, description="The parent's position; null: none.")
     parent_shape_id: int | None = None
-    layer: int | None = Field(default=None, description="The root is layer 1; null: unattached.")
+    layer: int | None = Field(
+        default=None,
+        description="Depth in the tree: the root is layer 1, a subject one more than its "
+        "parent (the length of its path); null: unattached.",
+    )
     path: list[int] = Field(default_factory=list, description="Positions, root to subject.")
     path_shape_ids: list[int | None] = Field(default_factory=list)
     similarity: float | None = Field(default=None, description="D (eq. 9) from the parent.")
