@@ -147,6 +147,7 @@ class _FineTask:
     # the stored root model (normalised), when the subject is finished at the stored
     # resolution after its CPD (see `_stored_finish`); None: not finished
     model: FloatArray | None = None
+    spacing2: float = 0.0  # the stored subject's h^2 (the collection's), for the finish
 
 
 @dataclass(frozen=True)
@@ -212,7 +213,8 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
     det = jacobian_determinants(_Composed((*task.steps[lead:], res.transform)), pre)
     error = registration_error(warped, task.y)
     finish = (None if task.model is None else
-              _stored_finish(task.model, warped, error, task.y, o, task.control))
+              _stored_finish(task.model, warped, error, task.y, task.spacing2, o,
+                             task.control))
     return _FineOutcome(subject=task.subject, warped=warped, error=error,
                         correspondence=np.asarray(res.correspondence, dtype=np.intp),
                         probability=np.asarray(res.probability, dtype=np.float64),
@@ -220,12 +222,14 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
 
 
 def _stored_finish(model: FloatArray, warped: FloatArray, error: float, y: FloatArray,
-                   o: CPDOptions, control: IntArray | None) -> _StoredFinish:
+                   spacing2: float, o: CPDOptions, control: IntArray | None
+                   ) -> _StoredFinish:
     """The polish's finish (:func:`registration._tree._polish._finish`: its CPD,
     :func:`~registration._tree._polish._cpd_from_root`, and its step,
     :func:`~registration._tree._polish._step_onto`) again at the
     stored resolution: one CPD of the stored root model itself onto the stored subject,
-    started where the subject's stored-resolution CPD left it (``init_warped``), its
+    started where the subject's stored-resolution CPD left it (``init_warped``) from a
+    variance of half its e (at least `spacing2`, the subject's h^2, as the polish's), its
     kernel :data:`~registration._tree._polish.FINISH_BETA_FACTOR` of the tree's beta, its
     regulariser :data:`~registration._tree._polish.FINISH_LMBDA_FACTOR` times the tree's
     lambda, fitted with the `control` points as the stage's CPD.
@@ -247,8 +251,7 @@ def _stored_finish(model: FloatArray, warped: FloatArray, error: float, y: Float
     polish's rule; its confidence check is not repeated: the quality model is the working
     resolution's)."""
     info: dict[str, Any] = {"kept": False, "error_before": error}
-    res = _cpd_from_root(model, y, warped, max(0.5 * error, mean_spacing2(y), 1e-12), o,
-                         control)
+    res = _cpd_from_root(model, y, warped, max(0.5 * error, spacing2, 1e-12), o, control)
     if res is None:
         info["reason"] = "its field from the root folds"
         return _StoredFinish(info)
@@ -373,7 +376,8 @@ def _refined_subjects(
             steps[s.index] = (*edges[s.index], *s.transform.steps[len(built.steps):])
             tasks.append(_FineTask(subject=s.index, q=starts[s.index].q,
                                    steps=steps[s.index], y=full.normed[s.index], cpd=cpd,
-                                   control=control, model=finish_model))
+                                   control=control, model=finish_model,
+                                   spacing2=full.spacing2[s.index]))
             kinds.append("final")
             if built is not s.transform and s.index in needs_built:
                 tasks.append(_FineTask(subject=s.index, q=starts[s.index].q,
