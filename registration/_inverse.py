@@ -30,6 +30,7 @@ def invert_points(
     max_iter: int = 60,
     h: float = 1e-6,
     seeds: ArrayLike | None = None,
+    start: ArrayLike | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Preimages of ``points`` under ``transform``: ``z`` with ``transform.apply(z) ~ points``.
 
@@ -49,6 +50,9 @@ def invert_points(
         Input points to start again from where the first start stalls: each such point
         restarts from the seed whose image is nearest to it. By default a CPD warp's kernel
         centres (its model points), when the transform has them.
+    start : array_like, shape (n, 2), optional
+        Where each point's iteration starts: a known near preimage (say, the point a
+        registration the other way round put there). By default ``2 y - f(y)``.
 
     Returns
     -------
@@ -59,10 +63,10 @@ def invert_points(
 
     Notes
     -----
-    Started from ``2 y - f(y)`` (exact for a translation, first order for a small
-    displacement); each Newton step is halved until the residual decreases (at most 12
-    times). Where the map folds a point may have several preimages, and far from the model's
-    region none that this iteration reaches: check ``residual``.
+    Started from `start`, else from ``2 y - f(y)`` (exact for a translation, first order
+    for a small displacement); each Newton step is halved until the residual decreases (at
+    most 12 times). Where the map folds a point may have several preimages, and far from
+    the model's region none that this iteration reaches: check ``residual``.
     """
     y = np.asarray(points, dtype=np.float64)
     if y.ndim != 2 or y.shape[1] != 2:
@@ -71,7 +75,14 @@ def invert_points(
         raise ValueError("points must be finite")
     if not (tol > 0 and h > 0 and max_iter >= 1):
         raise ValueError(f"tol and h must be > 0 and max_iter >= 1; got {tol}, {h}, {max_iter}")
-    z, res = _newton(transform, y, 2.0 * y - transform.apply(y), tol, max_iter, h)
+    if start is None:
+        z0 = 2.0 * y - transform.apply(y)
+    else:
+        z0 = np.array(start, dtype=np.float64)
+        if z0.shape != y.shape or not np.isfinite(z0).all():
+            raise ValueError(f"start must be finite with the shape of points {y.shape}; "
+                             f"got {z0.shape}")
+    z, res = _newton(transform, y, z0, tol, max_iter, h)
     stalled = np.flatnonzero(~(res <= tol))
     starts = _seeds(transform) if seeds is None else np.asarray(seeds, dtype=np.float64)
     if stalled.size and starts is not None and len(starts):
@@ -104,12 +115,19 @@ def _seeds(transform: PointTransform) -> FloatArray | None:
 def _newton(
     transform: PointTransform, y: FloatArray, z: FloatArray, tol: float, max_iter: int, h: float
 ) -> tuple[FloatArray, FloatArray]:
-    """Damped Newton iterations on ``f(z) = y`` from ``z``; returns ``z`` and ``|f(z) - y|``."""
+    """Damped Newton iterations on ``f(z) = y`` from ``z``; returns ``z`` and ``|f(z) - y|``.
+
+    A point whose step, halved :data:`_HALVINGS` times, never lowers its residual has
+    stalled and is not iterated again: its next iteration would take the same step from
+    the same ``z`` (unless another point's singular Jacobian turned that iteration into
+    gradient steps). Iterating it while other points still moved was most of the cost of
+    inverting a field that has no preimage for a few points."""
     r = transform.apply(z) - y
     res = np.linalg.norm(r, axis=1)
     res[~np.isfinite(res)] = np.inf
+    stalled = np.zeros(len(y), dtype=bool)
     for _ in range(max_iter):
-        active = np.flatnonzero(res > tol)
+        active = np.flatnonzero((res > tol) & ~stalled)
         if active.size == 0:
             break
         J = jacobian_matrices(transform, z[active], h=h)
@@ -133,6 +151,5 @@ def _newton(
             res[idx[better]] = cand_res[better]
             improved[np.flatnonzero(todo)[better]] = True
             step[todo] *= 0.5
-        if not improved.any():
-            break  # no point can get closer: stalled
+        stalled[active[~improved]] = True
     return z, res

@@ -124,3 +124,33 @@ def test_inverting_points_too_far_for_finite_distances_keeps_the_first_result():
     z, residual = invert_points(Blows(), [[3.3e233, 4e16], [0.55, 1.1]], seeds=seeds)
     assert residual[0] == np.inf and residual[1] < 1e-9
     np.testing.assert_allclose(z[1], [0.5, 1.0])
+
+
+def test_inverting_from_a_given_start_and_stalled_points() -> None:
+    """`start` is where each point's iteration begins (a near preimage known from
+    elsewhere); a point the damped step cannot bring closer stops being iterated, and the
+    other points still converge."""
+    angle = np.linspace(0, 2 * np.pi, 80, endpoint=False)
+    model = np.c_[np.cos(angle), 0.6 * np.sin(angle)]
+    subject = model + 0.08 * np.c_[np.sin(3 * angle), np.cos(2 * angle)]
+    warp = cpd_nonrigid(model, subject).transform
+    points = warp.apply(model)
+    z, residual = invert_points(warp, points, start=model + 0.01)
+    assert residual.max() < 1e-11
+    np.testing.assert_allclose(z, model, atol=1e-9)
+    with pytest.raises(ValueError, match="start must be finite"):
+        invert_points(warp, points, start=model[:5])
+    with pytest.raises(ValueError, match="start must be finite"):
+        invert_points(warp, points, start=np.full_like(model, np.nan))
+
+    class Fold:
+        """(x, y) -> (x, y^2): no preimage below the x axis."""
+
+        def apply(self, p):
+            p = np.asarray(p, dtype=np.float64)
+            return np.c_[p[:, 0], p[:, 1] ** 2]
+
+    z, residual = invert_points(Fold(), [[0.5, -1.0], [0.3, 0.25]])
+    assert residual[0] >= 1.0 - 1e-9  # the nearest it can get: y = 0
+    assert residual[1] < 1e-11 and np.allclose(np.abs(z[1]), [0.3, 0.5])
+    assert np.isfinite(z).all()
