@@ -93,12 +93,14 @@ class SubjectResult:
         pose reached; for a polished subject (see ``build_dynamic_tree(polish=...)``)
         also ``polish``: the e before it, its steps and checks, and what its consensus
         with the root's direct registration, its edge registered again from the polished
-        parent and its finish from the root model found (each with ``kept`` and a
+        parent, its finish from the root model and its symmetric finish (halfway to the
+        subject registered back onto the root) found (each with ``kept`` and a
         ``reason``). When the decisions were taken at a working resolution
         (``working_points``), also ``working_error`` (the e decided on),
         ``stored_min_jacobian`` (the fold check at the stored resolution) and, for the
-        dynamic tree's subjects, ``stored_finish``: the finish from the root model run
-        again on the stored points (``kept``, ``reason``, ``error_before``, ``error``).
+        dynamic tree's subjects, ``stored_finish`` and ``stored_symmetric``: the finish
+        from the root model and the symmetric finish run again on the stored points
+        (``kept``, ``reason``, ``error_before``, ``error``).
     """
 
     index: int

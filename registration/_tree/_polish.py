@@ -41,11 +41,13 @@ there), so the stored-resolution stage reads the edge the tree built and the pol
 (:mod:`._resolution`).
 Last, every polished subject is finished by one CPD from the root model itself, started
 where the polish left it (`_finish`): every registration before it penalised its field
-from its own start, the finish's from the root.
+from its own start, the finish's from the root. Then the finish is made symmetric
+(`_symmetric`): the subject is registered back onto the root from there, and the model's
+points move halfway to where the inverse of that backward field puts them.
 Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine), 0.0000
 (layer 2, skipping) and 0.0000000 (the consensus); 7.4 (accelerated EM), 7.5 (the
 consensus's e rule), 7.7 (edges from polished parents, the halfway step), 7.11 (the
-stages' normalisation) and 7.12 (the finish).
+stages' normalisation), 7.12 (the finish) and 7.16 (the symmetric finish).
 """
 
 from __future__ import annotations
@@ -60,8 +62,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._cpd import CPDOptions, CPDResult, cpd_nonrigid, interpolating_field
+from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor, owned_executor
+from .._inverse import invert_points
 from .._pointmap import PointTransform, jacobian_determinants
 from .._points import sampling_irregularity
 from .._quality import RegistrationQuality, measure_quality
@@ -148,6 +152,11 @@ FINISH_LMBDA_FACTOR = 2.0
 #: the consensus (:data:`CONSENSUS_MAX_E_RATIO`), it undoes part of a slide the subject's
 #: own sampling let the chain settle into, at an e that may be a little higher.
 FINISH_MAX_E_RATIO = 1.1
+#: The symmetric finish (see `_symmetric`) takes the root model's points halfway to where
+#: the subject registered back onto the root puts them when the inverse of that backward
+#: field is found at every root point to this accuracy (normalised coordinates: the
+#: shapes' RMS radius is 1).
+SYMMETRIC_INVERSE_TOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -206,6 +215,7 @@ class _PolishOutcome:
     edge_quality: RegistrationQuality | None = None
     from_parent: dict[str, Any] | None = None
     finish: dict[str, Any] | None = None  # what the finish found (see `_finish`)
+    symmetric: dict[str, Any] | None = None  # what the symmetric finish found (`_symmetric`)
 
 
 def _model_frame(cur: FloatArray, y: FloatArray, model_irregularity: float,
@@ -490,6 +500,86 @@ def _finish(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
     return best, info
 
 
+def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: float,
+                  spacing2: float, o: CPDOptions, control: IntArray | None = None,
+                  subject_control: IntArray | None = None, max_iter: int | None = None
+                  ) -> tuple[PointTransform, FloatArray] | str:
+    """The registration `warped` (the root `model`'s points on the subject `y`) moved
+    halfway to where the subject registered back onto the root puts the model's points:
+    the step (:func:`_step_onto`) and the points it moves `warped` to, or why there are
+    none.
+
+    The backward registration is the finish's CPD (:func:`_cpd_from_root`) with the roles
+    swapped, the subject onto the root, started from the inverse of `warped` (CPD's field
+    through `warped` back onto the model, at the tree's beta, moves the subject into the
+    root's frame) from a variance of half `error` (at least `spacing2`); its field is
+    then inverted at every model point (:func:`~registration._inverse.invert_points`),
+    which must succeed to :data:`SYMMETRIC_INVERSE_TOL`. `control`: the model indices the
+    fields through the model's points are fitted with; `subject_control`: the subject
+    indices the backward CPD's field is fitted with (None: every point); `max_iter`: the
+    backward CPD's EM iterations at most (None: the tree's)."""
+    fit = slice(None) if control is None else control
+    back = interpolating_field(warped[fit], model[fit], o.beta, CONSENSUS_RIDGE)
+    res = cpd_nonrigid(y, model, beta=FINISH_BETA_FACTOR * o.beta,
+                       lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w,
+                       max_iter=o.max_iter if max_iter is None else min(o.max_iter, max_iter),
+                       tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * error, spacing2),
+                       init_warped=back.apply(y), accelerate=True, control=subject_control)
+    # started from `warped`, where the forward registration put each model point
+    z, residual = invert_points(res.transform, model, tol=SYMMETRIC_INVERSE_TOL,
+                                seeds=warped, start=warped)
+    if not (np.isfinite(z).all() and float(residual.max()) <= SYMMETRIC_INVERSE_TOL):
+        return "the backward registration has no inverse at every root point"
+    found = _step_onto(warped, 0.5 * (warped + z), o, control)
+    if found is None:
+        return "the step halfway folds"
+    return found
+
+
+def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
+    """The symmetric finish: the model's points moved halfway between where the polish
+    left them and where the subject registered back onto the root puts them
+    (:func:`_halfway_back`).
+
+    CPD is not symmetric: the model's points are the mixture's centroids, pulled onto the
+    subject's points, so a registration slides the model along the subject's outline
+    wherever the two samplings let the centroids settle at a lower e; the other way round
+    the subject's points are the centroids, and the slides fall elsewhere. Halfway between
+    the two, part of each slide cancels. Both registrations start from the polished one,
+    in its basin: halfway between a forward and a backward CPD started from the two shapes'
+    own poses loses on large differences, where the backward one alone can go wrong
+    (bench/RESULTS.md 7.15). The subject's transform extends its chain by CPD's field
+    through the polished points to the halfway ones (:func:`_step_onto`), and the
+    correspondences are each moved point's most probable subject point at the variance
+    the polish starts from (half the e reached, at least the subject's h^2). Kept when the
+    inverse is found, the step does not fold, its confidence is at least
+    :data:`MIN_CONFIDENCE` and its e is at most :data:`FINISH_MAX_E_RATIO` times the
+    polished e (the finish's rule); else `best` is returned as it is. Ground truth:
+    bench/RESULTS.md 7.16."""
+    o = task.cpd
+    info: dict[str, Any] = {"kept": False, "error_before": best.error}
+    found = _halfway_back(task.model, task.y, best.warped, best.error, task.spacing2, o)
+    if isinstance(found, str):
+        info["reason"] = found
+        return best, info
+    step, moved = found
+    e = registration_error(moved, task.y)
+    q = measure_quality(best.warped, moved, task.y, step, e, task.spacing2)
+    info["error"] = e
+    if not q.confidence >= MIN_CONFIDENCE:
+        info["reason"] = f"confidence below {MIN_CONFIDENCE:g}"
+        return best, info
+    if not e <= FINISH_MAX_E_RATIO * best.error:
+        info["reason"] = f"e above {FINISH_MAX_E_RATIO:g}x the polished e"
+        return best, info
+    info["kept"] = True
+    info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x the polished e"
+    corr, prob = _posterior_max(moved, task.y, max(0.5 * e, task.spacing2), o.w)
+    return _Stages(warped=moved, error=e, steps=(*best.steps, step),
+                   quality=(*best.quality, q), correspondence=np.asarray(corr, dtype=np.intp),
+                   probability=np.asarray(prob, dtype=np.float64)), info
+
+
 def _polish_task(task: _PolishTask) -> _PolishOutcome:
     chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2,
                     task.model_irregularity, task.irregularity)
@@ -523,11 +613,12 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
             best = replace(found, steps=(*chain.steps, *found.steps),
                            quality=(*chain.quality, *found.quality))
     best, finish = _finish(task, best)
+    best, symmetric = _symmetric(task, best)
     return _PolishOutcome(subject=task.subject, warped=best.warped, error=best.error,
                           correspondence=best.correspondence, probability=best.probability,
                           steps=best.steps, quality=best.quality, consensus=info,
                           edge_steps=() if edge is None else edge.steps, edge_quality=edge_q,
-                          from_parent=edge_info, finish=finish)
+                          from_parent=edge_info, finish=finish, symmetric=symmetric)
 
 
 def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
@@ -577,6 +668,10 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
         polish["finish"] = out.finish
         if out.finish["kept"]:
             reason += "; finished by one CPD from the root model"
+    if out.symmetric is not None:
+        polish["symmetric"] = out.symmetric
+        if out.symmetric["kept"]:
+            reason += "; moved halfway to the subject's registration back onto the root"
     return replace(
         old, error=out.error, warped=coll.norms[out.subject].invert(out.warped),
         correspondence=out.correspondence, probability=out.probability, transform=chain,

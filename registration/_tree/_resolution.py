@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid
+from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor
 from .._pointmap import PointTransform, composed_with_jacobian, jacobian_determinants
@@ -48,7 +49,7 @@ from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
 from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
-from ._polish import FINISH_MAX_E_RATIO, _cpd_from_root, _step_onto
+from ._polish import FINISH_MAX_E_RATIO, _cpd_from_root, _halfway_back, _step_onto
 from ._tasks import _map_tasks
 
 FloatArray = NDArray[np.float64]
@@ -82,6 +83,12 @@ FINE_SIGMA2_FACTOR = 3.0
 #: half 0.998x, every design within 2 %; 1000 and 700 points the same) in 0.63x the
 #: stage's CPU time. Never fewer than the working resolution's points.
 FINE_CONTROL_POINTS = 500
+#: EM iterations of the symmetric finish's backward CPD at the stored resolution (at most;
+#: see `_stored_symmetric`). Started from the finished registration, it took 70 on
+#: average (120 at the 90th percentile) on 40 of the 永 edge glyphs at full resolution;
+#: stopped at 20, as the stored CPD, six 1200-point 永 edge chains gave the same ground
+#: truth (0.0272 against 0.0271) in less time (bench/RESULTS.md 7.16).
+STORED_SYMMETRIC_MAX_ITER = 20
 
 
 def check_working_points(value: Any) -> int | None:
@@ -174,6 +181,7 @@ class _FineOutcome:
     step: NonrigidTransform
     min_jacobian: float  # of the edge's non-rigid warp (coarse then fine) on the stored model
     finish: _StoredFinish | None = None  # when the task asked for it
+    symmetric: _StoredFinish | None = None  # the symmetric finish, with the finish
 
 
 def warm_start_sigma2(start: FloatArray, subject: FloatArray) -> float:
@@ -212,13 +220,20 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
     warped = np.asarray(res.warped, dtype=np.float64)
     det = jacobian_determinants(_Composed((*task.steps[lead:], res.transform)), pre)
     error = registration_error(warped, task.y)
-    finish = (None if task.model is None else
-              _stored_finish(task.model, warped, error, task.y, task.spacing2, o,
-                             task.control))
+    finish = symmetric = None
+    if task.model is not None:
+        finish = _stored_finish(task.model, warped, error, task.y, task.spacing2, o,
+                                task.control)
+        at, e_at = warped, error
+        if finish.warped is not None and finish.error is not None:  # the finish was kept
+            at, e_at = finish.warped, finish.error
+        symmetric = _stored_symmetric(task.model, at, e_at, task.y, task.spacing2, o,
+                                      task.control)
     return _FineOutcome(subject=task.subject, warped=warped, error=error,
                         correspondence=np.asarray(res.correspondence, dtype=np.intp),
                         probability=np.asarray(res.probability, dtype=np.float64),
-                        step=res.transform, min_jacobian=float(det.min()), finish=finish)
+                        step=res.transform, min_jacobian=float(det.min()), finish=finish,
+                        symmetric=symmetric)
 
 
 def _stored_finish(model: FloatArray, warped: FloatArray, error: float, y: FloatArray,
@@ -270,6 +285,44 @@ def _stored_finish(model: FloatArray, warped: FloatArray, error: float, y: Float
     return _StoredFinish(info, step=step, warped=moved, error=e,
                          correspondence=np.asarray(res.correspondence, dtype=np.intp),
                          probability=np.asarray(res.probability, dtype=np.float64))
+
+
+def _stored_symmetric(model: FloatArray, warped: FloatArray, error: float, y: FloatArray,
+                      spacing2: float, o: CPDOptions, control: IntArray | None
+                      ) -> _StoredFinish:
+    """The polish's symmetric finish (:func:`registration._tree._polish._symmetric`) again
+    at the stored resolution, after :func:`_stored_finish`: the stored subject registered
+    back onto the stored root model from `warped` (where the finish left it; the stored
+    CPD's points when the finish was not kept), and `warped` moved halfway to where the
+    inverse of that backward field puts the model's points
+    (:func:`~registration._tree._polish._halfway_back`). The backward CPD's field is
+    fitted with as many of the subject's points as the model's `control` points (its
+    farthest-point subsample), the fields through the model's points with those. Kept,
+    as the finish, when the inverse is found, the step does not fold and e is at most
+    :data:`~registration._tree._polish.FINISH_MAX_E_RATIO` times `error`; without it the
+    stored forward finish slides the points back (on six 1200-point 永 edge chains the
+    working resolution's symmetric finish alone left the ground truth at 1.00x;
+    bench/RESULTS.md 7.16)."""
+    info: dict[str, Any] = {"kept": False, "error_before": error}
+    subject_control = (None if control is None or len(y) <= len(control)
+                       else farthest_point_indices(y, len(control)))
+    found = _halfway_back(model, y, warped, error, spacing2, o, control, subject_control,
+                          STORED_SYMMETRIC_MAX_ITER)
+    if isinstance(found, str):
+        info["reason"] = found
+        return _StoredFinish(info)
+    step, moved = found
+    e = registration_error(moved, y)
+    info["error"] = e
+    if not e <= FINISH_MAX_E_RATIO * error:
+        info["reason"] = f"e above {FINISH_MAX_E_RATIO:g}x the finished e"
+        return _StoredFinish(info)
+    info["kept"] = True
+    info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x the finished e"
+    corr, prob = _posterior_max(moved, y, max(0.5 * e, spacing2), o.w)
+    return _StoredFinish(info, step=step, warped=moved, error=e,
+                         correspondence=np.asarray(corr, dtype=np.intp),
+                         probability=np.asarray(prob, dtype=np.float64))
 
 
 @dataclass
@@ -409,22 +462,23 @@ def _refined_subjects(
         s.correspondence = res.correspondence
         s.probability = res.probability
         s.transform = final_chain[index]
-        fin = res.finish
-        if fin is None:
-            continue
-        s.quality["stored_finish"] = fin.info
-        if fin.step is None:
-            continue
-        assert fin.warped is not None and fin.error is not None
-        assert fin.correspondence is not None and fin.probability is not None
-        s.error = fin.error
-        s.warped = full.norms[index].invert(fin.warped)
-        s.correspondence = fin.correspondence
-        s.probability = fin.probability
-        chain = final_chain[index]
-        s.transform = ChainTransform(source=chain.source, target=chain.target,
-                                     steps=(*chain.steps, fin.step), path=chain.path)
-        s.reason = f"{s.reason}; finished again at the stored resolution"
+        for key, fin, said in (("stored_finish", res.finish, "finished again"),
+                               ("stored_symmetric", res.symmetric, "made symmetric again")):
+            if fin is None:
+                continue
+            s.quality[key] = fin.info
+            if fin.step is None:
+                continue
+            assert fin.warped is not None and fin.error is not None
+            assert fin.correspondence is not None and fin.probability is not None
+            s.error = fin.error
+            s.warped = full.norms[index].invert(fin.warped)
+            s.correspondence = fin.correspondence
+            s.probability = fin.probability
+            chain = s.transform
+            s.transform = ChainTransform(source=chain.source, target=chain.target,
+                                         steps=(*chain.steps, fin.step), path=chain.path)
+            s.reason = f"{s.reason}; {said} at the stored resolution"
     return [out[s.index] for s in subjects]
 
 

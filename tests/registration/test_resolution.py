@@ -84,7 +84,10 @@ def test_results_are_at_the_stored_resolution(runs, family):
     polished = [s for s in res.subjects if (s.quality or {}).get("polish")]
     assert polished, "nothing polished: the family is too shallow to test the polish here"
     def finished(s):
-        return bool((s.quality or {}).get("stored_finish", {}).get("kept"))
+        # the steps of the finish and the symmetric finish at the stored resolution
+        q = s.quality or {}
+        return sum(bool(q.get(key, {}).get("kept"))
+                   for key in ("stored_finish", "stored_symmetric"))
 
     assert any(finished(s) for s in res.subjects)
     for s in res.subjects:
@@ -95,8 +98,8 @@ def test_results_are_at_the_stored_resolution(runs, family):
         parent_res = res.subject(s.parent) if s.parent else None
         parent_polish = (parent_res.quality or {}).get("polish") if parent_res else None
         shared = len(parent) - (parent_polish["steps"] + 1 if parent_polish else 0)
-        if parent_res is not None and finished(parent_res):
-            shared -= 1
+        if parent_res is not None:
+            shared -= finished(parent_res)
         assert steps[:shared] == parent[:shared]
         assert len(steps[-1].control_points) == n_root  # the stored-resolution steps
         # then a polished parent's own stored-resolution step of its edge (its children's
@@ -105,7 +108,7 @@ def test_results_are_at_the_stored_resolution(runs, family):
         polish = (s.quality or {}).get("polish")
         assert len(steps) >= (shared + (1 if parent_polish else 0) + 2
                               + (polish.get("steps", 1) if polish else 0)
-                              + (1 if finished(s) else 0))
+                              + finished(s))
     json.dumps(res.to_dict())
 
 
@@ -118,27 +121,44 @@ def test_the_tree_is_finished_again_at_the_stored_resolution(runs, family):
     from registration._tree._polish import FINISH_MAX_E_RATIO
 
     res = runs["c2f"]
-    kept = 0
+    kept = symmetric_kept = 0
+
+    def e_without(s, last):
+        # e of the subject's chain without its `last` steps
+        chain = type(s.transform)(source=s.transform.source, target=s.transform.target,
+                                  steps=s.transform.steps[:len(s.transform.steps) - last],
+                                  path=s.transform.path)
+        yn, norm = normalise(family.shapes[s.index])
+        return registration_error(norm.apply(chain.apply(family.shapes[0])), yn)
+
     for s in res.subjects:
         if s.index == 0:
             continue
-        info = s.quality["stored_finish"]
+        info, sym = s.quality["stored_finish"], s.quality["stored_symmetric"]
         assert isinstance(info["reason"], str) and info["error_before"] > 0
+        assert isinstance(sym["reason"], str)
+        # the symmetric finish starts where the finish left the model
+        finished_e = info["error"] if info["kept"] else info["error_before"]
+        assert sym["error_before"] == finished_e
+        if sym["kept"]:
+            symmetric_kept += 1
+            assert s.error == sym["error"] <= FINISH_MAX_E_RATIO * finished_e
+            assert "made symmetric again at the stored resolution" in s.reason
+            assert e_without(s, 1) == pytest.approx(finished_e, rel=1e-9)
+        else:
+            assert s.error == finished_e
         if not info["kept"]:
+            assert "finished again" not in s.reason
             continue
         kept += 1
-        assert s.error == info["error"] <= FINISH_MAX_E_RATIO * info["error_before"]
+        assert info["error"] <= FINISH_MAX_E_RATIO * info["error_before"]
         assert "finished again at the stored resolution" in s.reason
-        # the chain without its last step is where the stored CPD left the model
-        before = s.transform.steps[:-1]
-        chain = type(s.transform)(source=s.transform.source, target=s.transform.target,
-                                  steps=before, path=s.transform.path)
-        yn, norm = normalise(family.shapes[s.index])
-        e_before = registration_error(norm.apply(chain.apply(family.shapes[0])), yn)
-        assert e_before == pytest.approx(info["error_before"], rel=1e-9)
-    assert kept >= 1
+        # the chain without the finishes' steps is where the stored CPD left the model
+        assert e_without(s, 1 + sym["kept"]) == pytest.approx(info["error_before"], rel=1e-9)
+    assert kept >= 1 and symmetric_kept >= 1
     for s in res.direct or []:
         assert "stored_finish" not in (s.quality or {})
+        assert "stored_symmetric" not in (s.quality or {})
 
 
 def test_a_stored_finish_above_its_e_ratio_is_not_kept(monkeypatch, family):
@@ -153,8 +173,10 @@ def test_a_stored_finish_above_its_e_ratio_is_not_kept(monkeypatch, family):
             continue
         info = s.quality["stored_finish"]
         assert not info["kept"] and info["reason"] == "e above 0.001x the stored CPD's"
-        assert s.error == info["error_before"]
-        assert "finished again" not in s.reason
+        sym = s.quality["stored_symmetric"]
+        assert not sym["kept"] and sym["reason"] == "e above 0.001x the finished e"
+        assert s.error == info["error_before"] == sym["error_before"]
+        assert "finished again" not in s.reason and "symmetric again" not in s.reason
 
 
 def test_static_tree_and_direct_are_not_finished(family):
@@ -311,9 +333,10 @@ def test_children_of_a_polished_subject_start_from_its_registration_as_built(
     assert polished_parents, "no polished subject with children: pick another family"
     kinds = set()
     for p in polished_parents:
-        # the parent's stored-resolution finish comes after everything its children
+        # the parent's stored-resolution finishes come after everything its children
         # were started from
-        finished = int(bool(p.quality["stored_finish"]["kept"]))
+        finished = sum(bool(p.quality[key]["kept"])
+                       for key in ("stored_finish", "stored_symmetric"))
         final = len(p.transform.steps) - finished
         built = p.transform.steps[:final - p.quality["polish"]["steps"] - 1]
         for c in (c for c in res.subjects if c.parent == p.index):

@@ -393,15 +393,22 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
             continue
         assert s.layer is not None and s.layer >= 2
         p = s.quality["polish"]
-        # the finish (one CPD from the root model, last) adds one step when kept, at an e
-        # up to 1.1x the polished one
-        finish = p["finish"]
-        fin = 1 if finish["kept"] else 0
+        # the finish (one CPD from the root model) adds one step when kept, at an e up to
+        # 1.1x the polished one; then the symmetric finish (last) one more, at an e up to
+        # 1.1x the finished one
+        finish, symmetric = p["finish"], p["symmetric"]
+        fin = int(finish["kept"]) + int(symmetric["kept"])
         polished_e = finish["error_before"]
-        assert finish["kept"] == (s.error != polished_e)
+        finished_e = finish["error"] if finish["kept"] else polished_e
+        assert symmetric["error_before"] == finished_e
+        assert finish["kept"] == (finished_e != polished_e)
+        assert symmetric["kept"] == (s.error != finished_e)
         if finish["kept"]:
-            assert finish["error"] == s.error <= FINISH_MAX_E_RATIO * polished_e
+            assert finish["error"] <= FINISH_MAX_E_RATIO * polished_e
             assert "finished by one CPD from the root model" in s.reason
+        if symmetric["kept"]:
+            assert symmetric["error"] == s.error <= FINISH_MAX_E_RATIO * finished_e
+            assert "halfway to the subject's registration back onto the root" in s.reason
         assert p["error_before"] == before.error and polished_e <= before.error
         assert p["min_jacobian"] > 0 and p["confidence"] >= 0.2
         assert "polished" in s.reason
@@ -487,6 +494,7 @@ def test_a_rejected_polish_stage_is_skipped_not_the_end(family, monkeypatch):
 
     monkeypatch.setattr(polish_module, "cpd_nonrigid", first_stage_misses)
     monkeypatch.setattr(polish_module, "_finish", lambda task, best: (best, None))
+    monkeypatch.setattr(polish_module, "_symmetric", lambda task, best: (best, None))
     y, _ = normalise(family.shapes[3])
     start = y + 0.01 * np.sin(7 * y[:, ::-1])  # near the subject, slightly off
     task = polish_module._PolishTask(
@@ -521,6 +529,7 @@ def test_a_finer_polish_stage_must_lower_e_by_the_set_fraction(family, monkeypat
 
     monkeypatch.setattr(polish_module, "cpd_nonrigid", recording)
     monkeypatch.setattr(polish_module, "_finish", lambda task, best: (best, None))
+    monkeypatch.setattr(polish_module, "_symmetric", lambda task, best: (best, None))
     y, _ = normalise(family.shapes[3])
     start = y + 0.02 * np.sin(5 * y[:, ::-1])
     task = polish_module._PolishTask(
@@ -609,6 +618,7 @@ def test_the_consensus_is_kept_only_up_to_its_e_ratio_to_the_chains(family, monk
 
     monkeypatch.setattr(polish_module, "_stages", stages)
     monkeypatch.setattr(polish_module, "_finish", lambda task, best: (best, None))
+    monkeypatch.setattr(polish_module, "_symmetric", lambda task, best: (best, None))
     task = _consensus_task(family, 4)
     out = polish_module._polish_task(task)
     chain, found = runs[0], runs[2]
@@ -801,6 +811,94 @@ def test_the_finish_is_one_cpd_from_the_root_model_kept_up_to_its_e_ratio(family
     for step in out.steps:
         p = step.apply(p)
     assert np.allclose(p, out.warped, atol=1e-8)
+
+
+@pytest.mark.parametrize("above", [False, True])
+def test_the_symmetric_finish_moves_halfway_to_the_subject_registered_back(family,
+                                                                          monkeypatch, above):
+    """The symmetric finish registers the subject back onto the root model (the finish's
+    kernel and regulariser, from the inverse of the polished registration, sigma^2 from its
+    e) and moves the polished points halfway to where the inverse of that backward field
+    puts the root's points; kept when its e is at most FINISH_MAX_E_RATIO times the
+    polished e (set just above, then just below the ratio it reaches here)."""
+    from registration._error import registration_error
+    from registration._tree import _polish as polish_module
+
+    task, best = _finish_setting(family)
+    real = polish_module.cpd_nonrigid
+    calls: list = []
+
+    def recording(x, y, **kw):
+        res = real(x, y, **kw)
+        calls.append((x, y, kw, res))
+        return res
+
+    monkeypatch.setattr(polish_module, "cpd_nonrigid", recording)
+    _, info = polish_module._symmetric(task, best)
+    (moving, fixed, kw, back), = calls
+    # the subject onto the root, started near the root's points
+    assert moving is task.y and fixed is task.model
+    assert kw["beta"] == polish_module.FINISH_BETA_FACTOR * FAST_CPD.beta
+    assert kw["lmbda"] == polish_module.FINISH_LMBDA_FACTOR * FAST_CPD.lmbda
+    assert kw["sigma2"] == max(0.5 * best.error, task.spacing2) and kw["accelerate"]
+    assert registration_error(kw["init_warped"], task.model) < 0.2 * registration_error(
+        task.y, task.model)
+    assert info["error_before"] == best.error and "error" in info, info
+    ratio = info["error"] / best.error
+    monkeypatch.setattr(polish_module, "FINISH_MAX_E_RATIO", ratio * (1 - 1e-9 if above
+                                                                      else 1 + 1e-9))
+    calls.clear()
+    out, info = polish_module._symmetric(task, best)
+    assert info["kept"] is (not above)
+    if above:
+        assert out is best and info["reason"].startswith("e above")
+        return
+    assert out.error == info["error"] and out.steps[:-1] == best.steps
+    assert len(out.quality) == len(best.quality) + 1
+    assert np.allclose(out.steps[-1].apply(best.warped), out.warped, atol=1e-12)
+    # halfway: the point as far beyond the reported one as the polished one lies before it
+    # is where the backward field takes the root's point (up to the step's ridge)
+    z = 2 * out.warped - best.warped
+    (_, _, _, back), = calls
+    size = np.sqrt(np.mean(np.sum(task.model ** 2, axis=1)))
+    assert np.abs(back.transform.apply(z) - task.model).max() < 0.02 * size
+    assert np.abs(out.warped - best.warped).max() > 1e-4 * size  # it did move
+    # correspondences of the moved points: each one's most probable subject point
+    assert out.correspondence.shape == (len(task.model),)
+    assert ((out.probability >= 0) & (out.probability <= 1)).all()
+
+
+def test_a_symmetric_finish_without_an_inverse_is_not_kept(family, monkeypatch):
+    from registration._tree import _polish as polish_module
+
+    task, best = _finish_setting(family)
+    monkeypatch.setattr(polish_module, "invert_points",
+                        lambda transform, points, **kw: (np.asarray(points),
+                                                          np.full(len(points), 1e-3)))
+    out, info = polish_module._symmetric(task, best)
+    assert out is best
+    assert info == {"kept": False, "error_before": best.error,
+                    "reason": "the backward registration has no inverse at every root point"}
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_symmetric_finish_lowers_the_ground_truth_error_of_chained_shapes(seed,
+                                                                             monkeypatch):
+    """Measured, not assumed: on chained families (ground truth known) the tree with the
+    symmetric finish puts the root's points nearer their true images than without it
+    (pooled over the subjects: 0.0951 against 0.1007 at seed 0, 0.0974 against 0.1015 at
+    seed 1)."""
+    from registration._tree import _polish as polish_module
+
+    fam = chained_family(n_chains=2, chain_length=5, n_points=100, step=0.3, seed=seed)
+
+    def gt() -> float:
+        res = build_dynamic_tree(fam.shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+        return float(np.mean([_gt_error(fam, s) for s in res.subjects if s.attached]))
+
+    with_it = gt()
+    monkeypatch.setattr(polish_module, "_symmetric", lambda task, best: (best, None))
+    assert with_it < 0.97 * gt()
 
 
 def test_a_finish_whose_field_folds_is_not_kept(family, monkeypatch):
