@@ -61,10 +61,13 @@ PHASE_WEIGHTS = {
     "layers": 0.26,
     "refine": 0.025,
     "direct": 0.10,
-    "polish": 0.45,
+    # the symmetric finish (session 23, bench/RESULTS.md 7.16: the 73 glyphs' polish
+    # 10.4-11.2 -> 12.5-13.4 s over HTTP) made it 1.2x; it was 0.45
+    "polish": 0.54,
     # the tree's stored-resolution stage about doubled with its finish (session 21,
-    # bench/RESULTS.md 8.4: 3.8-4.0 -> 6.7-7.8 s of the 73 glyphs' job over HTTP)
-    "full resolution": 0.040,
+    # bench/RESULTS.md 8.4: 3.8-4.0 -> 6.7-7.8 s of the 73 glyphs' job over HTTP; 0.040),
+    # then grew 1.65x with the symmetric finish (session 23, 7.16: 6.3-7.7 -> 11.6 s)
+    "full resolution": 0.066,
     "direct full resolution": 0.011,
 }
 #: A grouping job's phases, as shares of its run: the mean wall-clock shares of nine runs
