@@ -483,21 +483,34 @@ def _finish(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
         info["reason"] = "the step to it folds"
         return best, info
     step, moved = found
+    return _finished(task, best, step, moved, info,
+                     lambda e: (res.correspondence, res.probability))
+
+
+def _finished(task: _PolishTask, best: _Stages, step: PointTransform, moved: FloatArray,
+              info: dict[str, Any],
+              correspondence: Callable[[float], tuple[NDArray[Any], NDArray[Any]]]
+              ) -> tuple[_Stages, dict[str, Any]]:
+    """The rule of the finish and the symmetric finish: `best` extended by `step`, which
+    moves its points to `moved`, when the step's confidence is at least
+    :data:`MIN_CONFIDENCE` and its e is at most :data:`FINISH_MAX_E_RATIO` times `best`'s
+    (`correspondence(e)`: the correspondences and their probabilities then); else `best`
+    as it is. `info` records the e and the reason."""
     e = registration_error(moved, task.y)
     q = measure_quality(best.warped, moved, task.y, step, e, task.spacing2)
     info["error"] = e
     if not q.confidence >= MIN_CONFIDENCE:
         info["reason"] = f"confidence below {MIN_CONFIDENCE:g}"
-    elif not e <= FINISH_MAX_E_RATIO * best.error:
+        return best, info
+    if not e <= FINISH_MAX_E_RATIO * best.error:
         info["reason"] = f"e above {FINISH_MAX_E_RATIO:g}x the polished e"
-    else:
-        info["kept"] = True
-        info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x the polished e"
-        return _Stages(warped=moved, error=e, steps=(*best.steps, step),
-                       quality=(*best.quality, q),
-                       correspondence=np.asarray(res.correspondence, dtype=np.intp),
-                       probability=np.asarray(res.probability, dtype=np.float64)), info
-    return best, info
+        return best, info
+    info["kept"] = True
+    info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x the polished e"
+    corr, prob = correspondence(e)
+    return _Stages(warped=moved, error=e, steps=(*best.steps, step),
+                   quality=(*best.quality, q), correspondence=np.asarray(corr, dtype=np.intp),
+                   probability=np.asarray(prob, dtype=np.float64)), info
 
 
 def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: float,
@@ -563,21 +576,8 @@ def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any
         info["reason"] = found
         return best, info
     step, moved = found
-    e = registration_error(moved, task.y)
-    q = measure_quality(best.warped, moved, task.y, step, e, task.spacing2)
-    info["error"] = e
-    if not q.confidence >= MIN_CONFIDENCE:
-        info["reason"] = f"confidence below {MIN_CONFIDENCE:g}"
-        return best, info
-    if not e <= FINISH_MAX_E_RATIO * best.error:
-        info["reason"] = f"e above {FINISH_MAX_E_RATIO:g}x the polished e"
-        return best, info
-    info["kept"] = True
-    info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x the polished e"
-    corr, prob = _posterior_max(moved, task.y, max(0.5 * e, task.spacing2), o.w)
-    return _Stages(warped=moved, error=e, steps=(*best.steps, step),
-                   quality=(*best.quality, q), correspondence=np.asarray(corr, dtype=np.intp),
-                   probability=np.asarray(prob, dtype=np.float64)), info
+    return _finished(task, best, step, moved, info,
+                     lambda e: _posterior_max(moved, task.y, max(0.5 * e, task.spacing2), o.w))
 
 
 def _polish_task(task: _PolishTask) -> _PolishOutcome:

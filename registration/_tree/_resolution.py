@@ -33,6 +33,7 @@ nothing here runs and the methods behave exactly as without a coarse stage.
 from __future__ import annotations
 
 import numbers
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -275,16 +276,29 @@ def _stored_finish(model: FloatArray, warped: FloatArray, error: float, y: Float
         info["reason"] = "the step to it folds"
         return _StoredFinish(info)
     step, moved = found
+    return _stored_ruled(info, step, moved, y, error, "the stored CPD's",
+                         lambda e: (res.correspondence, res.probability))
+
+
+def _stored_ruled(info: dict[str, Any], step: PointTransform, moved: FloatArray,
+                  y: FloatArray, error: float, whose: str,
+                  correspondence: Callable[[float], tuple[NDArray[Any], NDArray[Any]]]
+                  ) -> _StoredFinish:
+    """The stored finishes' rule: `step` (to `moved`) kept when its e is at most
+    :data:`~registration._tree._polish.FINISH_MAX_E_RATIO` times `error` (`whose`: whose e
+    that is, for the reason; `correspondence(e)`: the correspondences and their
+    probabilities then). `info` records the e and the reason."""
     e = registration_error(moved, y)
     info["error"] = e
     if not e <= FINISH_MAX_E_RATIO * error:
-        info["reason"] = f"e above {FINISH_MAX_E_RATIO:g}x the stored CPD's"
+        info["reason"] = f"e above {FINISH_MAX_E_RATIO:g}x {whose}"
         return _StoredFinish(info)
     info["kept"] = True
-    info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x the stored CPD's"
+    info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x {whose}"
+    corr, prob = correspondence(e)
     return _StoredFinish(info, step=step, warped=moved, error=e,
-                         correspondence=np.asarray(res.correspondence, dtype=np.intp),
-                         probability=np.asarray(res.probability, dtype=np.float64))
+                         correspondence=np.asarray(corr, dtype=np.intp),
+                         probability=np.asarray(prob, dtype=np.float64))
 
 
 def _stored_symmetric(model: FloatArray, warped: FloatArray, error: float, y: FloatArray,
@@ -312,17 +326,8 @@ def _stored_symmetric(model: FloatArray, warped: FloatArray, error: float, y: Fl
         info["reason"] = found
         return _StoredFinish(info)
     step, moved = found
-    e = registration_error(moved, y)
-    info["error"] = e
-    if not e <= FINISH_MAX_E_RATIO * error:
-        info["reason"] = f"e above {FINISH_MAX_E_RATIO:g}x the finished e"
-        return _StoredFinish(info)
-    info["kept"] = True
-    info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x the finished e"
-    corr, prob = _posterior_max(moved, y, max(0.5 * e, spacing2), o.w)
-    return _StoredFinish(info, step=step, warped=moved, error=e,
-                         correspondence=np.asarray(corr, dtype=np.intp),
-                         probability=np.asarray(prob, dtype=np.float64))
+    return _stored_ruled(info, step, moved, y, error, "the finished e",
+                         lambda e: _posterior_max(moved, y, max(0.5 * e, spacing2), o.w))
 
 
 @dataclass
