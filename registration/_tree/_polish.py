@@ -538,9 +538,7 @@ def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: f
                        max_iter=o.max_iter if max_iter is None else min(o.max_iter, max_iter),
                        tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * error, spacing2),
                        init_warped=back.apply(y), accelerate=True, control=subject_control)
-    # started from `warped`, where the forward registration put each model point
-    z, residual = invert_points(res.transform, model, tol=SYMMETRIC_INVERSE_TOL,
-                                seeds=warped, start=warped)
+    z, residual = invert_points(res.transform, model, seeds=warped)
     if not (np.isfinite(z).all() and float(residual.max()) <= SYMMETRIC_INVERSE_TOL):
         return "the backward registration has no inverse at every root point"
     found = _step_onto(warped, 0.5 * (warped + z), o, control)
