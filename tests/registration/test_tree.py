@@ -769,6 +769,28 @@ def test_the_polish_task_computes_the_subjects_irregularity_once(family):
     assert given.error == own.error
 
 
+def _kept_up_to_the_finish_ratio(run, task, best, info, monkeypatch, above):
+    """`run` (the finish or the symmetric finish) again with FINISH_MAX_E_RATIO set just
+    below (`above`), then just above the e ratio its first run (`info`) reached: not kept
+    (None), then kept as one more step of the subject's transform, which maps the polished
+    points onto the reported ones (the outcome)."""
+    from registration._tree import _polish as polish_module
+
+    assert info["error_before"] == best.error and "error" in info, info
+    ratio = info["error"] / best.error
+    monkeypatch.setattr(polish_module, "FINISH_MAX_E_RATIO", ratio * (1 - 1e-9 if above
+                                                                      else 1 + 1e-9))
+    out, info = run(task, best)
+    assert info["kept"] is (not above)
+    if above:
+        assert out is best and info["reason"].startswith("e above")
+        return None
+    assert out.error == info["error"] and out.steps[:-1] == best.steps
+    assert len(out.quality) == len(best.quality) + 1
+    assert np.allclose(out.steps[-1].apply(best.warped), out.warped, atol=1e-12)
+    return out
+
+
 @pytest.mark.parametrize("above", [False, True])
 def test_the_finish_is_one_cpd_from_the_root_model_kept_up_to_its_e_ratio(family, monkeypatch,
                                                                           above):
@@ -794,19 +816,10 @@ def test_the_finish_is_one_cpd_from_the_root_model_kept_up_to_its_e_ratio(family
     assert kw["beta"] == polish_module.FINISH_BETA_FACTOR * FAST_CPD.beta
     assert kw["lmbda"] == polish_module.FINISH_LMBDA_FACTOR * FAST_CPD.lmbda
     assert kw["sigma2"] == max(0.5 * best.error, task.spacing2) and kw["accelerate"]
-    assert info["error_before"] == best.error and "error" in info, info
-    ratio = info["error"] / best.error
-    monkeypatch.setattr(polish_module, "FINISH_MAX_E_RATIO", ratio * (1 - 1e-9 if above
-                                                                      else 1 + 1e-9))
-    out, info = polish_module._finish(task, best)
-    assert info["kept"] is (not above)
-    if above:
-        assert out is best and info["reason"].startswith("e above")
+    out = _kept_up_to_the_finish_ratio(polish_module._finish, task, best, info,
+                                       monkeypatch, above)
+    if out is None:
         return
-    assert out.error == info["error"] and out.steps[:-1] == best.steps
-    assert len(out.quality) == len(best.quality) + 1
-    # the step maps the polished points onto the reported ones
-    assert np.allclose(out.steps[-1].apply(best.warped), out.warped, atol=1e-12)
     p = task.start
     for step in out.steps:
         p = step.apply(p)
@@ -843,19 +856,11 @@ def test_the_symmetric_finish_moves_halfway_to_the_subject_registered_back(famil
     assert kw["sigma2"] == max(0.5 * best.error, task.spacing2) and kw["accelerate"]
     assert registration_error(kw["init_warped"], task.model) < 0.2 * registration_error(
         task.y, task.model)
-    assert info["error_before"] == best.error and "error" in info, info
-    ratio = info["error"] / best.error
-    monkeypatch.setattr(polish_module, "FINISH_MAX_E_RATIO", ratio * (1 - 1e-9 if above
-                                                                      else 1 + 1e-9))
     calls.clear()
-    out, info = polish_module._symmetric(task, best)
-    assert info["kept"] is (not above)
-    if above:
-        assert out is best and info["reason"].startswith("e above")
+    out = _kept_up_to_the_finish_ratio(polish_module._symmetric, task, best, info,
+                                       monkeypatch, above)
+    if out is None:
         return
-    assert out.error == info["error"] and out.steps[:-1] == best.steps
-    assert len(out.quality) == len(best.quality) + 1
-    assert np.allclose(out.steps[-1].apply(best.warped), out.warped, atol=1e-12)
     # halfway: the point as far beyond the reported one as the polished one lies before it
     # is where the backward field takes the root's point (up to the step's ridge)
     z = 2 * out.warped - best.warped
