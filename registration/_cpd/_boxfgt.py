@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ._fgt import _cheb_nodes, _interp_matrix
+from ._fgt import _cheb_nodes, _interp_matrix, bounding_box
 from ._field import FloatArray
 
 #: Side of a box in kernel widths (sigma).  At 8 the truncation radius (7.7 sigma) is just
@@ -242,8 +242,7 @@ def box_work(lo: FloatArray, hi: FloatArray, sigma: float, *sets: FloatArray
 def box_gauss_transform(src: FloatArray, q: FloatArray, tgt: FloatArray,
                         sigma: float) -> FloatArray:
     """``sum_j q[j] exp(-|tgt_i - src_j|^2 / (2 sigma^2))`` for every target: (n_tgt, k)."""
-    lo = np.minimum(src.min(axis=0), tgt.min(axis=0))
-    hi = np.maximum(src.max(axis=0), tgt.max(axis=0))
+    lo, hi = bounding_box(src, tgt)
     grid = BoxGrid(lo, hi, sigma, src, tgt)
     conv = grid.spread(grid.interp(src), q.reshape(len(src), -1))
     return grid.gather(grid.interp(tgt), conv)

@@ -121,8 +121,17 @@ class ChebGrid:
 
 
 def bounding_box(*sets: FloatArray) -> tuple[FloatArray, FloatArray]:
-    lo = np.min([s.min(axis=0) for s in sets], axis=0)
-    hi = np.max([s.max(axis=0) for s in sets], axis=0)
+    """The corners of the box around every point of `sets` (each (n, d), n >= 1): NaN in
+    a coordinate when any point has NaN there.
+
+    Reduced a column at a time: numpy reduces a C-ordered (n, 2) array along axis 0 in
+    strides, 10x slower than its contiguous-looking column views (2000 points: 115 vs
+    12 us), and the field's kernel product and the Gauss transforms take this box on every
+    call (the symmetric finish's Newton iterations call them thousands of times on a few
+    points each)."""
+    cols = range(sets[0].shape[1])
+    lo = np.array([[s[:, c].min() for c in cols] for s in sets]).min(axis=0)
+    hi = np.array([[s[:, c].max() for c in cols] for s in sets]).max(axis=0)
     return lo, hi
 
 

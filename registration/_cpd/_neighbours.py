@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ._fgt import bounding_box
 from ._field import FloatArray
 
 #: Candidates handled per block of centroids (their temporaries stay in the CPU cache).
@@ -60,8 +61,8 @@ def near_pairs(t: FloatArray, x: FloatArray, r: float, cap: int | None = None,
     if m == 0 or len(x) == 0:
         return NearPairs(np.zeros(m, dtype=np.intp), np.zeros(0, dtype=np.intp),
                          np.zeros((2, 0)), np.zeros(0) if distances else None)
-    lo = x.min(axis=0)
-    span = float(np.max(x.max(axis=0) - lo))
+    lo, hi = bounding_box(x)
+    span = float(np.max(hi - lo))
     # the cells are read for a radius a few roundings larger: a point whose distance
     # rounds to r must not sit in a cell whose coordinate rounded the other way
     # (the distance test below, ``d^2 <= r^2``, decides)

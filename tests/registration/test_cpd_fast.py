@@ -407,3 +407,19 @@ def test_runs_match_dense(pair: tuple[np.ndarray, np.ndarray], dense_run: np.nda
 def test_gauss_grid_is_validated(pair: tuple[np.ndarray, np.ndarray]) -> None:
     with pytest.raises(ValueError, match="gauss_grid must be True, False or None"):
         cpd_nonrigid(*pair, gauss_grid="yes")  # type: ignore[arg-type]
+
+
+def test_the_bounding_box_of_several_sets_keeps_nan_and_infinity() -> None:
+    """The grids' box, a column at a time: the same corners as numpy's reduction over
+    the stacked sets, NaN where any point has NaN in that coordinate."""
+    from registration._cpd._fgt import bounding_box
+
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(50, 2)), rng.normal(size=(7, 2)) + 5.0
+    lo, hi = bounding_box(a, b)
+    np.testing.assert_array_equal(lo, np.vstack([a, b]).min(axis=0))
+    np.testing.assert_array_equal(hi, np.vstack([a, b]).max(axis=0))
+    b[3] = [np.nan, np.inf]
+    lo, hi = bounding_box(b, a)
+    assert np.isnan(lo[0]) and np.isnan(hi[0])
+    assert lo[1] == a[:, 1].min() and hi[1] == np.inf

@@ -141,3 +141,38 @@ def test_a_stalled_point_does_not_keep_the_others_from_converging() -> None:
     assert residual[0] >= 1.0 - 1e-9  # the nearest it can get: y = 0
     assert residual[1] < 1e-11 and np.allclose(np.abs(z[1]), [0.3, 0.5])
     assert np.isfinite(z).all()
+
+
+def test_a_map_with_its_own_jacobian_is_evaluated_once_per_newton_trial() -> None:
+    """A CPD warp gives its Jacobian with its image: the Newton iterations take both from
+    one evaluation of each trial point (plain ``apply`` only for the start), and reach
+    the same preimages as central differences of ``apply`` alone."""
+    angle = np.linspace(0, 2 * np.pi, 80, endpoint=False)
+    model = np.c_[np.cos(angle), 0.6 * np.sin(angle)]
+    subject = model + 0.08 * np.c_[np.sin(3 * angle), np.cos(2 * angle)]
+    warp = cpd_nonrigid(model, subject).transform
+    points = np.stack(np.meshgrid(np.linspace(-1.2, 1.2, 9), np.linspace(-0.8, 0.8, 7)),
+                      -1).reshape(-1, 2)
+    calls = {"apply": 0, "apply_with_jacobian": 0}
+
+    class Counting:
+        def apply(self, p):
+            calls["apply"] += len(p)
+            return warp.apply(p)
+
+        def apply_with_jacobian(self, p):
+            calls["apply_with_jacobian"] += len(p)
+            return warp.apply_with_jacobian(p)
+
+    class ImageOnly:
+        def apply(self, p):
+            return warp.apply(p)
+
+    z, residual = invert_points(Counting(), points)
+    assert residual.max() < 1e-11
+    assert calls["apply"] == len(points)  # the start, 2 y - f(y)
+    # one evaluation of each start, then one per trial step of a point still iterating
+    assert len(points) < calls["apply_with_jacobian"] < 8 * len(points)
+    z_cd, residual_cd = invert_points(ImageOnly(), points)
+    assert residual_cd.max() < 1e-11
+    np.testing.assert_allclose(z, z_cd, atol=1e-10)
