@@ -100,7 +100,11 @@ class SubjectResult:
         ``stored_min_jacobian`` (the fold check at the stored resolution) and, for the
         dynamic tree's subjects, ``stored_finish`` and ``stored_symmetric``: the finish
         from the root model and the symmetric finish run again on the stored points
-        (``kept``, ``reason``, ``error_before``, ``error``).
+        (``kept``, ``reason``, ``error_before``, ``error``; the symmetric finish, at either
+        resolution, also ``without_inverse``: how many root points its step was to be
+        fitted through (every point; at the stored resolution the 500 control points)
+        the subject's registration back onto the root has no inverse at, moved with
+        their neighbours).
     """
 
     index: int

@@ -313,8 +313,10 @@ def _stored_symmetric(model: FloatArray, warped: FloatArray, error: float, y: Fl
     inverse of that backward field puts the model's points
     (:func:`~registration._tree._polish._halfway_back`). The backward CPD's field is
     fitted with as many of the subject's points as the model's `control` points (its
-    farthest-point subsample), the fields through the model's points with those. Kept,
-    as the finish, when the inverse is found, the step does not fold and e is at most
+    farthest-point subsample), the fields through the model's points with those (so the
+    backward field is inverted at those 500 root points alone). Kept, as the finish, when
+    the inverse is found (at :data:`~registration._tree._polish.SYMMETRIC_MIN_REACHED` of
+    those points at least), the step does not fold and e is at most
     :data:`~registration._tree._polish.FINISH_MAX_E_RATIO` times `error`; without it the
     stored forward finish slides the points back (on six 1200-point 永 edge chains the
     working resolution's symmetric finish alone left the ground truth at 1.00x;
@@ -327,7 +329,7 @@ def _stored_symmetric(model: FloatArray, warped: FloatArray, error: float, y: Fl
     if isinstance(found, str):
         info["reason"] = found
         return _StoredFinish(info)
-    step, moved = found
+    step, moved, info["without_inverse"] = found
     return _stored_ruled(info, step, moved, y, error, "the finished e",
                          lambda e: _posterior_max(moved, y, max(0.5 * e, spacing2), o.w))
 

@@ -883,7 +883,75 @@ def test_a_symmetric_finish_without_an_inverse_is_not_kept(family, monkeypatch):
     out, info = polish_module._symmetric(task, best)
     assert out is best
     assert info == {"kept": False, "error_before": best.error,
-                    "reason": "the backward registration has no inverse at every root point"}
+                    "reason": "the backward registration has no inverse at more than 10% "
+                              "of the root points"}
+
+
+def test_root_points_without_an_inverse_move_with_their_neighbours(family, monkeypatch):
+    """Where the backward field has no inverse at a few root points (a stroke's tip the
+    subject lacks), the others still move halfway and those few move with the step's
+    field through them: the same step as when the inverse is found everywhere, up to
+    what those few points fit, and the record says how many they were. Below nine in
+    ten of the root's points the step is not taken."""
+    from registration._tree import _polish as polish_module
+
+    task, best = _finish_setting(family)
+    real = polish_module.invert_points
+    n = len(task.model)
+    # a run of neighbouring points along the outline, as a stroke's tip would be
+    lost = np.arange(n // 3, n // 3 + max(1, n // 20))
+
+    def losing(transform, points, **kw):
+        z, residual = real(transform, points, **kw)
+        z, residual = z.copy(), residual.copy()
+        z[lost], residual[lost] = np.nan, np.inf
+        return z, residual
+
+    everywhere = polish_module._halfway_back(task.model, task.y, best.warped, best.error,
+                                             task.spacing2, task.cpd)
+    assert not isinstance(everywhere, str) and everywhere.without_inverse == 0
+    monkeypatch.setattr(polish_module, "invert_points", losing)
+    found = polish_module._halfway_back(task.model, task.y, best.warped, best.error,
+                                        task.spacing2, task.cpd)
+    assert not isinstance(found, str) and found.without_inverse == len(lost)
+    assert np.isfinite(found.moved).all()
+    size = np.sqrt(np.mean(np.sum(task.model ** 2, axis=1)))
+    others = np.setdiff1d(np.arange(n), lost)
+    # the points with an inverse go where they went before (halfway, up to the ridge)...
+    assert np.abs(found.moved[others] - everywhere.moved[others]).max() < 0.01 * size
+    # ...and those without follow the step between their neighbours
+    shift = found.moved - best.warped
+    assert np.abs(shift[lost]).max() <= 1.5 * np.abs(shift[others]).max() + 1e-12
+    _, info = polish_module._symmetric(task, best)
+    assert info["without_inverse"] == len(lost)
+    # fitted through control points (the stored resolution's), the backward field is
+    # inverted at those alone, and the step is the one the full inversion gives there
+    control = np.arange(0, n, 3)
+    asked: list = []
+
+    def counting(transform, points, **kw):
+        asked.append((transform, len(points)))
+        return real(transform, points, **kw)
+
+    monkeypatch.setattr(polish_module, "invert_points", counting)
+    part = polish_module._halfway_back(task.model, task.y, best.warped, best.error,
+                                       task.spacing2, task.cpd, control)
+    assert not isinstance(part, str)
+    (back, count), = asked
+    assert count == len(control)
+    z, residual = real(back, task.model, seeds=best.warped)  # every root point
+    assert residual.max() < 1e-6
+    full = polish_module._step_onto(best.warped, 0.5 * (best.warped + z), task.cpd,
+                                    control)
+    assert full is not None
+    np.testing.assert_allclose(part.moved, full[1], atol=1e-9 * size)
+    monkeypatch.setattr(polish_module, "invert_points", losing)
+    # more than a tenth without: no step
+    many = np.arange(0, n, 5)
+    lost = np.union1d(lost, many)
+    assert len(lost) > 0.1 * n
+    _, info = polish_module._symmetric(task, best)
+    assert not info["kept"] and "no inverse at more than 10%" in info["reason"]
 
 
 @pytest.mark.parametrize("seed", [0, 1])
