@@ -101,10 +101,10 @@ class SubjectResult:
         dynamic tree's subjects, ``stored_finish`` and ``stored_symmetric``: the finish
         from the root model and the symmetric finish run again on the stored points
         (``kept``, ``reason``, ``error_before``, ``error``; the symmetric finish, at either
-        resolution, also ``without_inverse``: how many root points its step was to be
-        fitted through (every point; at the stored resolution the 500 control points)
-        the subject's registration back onto the root has no inverse at, moved with
-        their neighbours).
+        resolution, also ``without_inverse``: of the root points its step is fitted
+        through, every point or at the stored resolution the 500 control points, how
+        many the subject's registration back onto the root has no inverse at; they move
+        with their neighbours).
     """
 
     index: int

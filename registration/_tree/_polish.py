@@ -153,9 +153,9 @@ FINISH_LMBDA_FACTOR = 2.0
 #: own sampling let the chain settle into, at an e that may be a little higher.
 FINISH_MAX_E_RATIO = 1.1
 #: The symmetric finish (see `_symmetric`) takes the root model's points halfway to where
-#: the subject registered back onto the root puts them when the inverse of that backward
-#: field is found at every root point to this accuracy (normalised coordinates: the
-#: shapes' RMS radius is 1).
+#: the subject registered back onto the root puts them: a root point's preimage under that
+#: backward field counts as found to this accuracy (normalised coordinates: the shapes'
+#: RMS radius is 1).
 SYMMETRIC_INVERSE_TOL = 1e-6
 #: The symmetric finish moves halfway the root points the backward field has an inverse
 #: at, and the others with CPD's field through those (see `_halfway_back`), when they are
@@ -552,11 +552,10 @@ def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: f
     instead of 1200-2200). The step is CPD's field through the points it succeeds at, onto
     halfway; the points without an inverse (a stroke's tip the subject lacks: nothing of
     the subject is registered onto it) move by that field with their neighbours. At least
-    :data:`SYMMETRIC_MIN_REACHED` of the points must have one.
-    `control`: the model indices the
-    fields through the model's points are fitted with; `subject_control`: the subject
-    indices the backward CPD's field is fitted with (None: every point); `max_iter`: the
-    backward CPD's EM iterations at most (None: the tree's)."""
+    :data:`SYMMETRIC_MIN_REACHED` of the points must have one. `control`: the model
+    indices the fields through the model's points are fitted with; `subject_control`: the
+    subject indices the backward CPD's field is fitted with (None: every point);
+    `max_iter`: the backward CPD's EM iterations at most (None: the tree's)."""
     fit = slice(None) if control is None else control
     back = interpolating_field(warped[fit], model[fit], o.beta, CONSENSUS_RIDGE)
     res = cpd_nonrigid(y, model, beta=FINISH_BETA_FACTOR * o.beta,
