@@ -45,7 +45,7 @@ from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid
 from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor
-from .._pointmap import PointTransform, composed_with_jacobian, jacobian_determinants
+from .._pointmap import PointTransform, composed_with_jacobian
 from .._points import farthest_point_indices, mean_spacing2
 from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
@@ -214,14 +214,18 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
     pre = task.q
     for step in task.steps[:lead]:
         pre = step.apply(pre)
-    start = _Composed(task.steps[lead:]).apply(pre)
+    # the edge's non-rigid steps, with their Jacobians for the fold check below
+    start, jac = _Composed(task.steps[lead:]).apply_with_jacobian(pre)
     o = task.cpd
     res = cpd_nonrigid(start, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, tol=o.tol,
                        max_iter=min(o.max_iter, FINE_MAX_ITER), dtype=o.dtype,
                        sigma2=warm_start_sigma2(start, task.y), normalize=False,
                        control=task.control, accelerate=True)
     warped = np.asarray(res.warped, dtype=np.float64)
-    det = jacobian_determinants(_Composed((*task.steps[lead:], res.transform)), pre)
+    # chain rule: the fine step's Jacobians where the edge put the points, after the edge's
+    # (one kernel product per step; taking the whole composition again cost twice that)
+    jac = res.transform.apply_with_jacobian(start)[1] @ jac
+    det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
     error = registration_error(warped, task.y)
     finish = symmetric = None
     if task.model is not None:
