@@ -125,28 +125,6 @@ def coarse_collection(full: _Collection, working_points: int | None) -> _Collect
 
 
 @dataclass(frozen=True)
-class _Composed:
-    """Steps applied one after the other (the coarse CPD warp then the fine one), as one
-    map for the fold check."""
-
-    steps: tuple[PointTransform, ...]
-
-    def apply(self, points: Any) -> FloatArray:
-        p = np.asarray(points, dtype=np.float64)
-        for step in self.steps:
-            p = step.apply(p)
-        return p
-
-    def apply_with_jacobian(self, points: Any) -> tuple[FloatArray, FloatArray]:
-        both = composed_with_jacobian(self.steps, points)
-        assert both is not None, "every step of a tree edge gives its Jacobian"
-        return both
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"type": "composed", "steps": [s.to_dict() for s in self.steps]}
-
-
-@dataclass(frozen=True)
 class _FineTask:
     subject: int
     q: FloatArray  # the full root model as warped onto the parent (parent's normalised coords)
@@ -215,7 +193,9 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
     for step in task.steps[:lead]:
         pre = step.apply(pre)
     # the edge's non-rigid steps, with their Jacobians for the fold check below
-    start, jac = _Composed(task.steps[lead:]).apply_with_jacobian(pre)
+    both = composed_with_jacobian(task.steps[lead:], pre)
+    assert both is not None, "every step of a tree edge gives its Jacobian"
+    start, jac = both
     o = task.cpd
     res = cpd_nonrigid(start, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, tol=o.tol,
                        max_iter=min(o.max_iter, FINE_MAX_ITER), dtype=o.dtype,
