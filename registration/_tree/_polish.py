@@ -556,15 +556,15 @@ def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: f
     indices the fields through the model's points are fitted with; `subject_control`: the
     subject indices the backward CPD's field is fitted with (None: every point);
     `max_iter`: the backward CPD's EM iterations at most (None: the tree's)."""
-    fit = slice(None) if control is None else control
-    back = interpolating_field(warped[fit], model[fit], o.beta, CONSENSUS_RIDGE)
+    # the model points the fields through the model's points are fitted with, and so the
+    # only ones whose preimage the step needs
+    at = np.arange(len(model)) if control is None else np.asarray(control, dtype=np.intp)
+    back = interpolating_field(warped[at], model[at], o.beta, CONSENSUS_RIDGE)
     res = cpd_nonrigid(y, model, beta=FINISH_BETA_FACTOR * o.beta,
                        lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w,
                        max_iter=o.max_iter if max_iter is None else min(o.max_iter, max_iter),
                        tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * error, spacing2),
                        init_warped=back.apply(y), accelerate=True, control=subject_control)
-    # the step is fitted through the control points alone: only they need their preimage
-    at = np.arange(len(model)) if control is None else np.asarray(control, dtype=np.intp)
     z, residual = invert_points(res.transform, model[at], seeds=warped[at])
     reached = np.isfinite(z).all(axis=1) & (residual <= SYMMETRIC_INVERSE_TOL)
     if not reached.mean() >= SYMMETRIC_MIN_REACHED:
