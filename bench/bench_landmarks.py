@@ -104,6 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'class':10s} {'n':>3s} | {'plain':>15s} {'direct':>15s} {'tree':>15s} | "
           f"{'tree/pl':>7s} {'dir/pl':>6s} | unattached")
     pooled: dict[str, list[float]] = {m: [] for m in METHODS}
+    worse: list[str] = []  # classes where the tree is worse than plain CPD
     for cls in classes:
         shapes, landmarks = load_class(DATA / cls)
         errs: dict[str, list[float]] = {m: [] for m in METHODS}
@@ -127,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
             return f"{a.mean():.4f} ({np.percentile(a, 95):.3f})" if a.size else "-"
 
         pl = np.nanmean(errs["plain"])
+        if np.nanmean(errs["tree"]) > pl:
+            worse.append(cls)
         print(f"{cls:10s} {len(errs['tree']):3d} | {cell(errs['plain']):>15s} "
               f"{cell(errs['direct']):>15s} {cell(errs['tree']):>15s} | "
               f"{np.nanmean(errs['tree']) / pl:7.3f} {np.nanmean(errs['direct']) / pl:6.3f} | "
@@ -136,11 +139,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'ALL':10s} {len(pooled['tree']):3d} | {np.nanmean(pooled['plain']):15.4f} "
               f"{np.nanmean(pooled['direct']):15.4f} {np.nanmean(pooled['tree']):15.4f} | "
               f"{np.nanmean(pooled['tree']) / pl:7.3f} {np.nanmean(pooled['direct']) / pl:6.3f}")
-        worse = [c for c in classes
-                 if np.nanmean([r["landmark_error"] for r in rows
-                                if r["class"] == c and r["method"] == "tree"])
-                 > np.nanmean([r["landmark_error"] for r in rows
-                               if r["class"] == c and r["method"] == "plain"])]
         print(f"classes where the tree is worse than plain CPD: {', '.join(worse) or 'none'}")
     print("seconds: " + "  ".join(f"{m} {seconds[m]:.1f}" for m in METHODS))
     if args.json is not None:
