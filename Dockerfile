@@ -28,7 +28,7 @@ COPY registration ./registration
 COPY service ./service
 COPY migrations ./migrations
 COPY setup.py ./
-# A C compiler for the install only: CPD's compiled truncated E-step (setup.py; without it
+# A C compiler for the install only: CPD's compiled E-step passes (setup.py; without it
 # the library would run numpy's slower passes), then removed again.
 RUN apt-get update \
     && apt-get install -y --no-install-recommends gcc libc6-dev \

@@ -17,7 +17,9 @@ float64 computation:
   rigorous bound on the dropped mass are evaluated (pairs from a cell list,
   :mod:`._neighbours`, kept as a CSR kernel while the centroids move little), giving a sparse ``P``;
   its passes over the pair list are compiled (:mod:`._ckernel`, optional: numpy's when it
-  is not built).
+  is not built), as are the dense E-step, the final correspondences, the field's dense
+  kernel product and the pivoted Cholesky factor (one pass over the pairs through a
+  vectorised exp instead of numpy's product, clamp, exp and products).
 
 The cheapest allowed E-step is chosen on every iteration from estimated costs
 (``_estep.run_estep``).

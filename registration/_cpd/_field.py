@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._repr import number_text, points_text
-from ._fgt import bounding_box, gauss_transform, grid_nodes
+from ._fgt import _compiled, bounding_box, gauss_transform, grid_nodes
 
 FloatArray = NDArray[np.float64]
 
@@ -120,6 +120,15 @@ def kernel_product(z: FloatArray, cp: FloatArray, q: FloatArray, beta: float) ->
     nodes = grid_nodes(np.maximum(hi - lo, 1e-12 * beta), beta, FIELD_FGT_EXTRA)
     if FIELD_FGT_NODE_COST * (k + m) * nodes + FIELD_FGT_FIXED < k * m:
         return gauss_transform(cp, q, z, beta, extra=FIELD_FGT_EXTRA)
+    compiled = _compiled()
+    if compiled is not None and np.isfinite(lo).all() and np.isfinite(hi).all():
+        # one pass over the pairs (see _estep._EStep._dense_compiled); points at infinity
+        # or NaN take numpy's route below
+        compiled.product(np.ascontiguousarray(z, dtype=np.float64),
+                         np.ascontiguousarray(cp.T, dtype=np.float64),
+                         np.ascontiguousarray(q.T, dtype=np.float64), 0.5 / (beta * beta),
+                         out)
+        return out
     step = max(1, _BLOCK_ELEMS // m)
     for a in range(0, k, step):
         out[a:a + step] = _gauss_kernel(z[a:a + step], cp, beta) @ q

@@ -1,4 +1,6 @@
-"""The truncated E-step's compiled passes (``registration/_cpd/_ckernel.c``) against numpy's.
+"""CPD's compiled passes (``registration/_cpd/_ckernel.c``) against numpy's: the truncated
+E-step's, and the dense Gauss sums (dense E-step, correspondences, kernel product, the
+low-rank kernel's pivoted Cholesky factor).
 
 The extension is optional (setup.py builds it when a C compiler is present); without it
 the library runs the numpy passes and these comparisons skip, unless
@@ -9,12 +11,14 @@ from __future__ import annotations
 
 import math
 import os
+from typing import Any
 
 import numpy as np
 import pytest
 
 from registration._cpd import _estep, cpd_nonrigid
-from registration._cpd._estep import _EStep, compiled_kernel
+from registration._cpd._estep import _EStep, _posterior_max_dense, compiled_kernel
+from registration._cpd._field import _gauss_kernel
 
 from .test_cpd_fast import close, curve, naive_sums
 
@@ -138,3 +142,134 @@ def test_compiled_passes_check_their_arrays(ckernel: object) -> None:
                 *n_bufs)
     with pytest.raises(ValueError, match="j holds 32 bytes, expected 16"):
         ck.sums(kern, ip, np.array([0, 1, 1, 0]), x, 0.1, 1e-300, *n_bufs)  # type: ignore[attr-defined]
+
+
+# --- the dense Gauss sums ----------------------------------------------------------------
+
+
+def with_engine(engine: object, fn: Any) -> Any:
+    saved = _estep._CKERNEL
+    _estep._CKERNEL = engine
+    try:
+        return fn()
+    finally:
+        _estep._CKERNEL = saved
+
+
+@pytest.mark.parametrize("sigma", [1.0, 0.1, 0.02, 0.005])
+@pytest.mark.parametrize("w", [0.1, 0.0])
+def test_compiled_dense_estep_equals_numpy_and_exact(ckernel: object, sigma: float,
+                                                     w: float) -> None:
+    """float64: within 1e-11 of numpy's dense sums and the exact ones (the kernels within
+    2 ulp of numpy's exp; at sigma 0.005 numpy's expanded exponents are the ones off by
+    1e-12); float32 within its 1e-5, also at a sigma where float32 coordinates would lose
+    the exponents (their differences are taken in float64), and without an outlier weight,
+    where a subject point far from every centroid has a floored denominator."""
+    x, t = curve(530, 1), curve(470, 2, wobble=0.05)
+    s2 = sigma * sigma
+    exact = naive_sums(t, x, s2, w)
+    for dtype, rel in (("float64", 1e-11), ("float32", 1e-5)):
+        est = _EStep(x, len(t), w, dtype)
+        got = with_engine(ckernel, lambda est=est: est.dense(t, s2))
+        want = with_engine(None, lambda est=est: est.dense(t, s2))
+        assert got.nnz == want.nnz == len(t) * len(x)
+        close(got, exact, rel)
+        close(got, want, rel)
+
+
+def test_compiled_dense_estep_far_from_every_centroid(ckernel: object) -> None:
+    """A subject point hundreds of sigma from every centroid: its kernels are 0 (below the
+    exponent -700, or -87 in float32), so without an outlier weight its denominator is
+    the floor and it takes no posterior, as numpy's clipped kernels give."""
+    x = np.vstack([curve(200, 1), [[50.0, 0.0]]])
+    t = curve(180, 2)
+    for dtype in ("float64", "float32"):
+        est = _EStep(x, len(t), 0.0, dtype)
+        got = with_engine(ckernel, lambda est=est: est.dense(t, 0.01))
+        assert got.pt1[-1] == 0.0 and np.isfinite(got.p1).all() and np.isfinite(got.nll)
+        close(got, naive_sums(t, x, 0.01, 0.0), 1e-11 if dtype == "float64" else 1e-5)
+
+
+@pytest.mark.parametrize(("sigma", "w"), [(0.3, 0.1), (0.02, 0.1), (0.01, 0.0)])
+def test_compiled_correspondences_equal_numpy(ckernel: object, sigma: float, w: float) -> None:
+    x, t = curve(400, 8), curve(380, 9, wobble=0.05)
+    s2 = sigma * sigma
+    arg, best = with_engine(ckernel, lambda: _posterior_max_dense(t, x, s2, w))
+    arg0, best0 = with_engine(None, lambda: _posterior_max_dense(t, x, s2, w))
+    np.testing.assert_array_equal(arg, arg0)
+    # numpy's exponents come from an expanded product, off by about eps |x|^2 / sigma^2
+    np.testing.assert_allclose(best, best0, rtol=1e-10, atol=1e-300)
+    assert arg.dtype == np.intp and best.min() >= 0.0 and best.max() <= 1.0
+
+
+def test_compiled_kernel_product_equals_numpy(ckernel: object) -> None:
+    """The field's kernel product (few points: dense) and a warp with its Jacobian."""
+    from registration._cpd._field import NonrigidTransform, kernel_product
+
+    cp, z = curve(120, 3), curve(90, 4, wobble=0.1) * 1.1
+    q = np.random.default_rng(0).normal(size=(len(cp), 6))
+    for beta in (2.0, 0.3):
+        got = with_engine(ckernel, lambda beta=beta: kernel_product(z, cp, q, beta))
+        want = with_engine(None, lambda beta=beta: kernel_product(z, cp, q, beta))
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-13 * np.abs(q).sum(axis=0).max())
+    field = NonrigidTransform(cp, q[:, :2], 1.0, np.zeros(2), 1.0, np.zeros(2), 1.0)
+    a = with_engine(ckernel, lambda: field.apply_with_jacobian(z))
+    b = with_engine(None, lambda: field.apply_with_jacobian(z))
+    for got, want in zip(a, b, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    # points at infinity or NaN take numpy's route (0 kernel at infinity, NaN for NaN)
+    far = np.vstack([z[:3], [[np.inf, 0.0], [np.nan, 1.0]]])
+    with np.errstate(all="ignore"):
+        got = with_engine(ckernel, lambda: kernel_product(far, cp, q, 1.0))
+        want = with_engine(None, lambda: kernel_product(far, cp, q, 1.0))
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_allclose(got[:4], want[:4], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("beta", [2.0, 0.5, 0.1])
+def test_compiled_pivoted_cholesky_equals_numpy(ckernel: object, beta: float) -> None:
+    """The same first pivots and columns, and the same guarantee: the residual's largest
+    entry within the trace tolerance. Once the residual diagonal is down to rounding (the
+    last columns of a wide kernel), which point it pivots on is rounding's choice, so the
+    ranks may differ by a few columns. A rank past the first 64 columns grows the factor
+    and resumes where it stopped."""
+    from registration._cpd._fgt import pivoted_cholesky
+    from registration._cpd._mstep import LOW_RANK_TRACE_TOL
+
+    y = curve(300, 5, wobble=0.1)
+    g = _gauss_kernel(y, y, beta)
+    for rank in (None, 7, 100):
+        got = with_engine(ckernel, lambda rank=rank: pivoted_cholesky(
+            y, beta, rank, LOW_RANK_TRACE_TOL))
+        want = with_engine(None, lambda rank=rank: pivoted_cholesky(
+            y, beta, rank, LOW_RANK_TRACE_TOL))
+        assert abs(got.shape[1] - want.shape[1]) <= max(2, 0.05 * want.shape[1])
+        first = min(got.shape[1], want.shape[1], 20)
+        np.testing.assert_allclose(got[:, :first], want[:, :first], rtol=0, atol=1e-10)
+        if rank is None:
+            assert np.max(np.abs(g - got @ got.T)) <= LOW_RANK_TRACE_TOL * len(y)
+        elif rank <= 64 or want.shape[1] > 64:
+            assert got.shape[1] == want.shape[1]
+
+
+def test_compiled_dense_passes_check_their_arrays(ckernel: object) -> None:
+    ck = ckernel
+    tt, x = np.zeros((2, 3)), np.zeros((4, 2))
+    p1, px, pt1 = np.empty(3), np.empty((2, 3)), np.empty(4)
+    ck.dense(tt, x, 1.0, 0.1, 1e-300, False, p1, px, pt1)  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="tt holds 40 bytes, expected 48"):
+        ck.dense(np.zeros(5), x, 1.0, 0.1, 1e-300, False, p1, px, pt1)  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="pt1 holds 24 bytes, expected 32"):
+        ck.dense(tt, x, 1.0, 0.1, 1e-300, True, p1, px, np.empty(3))  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="arg holds"):
+        ck.posterior_max(tt, x, 1.0, 0.1, 1e-300, np.empty(2, dtype=np.int64),  # type: ignore[attr-defined]
+                         np.empty(3))
+    with pytest.raises(ValueError, match="qt holds"):
+        ck.product(x, tt, np.zeros(7), 1.0, np.empty((4, 2)))  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="out holds"):
+        ck.product(x, tt, np.zeros((2, 3)), 1.0, np.empty((4, 3)))  # type: ignore[attr-defined]
+    factor, d = np.zeros((3, 2)), np.ones(3)
+    with pytest.raises(ValueError, match="k0 must lie"):
+        ck.pivoted_cholesky(np.zeros((3, 2)), 1.0, 3, -1.0, factor, d, 5)  # type: ignore[attr-defined]
+    # three coincident points: one column, then nothing left
+    assert ck.pivoted_cholesky(np.zeros((3, 2)), 1.0, 3, -1.0, factor, d, 0) == (1, True)  # type: ignore[attr-defined]

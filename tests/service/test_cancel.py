@@ -183,8 +183,12 @@ def test_cancel_of_a_running_job_is_prompt(
         svc.start_worker()
     with svc.client() as client:
         cid, ids = _heavy_collection(client)
-        job = submit_job(client, cid, ids[0], method=method, compare_direct=True)
-        # Into the registrations: each one of these shapes takes seconds.
+        # every registration at the stored 1500 points (working_points=0): with the
+        # default working resolution the whole job takes about a second, and could end
+        # before the cancel arrives
+        job = submit_job(client, cid, ids[0], method=method, compare_direct=True,
+                         working_points=0)
+        # Into the registrations: the job takes seconds more.
         running = wait_job(
             client,
             job["id"],
@@ -230,7 +234,8 @@ def test_sigterm_releases_a_running_job_promptly(make_service: Callable[..., Ser
     with svc.client() as client:
         cid = create_collection(client, "released")
         ids = upload_family(client, cid, family(n_chains=2, chain_length=2, n_points=1500)[:4])
-        job = submit_job(client, cid, ids[0], method="direct")
+        # at the stored resolution (working_points=0), so that the job is still running
+        job = submit_job(client, cid, ids[0], method="direct", working_points=0)
         wait_job(
             client,
             job["id"],
