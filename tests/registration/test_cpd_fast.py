@@ -329,6 +329,7 @@ def test_small_problems_take_the_dense_estep_without_estimates(
 def test_sparse_correspondences_match_dense(monkeypatch: pytest.MonkeyPatch) -> None:
     x, t = curve(400, 8), curve(380, 9, wobble=0.05)
     monkeypatch.setattr(_estep, "POSTERIOR_DENSE_MAX_PAIRS", 0)
+    monkeypatch.setattr(_estep, "POSTERIOR_DENSE_MAX_PAIRS_COMPILED", 0)
     for s2, w in ((0.01**2, 0.1), (0.02**2, 0.0), (0.005**2, 0.3)):
         arg, best = _posterior_max(t, x, s2, w)
         arg_d, best_d = _posterior_max_dense(t, x, s2, w)
@@ -357,9 +358,11 @@ def test_dense_correspondences_match_the_posterior_matrix(sigma: float) -> None:
         np.testing.assert_array_equal(arg[clear], p.argmax(axis=1)[clear])
 
 
-def test_sparse_hint_gives_the_dense_correspondences() -> None:
+def test_sparse_hint_gives_the_dense_correspondences(monkeypatch: pytest.MonkeyPatch) -> None:
     # below POSTERIOR_DENSE_MAX_PAIRS, `sparse` (the last E-step was the truncated one)
-    # takes the pairs within the radius, with the dense pass's answer
+    # takes the pairs within the radius, with the dense pass's answer (the compiled dense
+    # pass, when built, is taken whatever `sparse` says: set aside here)
+    monkeypatch.setattr(_estep, "POSTERIOR_DENSE_MAX_PAIRS_COMPILED", 0)
     x, t = curve(400, 8), curve(380, 9, wobble=0.05)
     assert len(x) * len(t) <= _estep.POSTERIOR_DENSE_MAX_PAIRS
     for s2, w in ((0.01**2, 0.1), (0.3**2, 0.1)):  # the second: too many pairs, dense
