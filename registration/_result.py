@@ -100,11 +100,12 @@ class SubjectResult:
         ``stored_min_jacobian`` (the fold check at the stored resolution) and, for the
         dynamic tree's subjects, ``stored_finish`` and ``stored_symmetric``: the finish
         from the root model and the symmetric finish run again on the stored points
-        (``kept``, ``reason``, ``error_before``, ``error``; the symmetric finish, at either
-        resolution, also ``without_inverse``: of the root points its step is fitted
-        through, every point or at the stored resolution the 500 control points, how
-        many the subject's registration back onto the root has no inverse at; they move
-        with their neighbours).
+        (``kept``, ``reason``, ``error_before``, ``error`` once a step was found; the
+        symmetric finish, at either resolution, also ``without_inverse``: of the root
+        points its step is fitted through, every point or at the stored resolution the
+        500 control points, how many the subject's registration back onto the root has
+        no inverse at, also when that ruled the step out; those points move with their
+        neighbours).
     """
 
     index: int

@@ -219,6 +219,14 @@ class _Halfway(NamedTuple):
     without_inverse: int
 
 
+class _NoHalfway(NamedTuple):
+    """Why :func:`_halfway_back` has no step, and how many of the points it was to be
+    fitted through the backward field had no inverse at."""
+
+    reason: str
+    without_inverse: int
+
+
 @dataclass(frozen=True)
 class _PolishOutcome:
     subject: int
@@ -536,7 +544,7 @@ def _finished(task: _PolishTask, best: _Stages, step: PointTransform, moved: Flo
 def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: float,
                   spacing2: float, o: CPDOptions, control: IntArray | None = None,
                   subject_control: IntArray | None = None, max_iter: int | None = None
-                  ) -> _Halfway | str:
+                  ) -> _Halfway | _NoHalfway:
     """The registration `warped` (the root `model`'s points on the subject `y`) moved
     halfway to where the subject registered back onto the root puts the model's points:
     the step (:func:`_step_onto`), the points it moves `warped` to and how many had no
@@ -567,16 +575,17 @@ def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: f
                        init_warped=back.apply(y), accelerate=True, control=subject_control)
     z, residual = invert_points(res.transform, model[at], seeds=warped[at])
     reached = np.isfinite(z).all(axis=1) & (residual <= SYMMETRIC_INVERSE_TOL)
+    without = int(np.count_nonzero(~reached))
     if not reached.mean() >= SYMMETRIC_MIN_REACHED:
-        return (f"the backward registration has no inverse at more than "
-                f"{1 - SYMMETRIC_MIN_REACHED:.0%} of the root points")
+        return _NoHalfway(f"the backward registration has no inverse at more than "
+                          f"{1 - SYMMETRIC_MIN_REACHED:.0%} of the root points", without)
     through = at[reached]  # and of those, through the points it reaches
     targets = warped.copy()
     targets[through] = 0.5 * (warped[through] + z[reached])
     found = _step_onto(warped, targets, o, through)
     if found is None:
-        return "the step halfway folds"
-    return _Halfway(*found, without_inverse=int(np.count_nonzero(~reached)))
+        return _NoHalfway("the step halfway folds", without)
+    return _Halfway(*found, without_inverse=without)
 
 
 def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
@@ -603,10 +612,11 @@ def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any
     o = task.cpd
     info: dict[str, Any] = {"kept": False, "error_before": best.error}
     found = _halfway_back(task.model, task.y, best.warped, best.error, task.spacing2, o)
-    if isinstance(found, str):
-        info["reason"] = found
+    info["without_inverse"] = found.without_inverse
+    if isinstance(found, _NoHalfway):
+        info["reason"] = found.reason
         return best, info
-    step, moved, info["without_inverse"] = found
+    step, moved = found.step, found.moved
     return _finished(task, best, step, moved, info,
                      lambda e: _posterior_max(moved, task.y, max(0.5 * e, task.spacing2), o.w))
 

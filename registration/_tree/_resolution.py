@@ -51,7 +51,13 @@ from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
 from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
-from ._polish import FINISH_MAX_E_RATIO, _cpd_from_root, _halfway_back, _step_onto
+from ._polish import (
+    FINISH_MAX_E_RATIO,
+    _cpd_from_root,
+    _halfway_back,
+    _NoHalfway,
+    _step_onto,
+)
 from ._tasks import _map_tasks
 
 FloatArray = NDArray[np.float64]
@@ -310,10 +316,11 @@ def _stored_symmetric(model: FloatArray, warped: FloatArray, error: float, y: Fl
                        else farthest_point_indices(y, len(control)))
     found = _halfway_back(model, y, warped, error, spacing2, o, control, subject_control,
                           STORED_SYMMETRIC_MAX_ITER)
-    if isinstance(found, str):
-        info["reason"] = found
+    info["without_inverse"] = found.without_inverse
+    if isinstance(found, _NoHalfway):
+        info["reason"] = found.reason
         return _StoredFinish(info)
-    step, moved, info["without_inverse"] = found
+    step, moved = found.step, found.moved
     return _stored_ruled(info, step, moved, y, error, "the finished e",
                          lambda e: _posterior_max(moved, y, max(0.5 * e, spacing2), o.w))
 

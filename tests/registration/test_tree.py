@@ -884,7 +884,7 @@ def test_a_symmetric_finish_without_an_inverse_is_not_kept(family, monkeypatch):
     assert out is best
     assert info == {"kept": False, "error_before": best.error,
                     "reason": "the backward registration has no inverse at more than 10% "
-                              "of the root points"}
+                              "of the root points", "without_inverse": len(task.model)}
 
 
 def test_root_points_without_an_inverse_move_with_their_neighbours(family, monkeypatch):
@@ -909,11 +909,11 @@ def test_root_points_without_an_inverse_move_with_their_neighbours(family, monke
 
     everywhere = polish_module._halfway_back(task.model, task.y, best.warped, best.error,
                                              task.spacing2, task.cpd)
-    assert not isinstance(everywhere, str) and everywhere.without_inverse == 0
+    assert isinstance(everywhere, polish_module._Halfway) and everywhere.without_inverse == 0
     monkeypatch.setattr(polish_module, "invert_points", losing)
     found = polish_module._halfway_back(task.model, task.y, best.warped, best.error,
                                         task.spacing2, task.cpd)
-    assert not isinstance(found, str) and found.without_inverse == len(lost)
+    assert isinstance(found, polish_module._Halfway) and found.without_inverse == len(lost)
     assert np.isfinite(found.moved).all()
     size = np.sqrt(np.mean(np.sum(task.model ** 2, axis=1)))
     others = np.setdiff1d(np.arange(n), lost)
@@ -952,6 +952,7 @@ def test_root_points_without_an_inverse_move_with_their_neighbours(family, monke
     assert len(lost) > 0.1 * n
     _, info = polish_module._symmetric(task, best)
     assert not info["kept"] and "no inverse at more than 10%" in info["reason"]
+    assert info["without_inverse"] == len(lost)  # the count, also where it rules the step out
 
 
 @pytest.mark.parametrize("seed", [0, 1])
