@@ -806,6 +806,129 @@ done:
     return ret;
 }
 
+CLONES static void nearest64(Py_ssize_t nb, Py_ssize_t n, Py_ssize_t m, const double *a0,
+                              const double *a1, const double *b0, const double *b1,
+                              double *d, int64_t *row_arg, double *row_d2, int64_t *col_arg,
+                              double *col_d2) {
+    for (Py_ssize_t p = 0; p < nb; p++) {
+        const double *pa0 = a0 + p * n, *pa1 = a1 + p * n, *pb0 = b0 + p * m, *pb1 = b1 + p * m;
+        double *cd = col_d2 ? col_d2 + p * m : NULL;
+        int64_t *ca = col_arg ? col_arg + p * m : NULL;
+        if (cd || ca) {
+            for (Py_ssize_t j = 0; j < m; j++) {
+                if (cd)
+                    cd[j] = INFINITY;
+                if (ca)
+                    ca[j] = 0;
+            }
+        }
+        double *cmin = cd ? cd : d + m; /* the column minima, kept for col_arg */
+        if (!cd)
+            for (Py_ssize_t j = 0; j < m; j++)
+                cmin[j] = INFINITY;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const double x = pa0[i], y = pa1[i];
+            double best = INFINITY;
+#pragma omp simd reduction(min : best)
+            for (Py_ssize_t j = 0; j < m; j++) {
+                const double dx = pb0[j] - x, dy = pb1[j] - y, v = dx * dx + dy * dy;
+                d[j] = v;
+                best = v < best ? v : best;
+            }
+            if (row_arg) {
+                Py_ssize_t j = 0;
+                while (j < m - 1 && !(d[j] == best))
+                    j++;
+                row_arg[p * n + i] = j;
+            }
+            if (row_d2)
+                row_d2[p * n + i] = best;
+            if (ca) {
+                for (Py_ssize_t j = 0; j < m; j++) {
+                    if (d[j] < cmin[j]) { /* strict: the first i keeps a tie */
+                        cmin[j] = d[j];
+                        ca[j] = i;
+                    }
+                }
+            } else if (cd) {
+#pragma omp simd
+                for (Py_ssize_t j = 0; j < m; j++)
+                    cmin[j] = d[j] < cmin[j] ? d[j] : cmin[j];
+            }
+        }
+    }
+}
+
+static int optional_buffer(PyObject *obj, Py_buffer *b, Py_ssize_t items, Py_ssize_t size,
+                           const char *name) {
+    if (obj == Py_None)
+        return 0;
+    if (PyObject_GetBuffer(obj, b, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0)
+        return -1;
+    if (check_len(b, items, size, name)) {
+        PyBuffer_Release(b);
+        return -1;
+    }
+    return 1;
+}
+
+/* nearest(a0, a1, b0, b1, n, m, row_arg, row_d2, col_arg, col_d2)
+ *
+ * For B problems at once (a0, a1: (B, n) float64, the query points' coordinates; b0, b1:
+ * (B, m) float64, the other set's): each query point's nearest point of the other set
+ * (row_arg (B, n) int64, the first index at the least squared distance, and row_d2 (B, n)
+ * float64 that distance) and each of the other set's points' nearest query point
+ * (col_arg (B, m) int64, col_d2 (B, m) float64); each output None when not wanted. */
+static PyObject *nearest(PyObject *self, PyObject *args) {
+    Py_buffer ba0, ba1, bb0, bb1, bo[4];
+    PyObject *obj[4];
+    Py_ssize_t n, m;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*nnOOOO", &ba0, &ba1, &bb0, &bb1, &n, &m, &obj[0],
+                          &obj[1], &obj[2], &obj[3]))
+        return NULL;
+    PyObject *ret = NULL;
+    int have[4] = {0, 0, 0, 0};
+    double *work = NULL;
+    Py_ssize_t nb = n > 0 ? ba0.len / (8 * n) : 0;
+    if (n < 1 || m < 1) {
+        PyErr_SetString(PyExc_ValueError, "_ckernel: nearest needs n >= 1 and m >= 1");
+        goto done;
+    }
+    if (check_len(&ba0, nb * n, 8, "a0") || check_len(&ba1, nb * n, 8, "a1")
+        || check_len(&bb0, nb * m, 8, "b0") || check_len(&bb1, nb * m, 8, "b1"))
+        goto done;
+    {
+        const char *names[4] = {"row_arg", "row_d2", "col_arg", "col_d2"};
+        const Py_ssize_t items[4] = {nb * n, nb * n, nb * m, nb * m};
+        for (int k = 0; k < 4; k++)
+            if ((have[k] = optional_buffer(obj[k], &bo[k], items[k], 8, names[k])) < 0) {
+                have[k] = 0;
+                goto done;
+            }
+    }
+    work = malloc((size_t)(2 * m) * sizeof(double));
+    if (work == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    nearest64(nb, n, m, ba0.buf, ba1.buf, bb0.buf, bb1.buf, work,
+              have[0] ? bo[0].buf : NULL, have[1] ? bo[1].buf : NULL,
+              have[2] ? bo[2].buf : NULL, have[3] ? bo[3].buf : NULL);
+    Py_END_ALLOW_THREADS
+    ret = Py_NewRef(Py_None);
+done:
+    free(work);
+    for (int k = 0; k < 4; k++)
+        if (have[k])
+            PyBuffer_Release(&bo[k]);
+    PyBuffer_Release(&ba0);
+    PyBuffer_Release(&ba1);
+    PyBuffer_Release(&bb0);
+    PyBuffer_Release(&bb1);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"exponents", exponents, METH_VARARGS,
      "exponents(t, xj, indptr, scale, out): out[k] = -scale |t_m - xj_k|^2"},
@@ -818,6 +941,8 @@ static PyMethodDef methods[] = {
     {"product", product, METH_VARARGS, "product(z, ct, qt, scale, out): out = G(z, c) q"},
     {"pivoted_cholesky", pivoted_cholesky, METH_VARARGS,
      "pivoted_cholesky(y, scale, kmax, stop, l, d, k0) -> (k, done)"},
+    {"nearest", nearest, METH_VARARGS,
+     "nearest(a0, a1, b0, b1, n, m, row_arg, row_d2, col_arg, col_d2)"},
     {"pair_counts", pair_counts, METH_VARARGS,
      "pair_counts(t, xs0, xs1, starts, lens, r2, cap, counts) -> total, or -1 over cap"},
     {"pair_fill", pair_fill, METH_VARARGS,

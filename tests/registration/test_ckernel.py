@@ -273,3 +273,39 @@ def test_compiled_dense_passes_check_their_arrays(ckernel: object) -> None:
         ck.pivoted_cholesky(np.zeros((3, 2)), 1.0, 3, -1.0, factor, d, 5)  # type: ignore[attr-defined]
     # three coincident points: one column, then nothing left
     assert ck.pivoted_cholesky(np.zeros((3, 2)), 1.0, 3, -1.0, factor, d, 0) == (1, True)  # type: ignore[attr-defined]
+
+
+def test_compiled_nearest_neighbours(ckernel: object) -> None:
+    """Both directions from one pass, for a batch of problems: the first index at the least
+    squared distance (as argmin) and that distance; e (eq. 10) from it equals the k-d
+    trees' within rounding, and the batch ICP takes the same neighbours."""
+    from registration._error import registration_error
+    from registration._icp._pairwise import _batch_icp
+
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(4, 50, 2)), rng.normal(size=(4, 37, 2))
+    b[:, 5] = b[:, 2]  # a tie: the first index wins
+    row_arg, row_d2 = np.empty((4, 50), dtype=np.int64), np.empty((4, 50))
+    col_arg, col_d2 = np.empty((4, 37), dtype=np.int64), np.empty((4, 37))
+    ckernel.nearest(np.ascontiguousarray(a[..., 0]), np.ascontiguousarray(a[..., 1]),  # type: ignore[attr-defined]
+                    np.ascontiguousarray(b[..., 0]), np.ascontiguousarray(b[..., 1]), 50, 37,
+                    row_arg, row_d2, col_arg, col_d2)
+    d2 = ((a[:, :, None, :] - b[:, None, :, :]) ** 2).sum(-1)
+    np.testing.assert_array_equal(row_arg, d2.argmin(axis=2))
+    np.testing.assert_array_equal(col_arg, d2.argmin(axis=1))
+    np.testing.assert_allclose(row_d2, d2.min(axis=2), rtol=1e-15)
+    np.testing.assert_allclose(col_d2, d2.min(axis=1), rtol=1e-15)
+    assert not (row_arg == 5).any()
+    with pytest.raises(ValueError, match="row_arg holds"):
+        ckernel.nearest(a[0, :, 0].copy(), a[0, :, 1].copy(), b[0, :, 0].copy(),  # type: ignore[attr-defined]
+                        b[0, :, 1].copy(), 50, 37, np.empty(3, dtype=np.int64), None, None,
+                        None)
+    q, y = a[0], b[0]
+    e = registration_error(q, y)
+    assert e == pytest.approx(with_engine(None, lambda: registration_error(q, y)), rel=1e-14)
+    x = rng.normal(size=(6, 40, 2))
+    start = (np.tile(np.eye(2), (6, 1, 1)), np.zeros((6, 2)))
+    got = with_engine(ckernel, lambda: _batch_icp(x, b[0], *start, 8))
+    want = with_engine(None, lambda: _batch_icp(x, b[0], *start, 8))
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-12)
