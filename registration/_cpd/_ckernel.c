@@ -1,12 +1,13 @@
 /* CPD's compiled passes (registration._cpd._ckernel): the truncated E-step's over its pair
- * list, and the dense Gauss sums (the dense E-step, the final correspondences, a field's
- * kernel product) over every pair.
+ * list, the dense Gauss sums (the dense E-step, the final correspondences, a field's
+ * kernel product, the low-rank kernel's pivoted Cholesky factor) and nearest neighbours
+ * over every pair.
  *
  * Optional: `registration/_cpd/_estep.py` runs the same computation with numpy when this
  * module is not built (no C compiler at install time) or when REGTREE_NO_CKERNEL=1.  The
- * numpy version makes ten passes over the list (repeat, subtract, square, ... and four
- * sparse products), 5.5-6 ns a pair at 8000 points; these two functions and numpy's exp
- * between them make four, 2.5-3 ns a pair (bench/RESULTS.md 7.10).
+ * numpy version of the truncated E-step makes ten passes over the list (repeat, subtract,
+ * square, ... and four sparse products), 5.5-6 ns a pair at 8000 points; `kernels` and
+ * `sums` make three (bench/RESULTS.md 7.10, 7.18).
  *
  * The list: pairs (m, j) grouped by centroid m, `indptr` (M + 1, int64) the CSR row
  * pointers, `j` (P, int32) the subject point of each pair and `xj` (2, P, float64) its
@@ -64,49 +65,6 @@ static int pair_dtype(Py_buffer *b, Py_ssize_t nnz, const char *name) {
     PyErr_Format(PyExc_ValueError, "_ckernel: %s holds %zd bytes, expected 8 or 4 a pair (%zd)",
                  name, b->len, nnz);
     return -1;
-}
-
-#define EXPONENTS(T)                                                                      \
-    for (Py_ssize_t i = 0; i < m; i++) {                                                  \
-        const double tx = t[2 * i], ty = t[2 * i + 1];                                    \
-        for (int64_t k = ip[i]; k < ip[i + 1]; k++) {                                     \
-            const double dx = tx - x0[k], dy = ty - x1[k];                                \
-            ((T *)be.buf)[k] = (T)(-scale * (dx * dx + dy * dy));                         \
-        }                                                                                 \
-    }
-
-/* exponents(t, xj, indptr, scale, out): out[k] = -scale * |t_m - xj_k|^2 for every pair
- * k of centroid m.  t (M, 2), xj (2, P) float64; out (P,) float64 or float32 (rounded
- * once, from the float64 value). */
-static PyObject *exponents(PyObject *self, PyObject *args) {
-    Py_buffer bt, bx, bp, be;
-    double scale;
-    if (!PyArg_ParseTuple(args, "y*y*y*dw*", &bt, &bx, &bp, &scale, &be))
-        return NULL;
-    PyObject *ret = NULL;
-    Py_ssize_t m, nnz = list_pairs(&bp, &m);
-    int f32 = -1;
-    if (nnz < 0 || check_len(&bt, 2 * m, 8, "t") || check_len(&bx, 2 * nnz, 8, "xj")
-        || (f32 = pair_dtype(&be, nnz, "out")) < 0)
-        goto done;
-    {
-        const double *t = bt.buf, *x0 = bx.buf, *x1 = (const double *)bx.buf + nnz;
-        const int64_t *ip = bp.buf;
-        Py_BEGIN_ALLOW_THREADS
-        if (f32) {
-            EXPONENTS(float)
-        } else {
-            EXPONENTS(double)
-        }
-        Py_END_ALLOW_THREADS
-    }
-    ret = Py_NewRef(Py_None);
-done:
-    PyBuffer_Release(&bt);
-    PyBuffer_Release(&bx);
-    PyBuffer_Release(&bp);
-    PyBuffer_Release(&be);
-    return ret;
 }
 
 #define SCATTER(T)                                                                        \
@@ -411,7 +369,8 @@ static inline double exp_nonpos(double v) {
     p = p * r + 0.5;
     p = p * r + 1.0;
     p = p * r + 1.0;
-    sc.i = (sh.i - 6755399441055744LL + 1023) << 52; /* 2^k (the low bits of sh hold k) */
+    /* 2^k: k is the difference of sh's bits from those of 1.5 * 2^52 */
+    sc.i = (sh.i - 0x4338000000000000LL + 1023) << 52;
     return keep * (p * sc.d);
 }
 
@@ -430,7 +389,7 @@ static inline float expf_nonpos(float v) {
     p = p * r + 0.5f;
     p = p * r + 1.0f;
     p = p * r + 1.0f;
-    sc.i = (sh.i - 0x4B400000 + 127) << 23;
+    sc.i = (sh.i - 0x4B400000 + 127) << 23; /* 2^k, as above (1.5 * 2^23) */
     return keep * (p * sc.f);
 }
 
@@ -456,8 +415,8 @@ CLONES static void kernels32(Py_ssize_t m, const double *t, const double *x0, co
 }
 
 /* kernels(t, xj, indptr, scale, out): out[k] = exp(-scale |t_m - xj_k|^2) for every pair k
- * of centroid m, as `exponents` followed by an exp, in one pass (the exponents in float64;
- * a float32 out takes the float32 exp). */
+ * of centroid m: t (M, 2), xj (2, P) float64; out (P,) float64 or float32 (the exponents
+ * in float64, a float32 out takes the float32 exp). */
 static PyObject *kernels(PyObject *self, PyObject *args) {
     Py_buffer bt, bx, bp, be;
     double scale;
@@ -984,8 +943,6 @@ done:
 }
 
 static PyMethodDef methods[] = {
-    {"exponents", exponents, METH_VARARGS,
-     "exponents(t, xj, indptr, scale, out): out[k] = -scale |t_m - xj_k|^2"},
     {"kernels", kernels, METH_VARARGS,
      "kernels(t, xj, indptr, scale, out): out[k] = exp(-scale |t_m - xj_k|^2)"},
     {"sums", sums, METH_VARARGS,

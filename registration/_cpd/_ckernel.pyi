@@ -1,7 +1,6 @@
 # Stub of the optional compiled module (registration/_cpd/_ckernel.c).
 from typing import Any
 
-def exponents(t: Any, xj: Any, indptr: Any, scale: float, out: Any, /) -> None: ...
 def sums(kern: Any, indptr: Any, j: Any, x: Any, c: float, floor: float, colsum: Any, q: Any,
          p1: Any, px: Any, pt1: Any, /) -> float: ...
 def pair_counts(t: Any, xs0: Any, xs1: Any, starts: Any, lens: Any, r2: float, cap: int,

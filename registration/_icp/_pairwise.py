@@ -85,10 +85,10 @@ def _batch_icp(
     all are. Nearest neighbours are found by the compiled pass (:mod:`registration._cpd.
     _ckernel`, exact squared distances, both directions at once), or without it in
     float32 (half the memory traffic; ties aside, the same neighbours); D and the eq. 8
-    fit are computed in float64 from
-    moment sums of the coordinates, centred per problem so that the sums keep their
-    precision in any user coordinates. With `proper`, an update that would give
-    ``det(A) <= 0`` (a reflection) freezes the problem at its previous map.
+    fit are computed in float64 from moment sums of the coordinates, centred per
+    problem so that the sums keep their precision in any user coordinates. With
+    `proper`, an update that would give ``det(A) <= 0`` (a reflection) freezes the
+    problem at its previous map.
     """
     n_b = A.shape[0]
     x0, x1 = _as_components(x, n_b)
@@ -116,7 +116,8 @@ def _batch_icp(
         tx1 = Ai[:, 1, :1] * X0 + Ai[:, 1, 1:] * X1 + ti[:, 1:]
         if compiled is not None:
             # both directions from one pass over the pairs, exact squared distances in
-            # float64 (numpy's two float32 products and argmins took 3x the time)
+            # float64 (the whole batch in 0.83x the time of numpy's two float32
+            # products and argmins)
             c = np.empty((idx.size, n), dtype=np.int64)
             d = np.empty((idx.size, m), dtype=np.int64)
             compiled.nearest(np.ascontiguousarray(tx0), np.ascontiguousarray(tx1),

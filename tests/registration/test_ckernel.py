@@ -112,26 +112,28 @@ def test_compiled_passes_check_their_arrays(ckernel: object) -> None:
     xj = np.zeros((2, 4))
     ip = np.array([0, 1, 3, 4], dtype=np.int64)
     out = np.empty(4)
-    ck.exponents(t, xj, ip, 1.0, out)  # type: ignore[attr-defined]
+    ck.kernels(t, xj, ip, 1.0, out)  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="t holds 40 bytes, expected 48"):
-        ck.exponents(np.zeros(5), xj, ip, 1.0, out)  # type: ignore[attr-defined]
+        ck.kernels(np.zeros(5), xj, ip, 1.0, out)  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="xj holds"):
-        ck.exponents(t, np.zeros((2, 3)), ip, 1.0, out)  # type: ignore[attr-defined]
+        ck.kernels(t, np.zeros((2, 3)), ip, 1.0, out)  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="indptr must run from 0 to the pair count"):
-        ck.exponents(t, xj, np.array([1, 1, 3, 4]), 1.0, out)  # type: ignore[attr-defined]
+        ck.kernels(t, xj, np.array([1, 1, 3, 4]), 1.0, out)  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="xj holds 64 bytes, expected 80"):  # 5 pairs
-        ck.exponents(t, xj, np.array([0, 1, 3, 5]), 1.0, out)  # type: ignore[attr-defined]
+        ck.kernels(t, xj, np.array([0, 1, 3, 5]), 1.0, out)  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="out holds 24 bytes, expected 8 or 4 a pair"):
-        ck.exponents(t, xj, ip, 1.0, np.empty(3))  # type: ignore[attr-defined]
+        ck.kernels(t, xj, ip, 1.0, np.empty(3))  # type: ignore[attr-defined]
     out32 = np.empty(4, dtype=np.float32)
-    ck.exponents(t, xj + 1.0, ip, 0.5, out32)  # type: ignore[attr-defined]
-    np.testing.assert_array_equal(out32, -1.0)
+    ck.kernels(t, xj + 1.0, ip, 0.5, out32)  # type: ignore[attr-defined]
+    np.testing.assert_allclose(out32, np.exp(-1.0), rtol=2e-7)
+    ck.kernels(t, xj + 1.0, ip, 0.5, out)  # type: ignore[attr-defined]
+    np.testing.assert_allclose(out, np.exp(-1.0), rtol=4e-16)
     with pytest.raises(ValueError, match="indptr must not decrease"):
-        ck.exponents(t, xj, np.array([0, 3, 1, 4]), 1.0, out)  # type: ignore[attr-defined]
+        ck.kernels(t, xj, np.array([0, 3, 1, 4]), 1.0, out)  # type: ignore[attr-defined]
     with pytest.raises(TypeError, match="read-write"):  # strided or read-only output
-        ck.exponents(t, xj, ip, 1.0, np.empty(8)[::2])  # type: ignore[attr-defined]
+        ck.kernels(t, xj, ip, 1.0, np.empty(8)[::2])  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="not C-contiguous"):  # strided input
-        ck.exponents(np.zeros((2, 3)).T, xj, ip, 1.0, out)  # type: ignore[attr-defined]
+        ck.kernels(np.zeros((2, 3)).T, xj, ip, 1.0, out)  # type: ignore[attr-defined]
     x = np.zeros((2, 2))
     n_bufs = [np.empty(2), np.empty((2, 3)), np.empty(3), np.empty((3, 2)), np.empty(2)]
     kern = np.ones(4)
