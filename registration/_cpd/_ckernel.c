@@ -511,7 +511,9 @@ CLONES static double dense32(Py_ssize_t m, Py_ssize_t n, const double *t0, const
                 kb[i] = k;
                 s += k;
             }
-            if (s < 1e-30f) { /* below float32's range (w = 0, far from every centroid) */
+            /* kernels below float32's range (w = 0, far from every centroid), or weights
+               x / den beyond it: the column in float64 */
+            if (s < 1e-30f || (fabs(xa) + fabs(ya)) / ((double)s + c) > 1e30) {
                 double s64 = 0.0;
 #pragma omp simd reduction(+ : s64)
                 for (Py_ssize_t i = 0; i < m; i++) {
