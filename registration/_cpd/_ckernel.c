@@ -328,6 +328,15 @@ done:
     return ret;
 }
 
+/* A workspace of `items` elements of `size` bytes (at least one element), or NULL with
+ * a MemoryError set. */
+static void *workspace(Py_ssize_t items, size_t size) {
+    void *p = malloc((size_t)(items > 0 ? items : 1) * size);
+    if (p == NULL)
+        PyErr_NoMemory();
+    return p;
+}
+
 /* ---- the dense Gauss sums ----------------------------------------------------------------
  *
  * Every pair's kernel exp(-scale |a - b|^2), from the coordinate differences, through an
@@ -447,6 +456,21 @@ done:
     return ret;
 }
 
+/* One subject point's (xa, ya) kernels with the m centroids (t0, t1) into kb, float64;
+ * returns their sum. */
+static inline double column64(Py_ssize_t m, const double *t0, const double *t1, double xa,
+                              double ya, double scale, double *kb) {
+    double s = 0.0;
+#pragma omp simd reduction(+ : s)
+    for (Py_ssize_t i = 0; i < m; i++) {
+        const double dx = t0[i] - xa, dy = t1[i] - ya;
+        const double k = exp_nonpos(-scale * (dx * dx + dy * dy));
+        kb[i] = k;
+        s += k;
+    }
+    return s;
+}
+
 /* The dense E-step's sums, float64: column n's kernels into kb, their sum, then each
  * centroid's share. */
 CLONES static double dense64(Py_ssize_t m, Py_ssize_t n, const double *t0, const double *t1,
@@ -457,14 +481,7 @@ CLONES static double dense64(Py_ssize_t m, Py_ssize_t n, const double *t0, const
         p1[i] = px0[i] = px1[i] = 0.0;
     for (Py_ssize_t a = 0; a < n; a++) {
         const double xa = x[2 * a], ya = x[2 * a + 1];
-        double s = 0.0;
-#pragma omp simd reduction(+ : s)
-        for (Py_ssize_t i = 0; i < m; i++) {
-            const double dx = t0[i] - xa, dy = t1[i] - ya;
-            const double k = exp_nonpos(-scale * (dx * dx + dy * dy));
-            kb[i] = k;
-            s += k;
-        }
+        const double s = column64(m, t0, t1, xa, ya, scale, kb);
         double den = s + c;
         if (!(den >= floor_))
             den = floor_;
@@ -514,14 +531,7 @@ CLONES static double dense32(Py_ssize_t m, Py_ssize_t n, const double *t0, const
             /* kernels below float32's range (w = 0, far from every centroid), or weights
                x / den beyond it: the column in float64 */
             if (s < 1e-30f || (fabs(xa) + fabs(ya)) / ((double)s + c) > 1e30) {
-                double s64 = 0.0;
-#pragma omp simd reduction(+ : s64)
-                for (Py_ssize_t i = 0; i < m; i++) {
-                    const double dx = t0[i] - xa, dy = t1[i] - ya;
-                    const double k = exp_nonpos(-scale * (dx * dx + dy * dy));
-                    kb64[i] = k;
-                    s64 += k;
-                }
+                const double s64 = column64(m, t0, t1, xa, ya, scale, kb64);
                 double den = s64 + c;
                 if (!(den >= floor_))
                     den = floor_;
@@ -577,12 +587,9 @@ static PyObject *dense(PyObject *self, PyObject *args) {
         || check_len(&bpt1, n, 8, "pt1"))
         goto done;
     /* float32: the kernels, three sums and a float64 column; float64: the kernels */
-    work = malloc((size_t)(m > 0 ? m : 1) * (f32 ? 4 * sizeof(float) + sizeof(double)
-                                               : sizeof(double)));
-    if (work == NULL) {
-        PyErr_NoMemory();
+    if ((work = workspace(m, f32 ? 4 * sizeof(float) + sizeof(double) : sizeof(double)))
+        == NULL)
         goto done;
-    }
     {
         double sumlog;
         double *p1 = bp1.buf, *px = bpx.buf;
@@ -618,14 +625,7 @@ CLONES static void posterior64(Py_ssize_t m, Py_ssize_t n, const double *t0,
     }
     for (Py_ssize_t a = 0; a < n; a++) {
         const double xa = x[2 * a], ya = x[2 * a + 1];
-        double s = 0.0;
-#pragma omp simd reduction(+ : s)
-        for (Py_ssize_t i = 0; i < m; i++) {
-            const double dx = t0[i] - xa, dy = t1[i] - ya;
-            const double k = exp_nonpos(-scale * (dx * dx + dy * dy));
-            kb[i] = k;
-            s += k;
-        }
+        const double s = column64(m, t0, t1, xa, ya, scale, kb);
         double den = s + c;
         if (!(den >= floor_))
             den = floor_;
@@ -654,11 +654,8 @@ static PyObject *posterior_max(PyObject *self, PyObject *args) {
     if (check_len(&bt, 2 * m, 8, "tt") || check_len(&bx, 2 * n, 8, "x")
         || check_len(&barg, m, 8, "arg") || check_len(&bbest, m, 8, "best"))
         goto done;
-    work = malloc((size_t)(m > 0 ? m : 1) * sizeof(double));
-    if (work == NULL) {
-        PyErr_NoMemory();
+    if ((work = workspace(m, sizeof(double))) == NULL)
         goto done;
-    }
     {
         const double *t = bt.buf;
         Py_BEGIN_ALLOW_THREADS
@@ -709,11 +706,8 @@ static PyObject *product(PyObject *self, PyObject *args) {
     if (check_len(&bz, 2 * k, 8, "z") || check_len(&bc, 2 * m, 8, "ct")
         || check_len(&bq, r * m, 8, "qt") || check_len(&bo, k * r, 8, "out"))
         goto done;
-    work = malloc((size_t)(m > 0 ? m : 1) * sizeof(double));
-    if (work == NULL) {
-        PyErr_NoMemory();
+    if ((work = workspace(m, sizeof(double))) == NULL)
         goto done;
-    }
     {
         const double *ct = bc.buf;
         Py_BEGIN_ALLOW_THREADS
@@ -799,11 +793,8 @@ static PyObject *pivoted_cholesky(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "_ckernel: k0 must lie in [0, columns], kmax <= M");
         goto done;
     }
-    work = malloc((size_t)(m > 0 ? m : 1) * sizeof(double));
-    if (work == NULL) {
-        PyErr_NoMemory();
+    if ((work = workspace(m, sizeof(double))) == NULL)
         goto done;
-    }
     {
         Py_ssize_t k;
         int finished;
@@ -921,11 +912,8 @@ static PyObject *nearest(PyObject *self, PyObject *args) {
                 goto done;
             }
     }
-    work = malloc((size_t)(2 * m) * sizeof(double));
-    if (work == NULL) {
-        PyErr_NoMemory();
+    if ((work = workspace(2 * m, sizeof(double))) == NULL)
         goto done;
-    }
     Py_BEGIN_ALLOW_THREADS
     nearest64(nb, n, m, ba0.buf, ba1.buf, bb0.buf, bb1.buf, work,
               have[0] ? bo[0].buf : NULL, have[1] ? bo[1].buf : NULL,
