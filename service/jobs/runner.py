@@ -104,6 +104,13 @@ class JobControl:
         self._stop.set()
         self._thread.join(timeout=self.settings.worker_heartbeat_seconds + 5)
 
+    def done(self) -> None:
+        """The run is over and its outcome is about to be written: stop watching the lease.
+        Once the job is marked succeeded (or failed, or released) the lease is no longer
+        held, and a poll that saw that before the pool had closed logged a false "lease
+        lost"."""
+        self._stop.set()
+
     def _apply(self, state: Outcome) -> None:
         if state is Outcome.lost:
             self.lost.set()
@@ -131,6 +138,8 @@ class JobControl:
             except Exception:
                 logger.exception("heartbeat failed", extra={"job_id": self.claim.job_id})
                 continue
+            if self._stop.is_set():  # the outcome is being written: the lease ends here
+                return
             self._apply(state)
             if self.lost.is_set():
                 logger.warning("lease lost", extra={"job_id": self.claim.job_id})
@@ -356,6 +365,7 @@ def run_claimed(
                                         executor=executor, progress=control.progress)
                 completed = True
                 control.check()
+                control.done()
                 outcome = queue.complete(claim, json_safe(document), [],
                                          progress=control.latest)
                 return _finished(outcome, log, started)
@@ -373,6 +383,7 @@ def run_claimed(
             control.check()
             similarity = doc.pop(SIMILARITY_KEY, None)
             document, subjects = to_api_document(claim.job_id, json_safe(doc), shape_ids)
+            control.done()
             outcome = queue.complete(
                 claim,
                 document,
@@ -381,8 +392,10 @@ def run_claimed(
                 similarity=similarity_npy(similarity, len(shape_ids)),
             )
         except JobInterrupted as interruption:
+            control.done()
             outcome = _interrupted(queue, claim, interruption)
         except Exception as exc:
+            control.done()
             reason = control.reason()
             # Stopping may surface as any error (a task whose process was killed, say): the
             # reason is the interruption, never a failure of the job.
