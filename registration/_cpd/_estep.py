@@ -69,6 +69,20 @@ BOX_POINT_COST = 0.12
 BOX_NODE_COST = 0.15
 #: Cost of one pair of the float32 dense E-step relative to float64 (measured).
 DENSE_PAIR_COST_F32 = 0.6
+#: The compiled dense E-step (:mod:`._ckernel`) against the grid and the box E-steps:
+#: up to :data:`COMPILED_DENSE_MAX_PAIRS` pairs the dense pass's estimate is divided by
+#: these before it is compared with theirs (fitted beside numpy's dense pass). Measured on
+#: `bench/bench_estep.py`'s fish contours at 1000-4000 points, sigma 1-0.02 (best of 3 CPU
+#: each), beside the compiled dense pass the grid took 3.9-5.5x the time its estimate gave
+#: it (median 4.6), the box 5-6x where its points dominate its cost and 2.9-3.5x where its
+#: nodes do; at 1000 points the grid was taken for the first 15-18 iterations at 1.3-3x the
+#: dense pass's time. Above that many pairs the choice is as fitted at 2000-8000 points:
+#: there every rescaling of the estimates tried cost 2-19 % of the run (bench/RESULTS.md
+#: 7.19), as the dense pass is rarely a contender and the others' estimates are off
+#: together.
+COMPILED_DENSE_SPEEDUP_GRID = 4.7
+COMPILED_DENSE_SPEEDUP_BOX = 3.0
+COMPILED_DENSE_MAX_PAIRS = 1 << 22
 #: Cost of one pair of the truncated E-step relative to the float64 dense E-step (measured
 #: CPU time at 4000 points: 19-27 ns against 15 ns, and 9.4 ns for the float32 dense one).
 #: The dense E-step has since become several times cheaper (2.7-3.6 ns a pair) and the
@@ -660,8 +674,15 @@ def _choose_estep(estep: _EStep, t: FloatArray, sigma2: float, truncate: bool | 
     name."""
     m, n = estep.m, estep.n
     dense_cost = m * n * (DENSE_PAIR_COST_F32 if estep.dtype == np.float32 else 1.0)
+    # the dense pass's cost as the grid's and the box's estimates see it
+    dense_vs_grids = dense_vs_box = dense_cost
+    if _CKERNEL is not None and m * n <= COMPILED_DENSE_MAX_PAIRS:
+        dense_vs_grids = dense_cost / COMPILED_DENSE_SPEEDUP_GRID
+        dense_vs_box = dense_cost / COMPILED_DENSE_SPEEDUP_BOX
     grid_cost = estep.grid_cost(t, sigma2) if gauss_grid is not False else None
-    best = min(dense_cost, math.inf if grid_cost is None else grid_cost)
+    grid_wins = grid_cost is not None and grid_cost < dense_vs_grids
+    # what runs if neither the truncated nor the box E-step does, at its estimated cost
+    best = grid_cost if grid_cost is not None and grid_wins else dense_cost
     box_cost: float | None = None
     # the box transform's error is absolute (per unit weight): without an outlier constant
     # a subject point far from every centroid has a denominator it cannot resolve
@@ -681,10 +702,11 @@ def _choose_estep(estep: _EStep, t: FloatArray, sigma2: float, truncate: bool | 
             if out is not None:
                 return "truncated", out
     if not box_checked:
-        box_cost = estep.box_cost(t, sigma2, math.inf if gauss_grid else best)
-    if box_cost is not None and (gauss_grid or box_cost < dense_cost) and (
+        box_cost = estep.box_cost(
+            t, sigma2, math.inf if gauss_grid else best if grid_wins else dense_vs_box)
+    if box_cost is not None and (gauss_grid or box_cost < dense_vs_box) and (
             grid_cost is None or box_cost < grid_cost):
         return "box", estep.boxgrid(t, sigma2)
-    if grid_cost is not None and (gauss_grid or grid_cost < dense_cost):
+    if grid_cost is not None and (gauss_grid or grid_wins):
         return "grid", estep.grid(t, sigma2)
     return "dense", estep.dense(t, sigma2)

@@ -326,6 +326,49 @@ def test_small_problems_take_the_dense_estep_without_estimates(
     assert got.nnz < len(t) * len(x)
 
 
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_the_compiled_dense_estep_is_weighed_against_the_grids_at_its_speed(
+        monkeypatch: pytest.MonkeyPatch, dtype: str) -> None:
+    """Up to COMPILED_DENSE_MAX_PAIRS pairs, with the compiled passes, the grid and box
+    E-steps must beat the dense one's estimate divided by their measured speed-ups; above,
+    or with numpy's passes, the choice is as fitted (the estimates compared as they are)."""
+    x, t = curve(500, 5), curve(450, 6, wobble=0.05)
+    sample = np.unique(np.linspace(0, len(t) - 1, 64).astype(np.intp))
+    pairs = len(t) * len(x)
+    dense = pairs * (_estep.DENSE_PAIR_COST_F32 if dtype == "float32" else 1.0)
+    est = _EStep(x, len(t), 0.1, dtype)
+    if _estep._compiled is None:
+        pytest.skip("the compiled passes are not built here")
+    monkeypatch.setattr(_estep, "_CKERNEL", _estep._compiled)
+    monkeypatch.setattr(_estep, "COMPILED_DENSE_MAX_PAIRS", pairs)
+
+    def choose(grid: float | None, box: float | None) -> str:
+        monkeypatch.setattr(_EStep, "grid_cost", lambda self, t, s2: grid)
+        monkeypatch.setattr(_EStep, "box_cost", lambda self, t, s2, bound: box)
+        name, out = _estep._choose_estep(est, t, 0.3**2, False, None, sample)
+        close(out, dense_sums(t, x, 0.3**2, 0.1), 1e-5 if dtype == "float32" else 1e-8)
+        return name
+
+    grid_speedup = _estep.COMPILED_DENSE_SPEEDUP_GRID
+    box_speedup = _estep.COMPILED_DENSE_SPEEDUP_BOX
+    # estimated cheaper than the dense pass, but not by the compiled pass's speed-up
+    assert choose(0.5 * dense, None) == "dense"
+    assert choose(None, 0.5 * dense) == "dense"
+    # cheaper by more than that: taken
+    assert choose(0.9 * dense / grid_speedup, None) == "grid"
+    assert choose(None, 0.9 * dense / box_speedup) == "box"
+    assert choose(0.9 * dense / grid_speedup, 0.8 * dense / grid_speedup) == "box"
+    # one pair more, or numpy's passes: the estimates compared as they are
+    monkeypatch.setattr(_estep, "COMPILED_DENSE_MAX_PAIRS", pairs - 1)
+    assert choose(0.5 * dense, None) == "grid"
+    assert choose(None, 0.5 * dense) == "box"
+    monkeypatch.setattr(_estep, "COMPILED_DENSE_MAX_PAIRS", pairs)
+    monkeypatch.setattr(_estep, "_CKERNEL", None)
+    assert choose(0.5 * dense, None) == "grid"
+    assert choose(None, 0.5 * dense) == "box"
+    assert choose(1.1 * dense, 1.2 * dense) == "dense"
+
+
 def test_sparse_correspondences_match_dense(monkeypatch: pytest.MonkeyPatch) -> None:
     x, t = curve(400, 8), curve(380, 9, wobble=0.05)
     monkeypatch.setattr(_estep, "POSTERIOR_DENSE_MAX_PAIRS", 0)
