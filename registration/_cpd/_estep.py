@@ -77,9 +77,9 @@ DENSE_PAIR_COST_F32 = 0.6
 #: it (median 4.6), the box 5-6x where its points dominate its cost and 2.9-3.5x where its
 #: nodes do; at 1000 points the grid was taken for the first 15-18 iterations at 1.3-3x the
 #: dense pass's time. Above that many pairs the choice is as fitted at 2000-8000 points:
-#: there every rescaling of the estimates tried cost 2-19 % of the run (bench/RESULTS.md
-#: 7.19), as the dense pass is rarely a contender and the others' estimates are off
-#: together.
+#: there every rescaling of the estimates tried lost (8000 points 1.02-1.19x the run;
+#: bench/RESULTS.md 7.19), as the dense pass is rarely a contender and the others'
+#: estimates are off together.
 COMPILED_DENSE_SPEEDUP_GRID = 4.7
 COMPILED_DENSE_SPEEDUP_BOX = 3.0
 COMPILED_DENSE_MAX_PAIRS = 1 << 22
