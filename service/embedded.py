@@ -19,6 +19,7 @@ from typing import TextIO
 import uvicorn
 
 from service import migrate
+from service.core.collector import tune_collector
 from service.core.config import Settings
 from service.main import create_app
 from service.worker import run_worker_process
@@ -140,6 +141,7 @@ def serve(settings: Settings, *, host: str, port: int, workers: int, migrate_db:
     stop the workers (their running jobs go back to the queue)."""
     if migrate_db:
         migrate.upgrade(settings)
+    tune_collector()  # a full result read is millions of containers
     processes = start_workers(settings, workers)
     try:
         with _sigterm_returns():
@@ -173,6 +175,7 @@ class BackgroundStack:
 
     def __enter__(self) -> BackgroundStack:
         migrate.upgrade(self.settings)
+        tune_collector()
         self.processes = start_workers(self.settings, self.workers)
         self.thread.start()
         deadline = time.monotonic() + 30

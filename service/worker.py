@@ -23,6 +23,7 @@ import uuid
 from types import FrameType
 
 from registration import compiled_kernel
+from service.core.collector import tune_collector
 from service.core.config import Settings
 from service.core.logging import configure_logging
 from service.db import Database
@@ -137,6 +138,7 @@ def run_worker_process(settings: Settings, parent_pid: int | None = None) -> Non
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     configure_logging(settings.log_level, settings.log_style)
+    tune_collector()  # a job's result document is millions of containers
     worker = Worker(settings, parent_pid=parent_pid)
     worker.install_signal_handlers()
     try:

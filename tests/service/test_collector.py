@@ -1,0 +1,62 @@
+"""The service's processes collect garbage less often (service/core/collector.py): a full
+result document is millions of containers, walked by the collector every 700 allocations
+with CPython's default."""
+
+from __future__ import annotations
+
+import gc
+import os
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+import service.worker
+from service.core.collector import SERVICE_GC_THRESHOLD, tune_collector
+from service.core.config import Settings
+
+
+@pytest.fixture
+def thresholds() -> Iterator[None]:
+    saved = gc.get_threshold()
+    yield
+    gc.set_threshold(*saved)
+
+
+@pytest.mark.usefixtures("thresholds")
+def test_the_first_threshold_is_raised_and_the_others_kept() -> None:
+    gc.set_threshold(700, 10, 10)
+    tune_collector()
+    assert gc.get_threshold() == (SERVICE_GC_THRESHOLD, 10, 10)
+    gc.set_threshold(5 * SERVICE_GC_THRESHOLD, 3, 4)  # a higher one set by the deployment
+    tune_collector()
+    assert gc.get_threshold() == (5 * SERVICE_GC_THRESHOLD, 3, 4)
+
+
+@pytest.mark.usefixtures("thresholds")
+def test_a_worker_process_runs_its_jobs_with_the_raised_threshold(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Any) -> None:
+    seen: list[tuple[int, int, int]] = []
+
+    class Recorder:
+        def __init__(self, settings: Settings, parent_pid: int | None = None) -> None:
+            self.db = self
+
+        def install_signal_handlers(self) -> None:
+            pass
+
+        def run(self) -> None:
+            seen.append(gc.get_threshold())
+
+        def dispose(self) -> None:
+            pass
+
+    monkeypatch.setattr(service.worker, "Worker", Recorder)
+    monkeypatch.setattr(service.worker, "configure_logging", lambda *args: None)
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        # the entry point sets them for its process: undone after this test
+        monkeypatch.setenv(var, os.environ.get(var, "1"))
+    gc.set_threshold(700, 10, 10)
+    service.worker.run_worker_process(
+        Settings(database_url=f"sqlite:///{tmp_path / 'db.sqlite'}"))
+    assert seen == [(SERVICE_GC_THRESHOLD, 10, 10)]
