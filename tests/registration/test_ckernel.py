@@ -91,6 +91,36 @@ def test_compiled_step_on_a_pruned_list(ckernel: object) -> None:
         close(out, naive_sums(t, x, s2, 0.1), 1e-8)
 
 
+def test_compiled_prune_keeps_the_pairs_numpys_keeps(ckernel: object) -> None:
+    """A loose list pruned to a smaller radius by the compiled scan holds the pairs, in the
+    order, that numpy's prune keeps: those now within the radius, centroid by centroid."""
+    x, t = curve(500, 5), curve(450, 6, wobble=0.05)
+    moved = t + 1e-4 * curve(450, 7)
+    lists = []
+    for engine in (ckernel, None):
+        saved = _estep._CKERNEL
+        _estep._CKERNEL = engine
+        try:
+            est = _EStep(x, len(t), 0.1, "float64")
+            assert est._build_list(t, 0.3)
+            assert est._prune_list(moved, 0.12)
+            lists.append((est._counts.copy(), est._pj.copy(), est._xj.copy(),  # type: ignore[union-attr]
+                          est._indptr.copy()))  # type: ignore[union-attr]
+        finally:
+            _estep._CKERNEL = saved
+    (counts, pj, xj, indptr), (counts_np, pj_np, xj_np, indptr_np) = lists
+    np.testing.assert_array_equal(counts, counts_np)
+    np.testing.assert_array_equal(pj, pj_np)
+    np.testing.assert_array_equal(xj, xj_np)
+    np.testing.assert_array_equal(indptr, indptr_np)
+    assert 0 < len(pj) < 450 * 500
+    i = np.repeat(np.arange(len(t)), counts)
+    d2 = np.sum((moved[i] - x[pj]) ** 2, axis=1)
+    assert np.all(d2 <= 0.12**2)
+    full = np.sum((moved[:, None, :] - x[None, :, :]) ** 2, axis=2) <= 0.12**2
+    assert full.sum() == len(pj)  # every pair within the radius is kept
+
+
 def test_whole_runs_agree(ckernel: object) -> None:
     model, subject = curve(900, 3), 1.1 * curve(800, 4, wobble=0.08) + 0.05
     runs = []
