@@ -932,6 +932,62 @@ done:
     return ret;
 }
 
+/* interp(u, nodes, wb, out): the barycentric Lagrange weights of the r Chebyshev nodes
+ * (weights wb) at each of the n points u, out (n, r): wb_k / (u - node_k) over their
+ * sum (times its inverse: within an ulp of numpy's division); a point whose sum is not
+ * finite (on a node, or within a denormal of one) gets the one-hot row of its nearest
+ * node (the first of equals). numpy's version made four passes over (n, r) temporaries
+ * (`_fgt._interp_matrix`). */
+CLONES static void interp_rows(Py_ssize_t n, Py_ssize_t r, const double *u,
+                               const double *nodes, const double *wb, double *out) {
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const double ui = u[i];
+        double *row = out + i * r, total = 0.0;
+        for (Py_ssize_t k = 0; k < r; k++) {
+            row[k] = wb[k] / (ui - nodes[k]);
+            total += row[k];
+        }
+        if (isfinite(total)) {
+            const double inv = 1.0 / total;
+            for (Py_ssize_t k = 0; k < r; k++)
+                row[k] *= inv;
+            continue;
+        }
+        Py_ssize_t best = 0;
+        for (Py_ssize_t k = 0; k < r; k++) {
+            row[k] = 0.0;
+            if (fabs(ui - nodes[k]) < fabs(ui - nodes[best]))
+                best = k;
+        }
+        row[best] = 1.0;
+    }
+}
+
+static PyObject *interp(PyObject *self, PyObject *args) {
+    Py_buffer bu, bn, bw, bo;
+    if (!PyArg_ParseTuple(args, "y*y*y*w*", &bu, &bn, &bw, &bo))
+        return NULL;
+    PyObject *ret = NULL;
+    Py_ssize_t n = bu.len / 8, r = bn.len / 8;
+    if (check_len(&bu, n, 8, "u") || r < 1 || check_len(&bn, r, 8, "nodes")
+        || check_len(&bw, r, 8, "wb") || check_len(&bo, n * r, 8, "out"))
+        goto done;
+    {
+        const double *u = bu.buf, *nodes = bn.buf, *wb = bw.buf;
+        double *out = bo.buf;
+        Py_BEGIN_ALLOW_THREADS
+        interp_rows(n, r, u, nodes, wb, out);
+        Py_END_ALLOW_THREADS
+        ret = Py_NewRef(Py_None);
+    }
+done:
+    PyBuffer_Release(&bu);
+    PyBuffer_Release(&bn);
+    PyBuffer_Release(&bw);
+    PyBuffer_Release(&bo);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"kernels", kernels, METH_VARARGS,
      "kernels(t, xj, indptr, scale, out): out[k] = exp(-scale |t_m - xj_k|^2)"},
@@ -948,6 +1004,8 @@ static PyMethodDef methods[] = {
      "nearest(a0, a1, b0, b1, n, m, row_arg, row_d2, col_arg, col_d2)"},
     {"pair_counts", pair_counts, METH_VARARGS,
      "pair_counts(t, xs0, xs1, starts, lens, r2, cap, counts) -> total, or -1 over cap"},
+    {"interp", interp, METH_VARARGS,
+     "interp(u, nodes, wb, out): barycentric weights of the nodes at u, out (n, r)"},
     {"pair_fill", pair_fill, METH_VARARGS,
      "pair_fill(t, xs0, xs1, order, starts, lens, r2, j, xj, d2 or None)"},
     {NULL, NULL, 0, NULL},

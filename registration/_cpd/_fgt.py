@@ -73,6 +73,12 @@ def _interp_matrix(u: FloatArray, r: int) -> FloatArray:
     nodes = _cheb_nodes(r)
     k = np.arange(r)
     wb = (-1.0) ** k * np.sin((2 * k + 1) * np.pi / (2 * r))
+    compiled = _compiled()
+    if compiled is not None:
+        # one pass, no temporaries (8000 points, 38 nodes: 0.2 against 1.0-1.5 ms)
+        out: FloatArray = np.empty((len(u), r))
+        compiled.interp(np.ascontiguousarray(u, dtype=np.float64), nodes, wb, out)
+        return out
     tmp: FloatArray = np.subtract.outer(np.asarray(u, dtype=np.float64), nodes)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         np.divide(wb, tmp, out=tmp)

@@ -18,6 +18,7 @@ import pytest
 
 from registration._cpd import _estep, cpd_nonrigid
 from registration._cpd._estep import _EStep, _posterior_max_dense, compiled_kernel
+from registration._cpd._fgt import _cheb_nodes, _interp_matrix
 from registration._cpd._field import _gauss_kernel
 
 from .test_cpd_fast import close, curve, naive_sums
@@ -119,6 +120,32 @@ def test_compiled_prune_keeps_the_pairs_numpys_keeps(ckernel: object) -> None:
     assert np.all(d2 <= 0.12**2)
     full = np.sum((moved[:, None, :] - x[None, :, :]) ** 2, axis=2) <= 0.12**2
     assert full.sum() == len(pj)  # every pair within the radius is kept
+
+
+@pytest.mark.parametrize("r", [1, 2, 13, 38])
+def test_compiled_interpolation_weights_equal_numpys(ckernel: object, r: int) -> None:
+    """The Chebyshev grids' barycentric weights (`_fgt._interp_matrix`): within an ulp of
+    numpy's, one-hot on a node or a denormal away from one, at the ends of the interval,
+    and for no point at all."""
+    nodes = _cheb_nodes(r)
+    u = np.r_[np.random.default_rng(3).uniform(-1.0, 1.0, 500), -1.0, 1.0, nodes,
+              nodes + 5e-324, nodes - 5e-324, nodes[0] + 1e-15]
+    got = _interp_matrix(u, r)
+    saved = _estep._CKERNEL
+    _estep._CKERNEL = None
+    try:
+        want = _interp_matrix(u, r)
+        assert _interp_matrix(u[:0], r).shape == (0, r)
+    finally:
+        _estep._CKERNEL = saved
+    assert got.shape == want.shape == (len(u), r)
+    np.testing.assert_allclose(got, want, rtol=0, atol=4e-15)
+    np.testing.assert_array_equal(got[500 + 2:500 + 2 + 3 * r], want[500 + 2:500 + 2 + 3 * r])
+    assert _interp_matrix(u[:0], r).shape == (0, r)
+    with pytest.raises(ValueError, match="out"):
+        _estep._CKERNEL.interp(u, nodes, np.ones(r), np.empty((len(u), r + 1)))
+    with pytest.raises(ValueError, match="wb"):
+        _estep._CKERNEL.interp(u, nodes, np.ones(r + 1), np.empty((len(u), r)))
 
 
 def test_whole_runs_agree(ckernel: object) -> None:
