@@ -39,9 +39,10 @@ _CKERNEL: Any = None if os.environ.get("REGTREE_NO_CKERNEL") == "1" else _compil
 
 
 def compiled_kernel() -> bool:
-    """Whether CPD runs its compiled passes (the E-step, dense and truncated, the final
-    correspondences, the field's dense kernel product and the low-rank factor; also the
-    nearest neighbours of e, eq. 10, and of the similarity's affine ICP).
+    """Whether CPD runs its compiled passes (the E-step, dense and truncated, with the
+    truncated one's neighbour list searched and pruned, the Chebyshev grids' interpolation
+    weights, the final correspondences, the field's dense kernel product and the low-rank
+    factor; also the nearest neighbours of e, eq. 10, and of the similarity's affine ICP).
 
     ``registration._cpd._ckernel`` is built at install when a C compiler is present; without
     it (or with ``REGTREE_NO_CKERNEL=1`` set before the import) numpy runs the same sums,
