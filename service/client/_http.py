@@ -9,6 +9,13 @@ from typing import Any, Self
 
 import httpx
 
+from service.core.collector import paused
+
+try:  # the server's JSON library, when installed: 3-5x the standard library's speed here
+    import orjson as _orjson
+except ImportError:  # pragma: no cover - the client extra alone
+    _orjson = None  # type: ignore[assignment]
+
 from service.client.errors import (
     RegtreeConnectionError,
     RegtreeError,
@@ -138,7 +145,7 @@ class HttpClient:
         raise e
 
     def _get(self, path: str, **kwargs: Any) -> Any:
-        return self._request("GET", path, retry=True, **kwargs).json()
+        return _json(self._request("GET", path, retry=True, **kwargs))
 
     def _paged(self, path: str, page_size: int = 500, **params: Any) -> Iterator[dict[str, Any]]:
         offset = 0
@@ -156,3 +163,16 @@ class HttpClient:
             offset += len(items)
             if not items or offset >= int(page.get("total", 0)):
                 return
+
+
+def _json(response: httpx.Response) -> Any:
+    """A response's JSON, parsed with the collector paused (a full result is millions of
+    lists and floats: 57 MB for the 73 full-resolution 永 glyphs), by orjson when it is
+    installed, else by the standard library (also for what orjson refuses)."""
+    with paused():
+        if _orjson is not None:
+            try:
+                return _orjson.loads(response.content)
+            except _orjson.JSONDecodeError:
+                pass
+        return response.json()

@@ -21,6 +21,8 @@ it would have been; the collector still runs, on 10 000 allocations instead of 7
 from __future__ import annotations
 
 import gc
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 #: The first threshold set in the API server's and the workers' processes.
 SERVICE_GC_THRESHOLD = 10_000
@@ -31,3 +33,18 @@ def tune_collector() -> None:
     (a higher one already set is kept); the older generations' thresholds are kept."""
     first, second, third = gc.get_threshold()
     gc.set_threshold(max(first, SERVICE_GC_THRESHOLD), second, third)
+
+
+@contextmanager
+def paused() -> Iterator[None]:
+    """The collector off while a large document without reference cycles is parsed or
+    built (then back as it was): for the client's reads of full results, in processes
+    whose threshold is the default (the library's ``CollectionResult.to_dict`` pauses it
+    the same way)."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()

@@ -5,10 +5,12 @@ with CPython's default."""
 from __future__ import annotations
 
 import gc
+import math
 import os
 from collections.abc import Iterator
 from typing import Any
 
+import httpx
 import pytest
 
 import service.worker
@@ -60,3 +62,58 @@ def test_a_worker_process_runs_its_jobs_with_the_raised_threshold(
     service.worker.run_worker_process(
         Settings(database_url=f"sqlite:///{tmp_path / 'db.sqlite'}"))
     assert seen == [(SERVICE_GC_THRESHOLD, 10, 10)]
+
+
+def test_the_client_parses_with_the_collector_paused_and_left_as_it_was(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A full result is millions of containers: the client parses it with the collector
+    off (no collection while parsing, even with a threshold of 1), by orjson when it is
+    installed, and by the standard library for what orjson refuses (a NaN written by an
+    old server); the collector is left as it was."""
+    import orjson
+
+    import service.client._http as http
+
+    parsing = [False]
+    collections: list[str] = []
+
+    def flagged(parse: Any) -> Any:
+        def run(*args: Any, **kwargs: Any) -> Any:
+            parsing[0] = True
+            try:
+                return parse(*args, **kwargs)
+            finally:
+                parsing[0] = False
+        return run
+
+    class FlaggedOrjson:
+        loads = staticmethod(flagged(orjson.loads))
+        JSONDecodeError = orjson.JSONDecodeError
+
+    monkeypatch.setattr(http, "_orjson", FlaggedOrjson)
+    monkeypatch.setattr(httpx.Response, "json", flagged(httpx.Response.json))
+
+    def seen(phase: str, info: dict[str, int]) -> None:
+        if phase == "start" and parsing[0]:
+            collections.append("collected while parsing")
+
+    saved = gc.get_threshold()
+    was = gc.isenabled()
+    body = {"subjects": [{"warped": [[0.5 * k, 1.0]] * 200} for k in range(50)]}
+    gc.callbacks.append(seen)
+    try:
+        gc.set_threshold(1, 1, 1)
+        gc.enable()
+        got = http._json(httpx.Response(200, json=body))
+        assert gc.isenabled()
+        nan = http._json(httpx.Response(200, content=b'{"error": NaN}'))
+        gc.disable()
+        assert http._json(httpx.Response(200, content=b"[1, 2]")) == [1, 2]
+        assert not gc.isenabled()
+    finally:
+        gc.callbacks.remove(seen)
+        gc.set_threshold(*saved)
+        (gc.enable if was else gc.disable)()
+    assert got == body
+    assert math.isnan(nan["error"])
+    assert collections == []
