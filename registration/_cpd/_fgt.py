@@ -75,7 +75,7 @@ def _interp_matrix(u: FloatArray, r: int) -> FloatArray:
     wb = (-1.0) ** k * np.sin((2 * k + 1) * np.pi / (2 * r))
     compiled = _compiled()
     if compiled is not None:
-        # one pass, no temporaries (8000 points, 38 nodes: 0.2 against 1.0-1.5 ms)
+        # one pass, no temporaries (8000 points, 38 nodes: 0.31 against 0.81 ms)
         out: FloatArray = np.empty((len(u), r))
         compiled.interp(np.ascontiguousarray(u, dtype=np.float64), nodes, wb, out)
         return out

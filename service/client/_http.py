@@ -9,13 +9,6 @@ from typing import Any, Self
 
 import httpx
 
-from service.core.collector import paused
-
-try:  # the server's JSON library, when installed: 3-5x the standard library's speed here
-    import orjson as _orjson
-except ImportError:  # pragma: no cover - the client extra alone
-    _orjson = None  # type: ignore[assignment]
-
 from service.client.errors import (
     RegtreeConnectionError,
     RegtreeError,
@@ -23,6 +16,12 @@ from service.client.errors import (
     ValidationError,
     _page_size_limit,
 )
+from service.core.collector import paused
+
+try:  # the server's JSON library, when installed (several times the standard library's speed)
+    import orjson as _orjson
+except ImportError:  # pragma: no cover - the client extra alone
+    _orjson = None  # type: ignore[assignment]
 
 _RETRY_STATUSES = frozenset({502, 503, 504})
 
