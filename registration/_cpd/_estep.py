@@ -714,8 +714,9 @@ def _choose_estep(estep: _EStep, t: FloatArray, sigma2: float, truncate: bool | 
             if out is not None:
                 return "truncated", out
     if not box_checked:
-        box_cost = estep.box_cost(
-            t, sigma2, math.inf if gauss_grid else best if grid_wins else dense_vs_box)
+        # it must beat the dense pass and the grid (then it is not estimated further)
+        bound = min(dense_vs_box, math.inf if grid_cost is None else grid_cost)
+        box_cost = estep.box_cost(t, sigma2, math.inf if gauss_grid else bound)
     if box_cost is not None and (gauss_grid or box_cost < dense_vs_box) and (
             grid_cost is None or box_cost < grid_cost):
         return "box", estep.boxgrid(t, sigma2)
