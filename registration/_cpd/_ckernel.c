@@ -344,13 +344,21 @@ static void *workspace(Py_ssize_t items, size_t size) {
  * value; numpy's vector exp needs the exponents in an array of their own, which is what
  * made the numpy passes cost 1.4-2.8 ns a pair). Each function is built for AVX-512,
  * AVX2 with FMA and the baseline, and the loader picks the one the CPU runs
- * (`target_clones`, GCC and clang on glibc); elsewhere the baseline alone.
+ * (`target_clones`, GCC and clang on glibc); elsewhere the baseline alone. With GCC 12 and
+ * later the clones are the x86-64 psABI levels v4 and v3, each with FMA: a clone list
+ * names one clone per entry, so "avx2,fma" made an AVX2 clone without FMA (the one the
+ * CPU took) and an FMA one without AVX2, and "avx512f" has no FMA either. With FMA the
+ * dense float64 pass takes 2.0 instead of 3.75 ns a pair on an AVX2 machine (float32 1.1
+ * instead of 1.8; bench/RESULTS.md 7.20); sums and kernels move by rounding.
  *
  * The kernels: exponents below -700 (float64) or -87 (float32) give 0, where libm's exp
  * gives a denormal or 0; every kernel within 2 ulp of libm's otherwise (a degree-13,
  * float32 degree-7, polynomial after the reduction by ln 2). */
-#if defined(__GNUC__) && defined(__x86_64__) && defined(__GLIBC__) \
-    && (!defined(__clang__) || __clang_major__ >= 14)
+#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12 && defined(__x86_64__) \
+    && defined(__GLIBC__)
+#define CLONES \
+    __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#elif defined(__clang__) && __clang_major__ >= 14 && defined(__x86_64__) && defined(__GLIBC__)
 #define CLONES __attribute__((target_clones("avx512f", "avx2,fma", "default")))
 #else
 #define CLONES
