@@ -176,7 +176,7 @@ def main() -> None:
                   f"{growth:.1f}x = n^{k:.2f} (issue 9: <= n^1.3; least of "
                   f"{args.repeat} round(s) each)")
         source = runs[args.sizes[-1]][0]["source"]
-    print(f"data: {source}")
+    print(f"data: {source}; compiled passes: {_estep.compiled_simd() or 'none (numpy)'}")
 
 
 if __name__ == "__main__":

@@ -46,6 +46,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from registration import resample  # noqa: E402
+from registration._cpd._estep import compiled_simd  # noqa: E402
 from service.client import JobStatus, RegtreeClient  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -267,7 +268,8 @@ def run(
         f"\nregtree service bench: {label}: {len(shapes)} shapes, points per shape "
         f"min {min(n_points)} / median {int(np.median(n_points))} / max {max(n_points)}, "
         f"model {model_name!r}, {args.workers} embedded workers"
-        + ("" if args.url is None else f" (service at {args.url})")
+        + (f", compiled passes {compiled_simd() or 'none (numpy)'}" if args.url is None
+           else f" (service at {args.url})")
     )
     _table(rows)
     summary = result.summary

@@ -23,6 +23,7 @@ import uuid
 from types import FrameType
 
 from registration import compiled_kernel
+from registration._cpd._estep import compiled_simd
 from service.core.collector import tune_collector
 from service.core.config import Settings
 from service.core.logging import configure_logging
@@ -96,7 +97,8 @@ class Worker:
         trying the callbacks that are due then, once)."""
         compiled = compiled_kernel()
         logger.info("worker started", extra={"worker": self.worker_id,
-                                             "compiled_kernel": compiled})
+                                             "compiled_kernel": compiled,
+                                             "simd": compiled_simd()})
         if not compiled:
             logger.warning(
                 "CPD's truncated E-step runs numpy's passes: registration._cpd._ckernel is "

@@ -996,7 +996,33 @@ done:
     return ret;
 }
 
+/* simd() -> the instruction set the CLONES functions run with on this CPU, as their
+ * dispatch picks it: "x86-64-v4" (AVX-512 with FMA) or "x86-64-v3" (AVX2 with FMA) with GCC
+ * 12 and later, "avx512f", "avx2" or "fma" with clang, else "baseline". */
+static PyObject *simd(PyObject *self, PyObject *args) {
+    const char *isa = "baseline";
+#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12 && defined(__x86_64__) \
+    && defined(__GLIBC__)
+    __builtin_cpu_init();
+    if (__builtin_cpu_supports("x86-64-v4"))
+        isa = "x86-64-v4";
+    else if (__builtin_cpu_supports("x86-64-v3"))
+        isa = "x86-64-v3";
+#elif defined(__clang__) && __clang_major__ >= 14 && defined(__x86_64__) && defined(__GLIBC__)
+    __builtin_cpu_init();
+    if (__builtin_cpu_supports("avx512f"))
+        isa = "avx512f";
+    else if (__builtin_cpu_supports("avx2"))
+        isa = "avx2";
+    else if (__builtin_cpu_supports("fma"))
+        isa = "fma";
+#endif
+    return PyUnicode_FromString(isa);
+}
+
 static PyMethodDef methods[] = {
+    {"simd", simd, METH_NOARGS,
+     "simd() -> the instruction set of the vectorised passes on this CPU"},
     {"kernels", kernels, METH_VARARGS,
      "kernels(t, xj, indptr, scale, out): out[k] = exp(-scale |t_m - xj_k|^2)"},
     {"sums", sums, METH_VARARGS,

@@ -57,6 +57,15 @@ def compiled_kernel() -> bool:
     """
     return _CKERNEL is not None
 
+
+def compiled_simd() -> str | None:
+    """The instruction set CPD's compiled passes run with on this machine (``"x86-64-v4"``:
+    AVX-512 with FMA, ``"x86-64-v3"``: AVX2 with FMA, ``"baseline"``; clang builds name the
+    feature instead), or None when numpy runs them. The dense pass's time per pair is about
+    twice as long without FMA (bench/RESULTS.md 7.20): benchmarks print this beside their
+    times so that figures from different machines can be compared."""
+    return None if _CKERNEL is None else str(_CKERNEL.simd())
+
 #: Cost of the grid E-step per point, ``FGT_NODE_COST * (r_x r_y) ** FGT_NODE_POWER``, in
 #: units of one pair of the float64 dense E-step (fitted on fish contours of 8000 points
 #: at sigma 0.04-0.22, 2400-41000 grid nodes: larger grids use the BLAS better).
