@@ -342,14 +342,15 @@ static void *workspace(Py_ssize_t items, size_t size) {
  * Every pair's kernel exp(-scale |a - b|^2), from the coordinate differences, through an
  * exp written for exponents <= 0 that the compiler vectorises (libm's exp is a call per
  * value; numpy's vector exp needs the exponents in an array of their own, which is what
- * made the numpy passes cost 1.4-2.8 ns a pair). Each function is built for AVX-512,
- * AVX2 with FMA and the baseline, and the loader picks the one the CPU runs
- * (`target_clones`, GCC and clang on glibc); elsewhere the baseline alone. With GCC 12 and
- * later the clones are the x86-64 psABI levels v4 and v3, each with FMA: a clone list
- * names one clone per entry, so "avx2,fma" made an AVX2 clone without FMA (the one the
- * CPU took) and an FMA one without AVX2, and "avx512f" has no FMA either. With FMA the
- * dense float64 pass takes 2.0 instead of 3.75 ns a pair on an AVX2 machine (float32 1.1
- * instead of 1.8; bench/RESULTS.md 7.20); sums and kernels move by rounding.
+ * made the numpy passes cost 1.4-2.8 ns a pair). Each function is built in several
+ * clones and the loader picks the one the CPU runs (`target_clones`, GCC and clang on
+ * glibc; elsewhere the baseline alone). GCC 12 and later build the x86-64 psABI levels v4
+ * (AVX-512) and v3 (AVX2), both with FMA, and the baseline. Older GCC and clang build
+ * "avx512f", "avx2,fma" and the baseline, which has no FMA: a clone list names one clone
+ * per entry, so "avx2,fma" is an AVX2 clone without FMA (the one an AVX2 CPU takes) and an
+ * FMA clone without AVX2, and "avx512f" does not imply FMA. With FMA the dense float64
+ * pass takes 2.0 instead of 3.75 ns a pair on an AVX2 machine (float32 1.1 instead of 1.8;
+ * bench/RESULTS.md 7.20); sums and kernels move by rounding. `simd()` names the clone.
  *
  * The kernels: exponents below -700 (float64) or -87 (float32) give 0, where libm's exp
  * gives a denormal or 0; every kernel within 2 ulp of libm's otherwise (a degree-13,
@@ -358,7 +359,9 @@ static void *workspace(Py_ssize_t items, size_t size) {
     && defined(__GLIBC__)
 #define CLONES \
     __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
-#elif defined(__clang__) && __clang_major__ >= 14 && defined(__x86_64__) && defined(__GLIBC__)
+#elif defined(__GNUC__) && defined(__x86_64__) && defined(__GLIBC__) \
+    && (!defined(__clang__) || __clang_major__ >= 14)
+/* older GCC (no x86-64 levels in the dispatch) and clang: vectorised clones without FMA */
 #define CLONES __attribute__((target_clones("avx512f", "avx2,fma", "default")))
 #else
 #define CLONES
@@ -998,7 +1001,7 @@ done:
 
 /* simd() -> the instruction set the CLONES functions run with on this CPU, as their
  * dispatch picks it: "x86-64-v4" (AVX-512 with FMA) or "x86-64-v3" (AVX2 with FMA) with GCC
- * 12 and later, "avx512f", "avx2" or "fma" with clang, else "baseline". */
+ * 12 and later, "avx512f", "avx2" or "fma" with older GCC and clang, else "baseline". */
 static PyObject *simd(PyObject *self, PyObject *args) {
     const char *isa = "baseline";
 #if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12 && defined(__x86_64__) \
@@ -1008,7 +1011,8 @@ static PyObject *simd(PyObject *self, PyObject *args) {
         isa = "x86-64-v4";
     else if (__builtin_cpu_supports("x86-64-v3"))
         isa = "x86-64-v3";
-#elif defined(__clang__) && __clang_major__ >= 14 && defined(__x86_64__) && defined(__GLIBC__)
+#elif defined(__GNUC__) && defined(__x86_64__) && defined(__GLIBC__) \
+    && (!defined(__clang__) || __clang_major__ >= 14)
     __builtin_cpu_init();
     if (__builtin_cpu_supports("avx512f"))
         isa = "avx512f";
