@@ -45,7 +45,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_cpd import BETA, LMBDA, W, load_shapes, make_pair  # noqa: E402
 
-from registration import cpd_nonrigid  # noqa: E402
+from registration import compiled_simd, cpd_nonrigid  # noqa: E402
 from registration._cpd import _estep  # noqa: E402
 from registration._cpd._nonrigid import _blas_limit  # noqa: E402
 
@@ -176,7 +176,7 @@ def main() -> None:
                   f"{growth:.1f}x = n^{k:.2f} (issue 9: <= n^1.3; least of "
                   f"{args.repeat} round(s) each)")
         source = runs[args.sizes[-1]][0]["source"]
-    print(f"data: {source}; compiled passes: {_estep.compiled_simd() or 'none (numpy)'}")
+    print(f"data: {source}; compiled passes: {compiled_simd() or 'none (numpy)'}")
 
 
 if __name__ == "__main__":

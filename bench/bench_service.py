@@ -45,8 +45,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from registration import resample  # noqa: E402
-from registration._cpd._estep import compiled_simd  # noqa: E402
+from registration import compiled_simd, resample  # noqa: E402
 from service.client import JobStatus, RegtreeClient  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"

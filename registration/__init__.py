@@ -14,7 +14,14 @@ Typical use::
     result.transform_for(5).apply(pts)  # root-model points mapped onto subject 5
 """
 
-from ._cpd import CPDOptions, CPDResult, NonrigidTransform, compiled_kernel, cpd_nonrigid
+from ._cpd import (
+    CPDOptions,
+    CPDResult,
+    NonrigidTransform,
+    compiled_kernel,
+    compiled_simd,
+    cpd_nonrigid,
+)
 from ._dask import DaskClusterError, DaskExecutor
 from ._error import registration_error
 from ._executor import (
@@ -68,6 +75,7 @@ __all__ = [
     "build_static_tree",
     "compare_instances",
     "compiled_kernel",
+    "compiled_simd",
     "cpd_nonrigid",
     "default_executor",
     "error_statistics",

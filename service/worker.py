@@ -22,8 +22,7 @@ import threading
 import uuid
 from types import FrameType
 
-from registration import compiled_kernel
-from registration._cpd._estep import compiled_simd
+from registration import compiled_kernel, compiled_simd
 from service.core.collector import tune_collector
 from service.core.config import Settings
 from service.core.logging import configure_logging

@@ -59,12 +59,22 @@ def compiled_kernel() -> bool:
 
 
 def compiled_simd() -> str | None:
-    """The instruction set CPD's compiled passes run with on this machine (``"x86-64-v4"``:
-    AVX-512 with FMA, ``"x86-64-v3"``: AVX2 with FMA, ``"baseline"``; clang builds name the
-    feature instead), or None when numpy runs them. The dense pass's time per pair is about
-    twice as long without FMA (bench/RESULTS.md 7.20): benchmarks print this beside their
-    times so that figures from different machines can be compared."""
+    """The instruction set CPD's compiled passes run with on this machine.
+
+    :mod:`._ckernel` is built in several clones and the CPU picks one at import: with GCC
+    12 or later ``"x86-64-v4"`` (AVX-512 with FMA), ``"x86-64-v3"`` (AVX2 with FMA) or
+    ``"baseline"``; older GCC and clang builds name their clone's feature (``"avx512f"``,
+    ``"avx2"``, ``"fma"``), without FMA. The dense pass takes about twice as long a pair
+    without FMA (bench/RESULTS.md 7.20): benchmarks and the service's workers report this
+    beside their times, so that figures from different machines can be compared.
+
+    Returns
+    -------
+    str or None
+        The clone's name, or None when numpy runs the passes (see :func:`compiled_kernel`).
+    """
     return None if _CKERNEL is None else str(_CKERNEL.simd())
+
 
 #: Cost of the grid E-step per point, ``FGT_NODE_COST * (r_x r_y) ** FGT_NODE_POWER``, in
 #: units of one pair of the float64 dense E-step (fitted on fish contours of 8000 points
