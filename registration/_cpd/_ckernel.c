@@ -357,11 +357,13 @@ static void *workspace(Py_ssize_t items, size_t size) {
  * float32 degree-7, polynomial after the reduction by ln 2). */
 #if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12 && defined(__x86_64__) \
     && defined(__GLIBC__)
+#define CLONES_LEVELS 1 /* `simd()` reports the clone the same way */
 #define CLONES \
     __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
 #elif defined(__GNUC__) && defined(__x86_64__) && defined(__GLIBC__) \
     && (!defined(__clang__) || __clang_major__ >= 14)
 /* older GCC (no x86-64 levels in the dispatch) and clang: vectorised clones without FMA */
+#define CLONES_FEATURES 1
 #define CLONES __attribute__((target_clones("avx512f", "avx2,fma", "default")))
 #else
 #define CLONES
@@ -1004,15 +1006,13 @@ done:
  * 12 and later, "avx512f", "avx2" or "fma" with older GCC and clang, else "baseline". */
 static PyObject *simd(PyObject *self, PyObject *args) {
     const char *isa = "baseline";
-#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12 && defined(__x86_64__) \
-    && defined(__GLIBC__)
+#if defined(CLONES_LEVELS)
     __builtin_cpu_init();
     if (__builtin_cpu_supports("x86-64-v4"))
         isa = "x86-64-v4";
     else if (__builtin_cpu_supports("x86-64-v3"))
         isa = "x86-64-v3";
-#elif defined(__GNUC__) && defined(__x86_64__) && defined(__GLIBC__) \
-    && (!defined(__clang__) || __clang_major__ >= 14)
+#elif defined(CLONES_FEATURES)
     __builtin_cpu_init();
     if (__builtin_cpu_supports("avx512f"))
         isa = "avx512f";
