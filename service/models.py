@@ -136,16 +136,6 @@ class Shape(Base):
         return points_from_npy(self.points_npy)
 
 
-#: ``Shape.source_format`` prefixes of shapes made from an image (PNG or JPEG upload): their
-#: points are pixel coordinates (y grows downwards) and their pose is the image's.
-IMAGE_SOURCE_PREFIXES = ("png:", "jpeg:", "image:")
-
-
-def made_from_image(source_format: str) -> bool:
-    """Whether a shape with this ``source_format`` was made from an uploaded image."""
-    return source_format.startswith(IMAGE_SOURCE_PREFIXES)
-
-
 def points_to_npy(points: np.ndarray) -> bytes:
     """``.npy`` bytes of a float64 array (points, or any other array)."""
     buffer = io.BytesIO()

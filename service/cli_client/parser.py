@@ -286,8 +286,13 @@ def add_commands(sub: Any) -> None:
                         help="leave out the low-confidence leaves")
     results.add_argument("--format", choices=("png", "svg"), default="png",
                          help="format of the subject pictures (default png)")
-    results.add_argument("--y-up", action="store_true", help="draw subjects with y growing "
-                         "upwards (default: downwards, as in images)")
+    axis = results.add_mutually_exclusive_group()
+    axis.add_argument("--y-up", dest="y_down", action="store_const", const=False, default=None,
+                      help="draw every subject with y growing upwards (default: downwards for "
+                      "shapes traced from images, upwards for shapes uploaded as coordinates, "
+                      "as the service's own pictures)")
+    axis.add_argument("--y-down", dest="y_down", action="store_const", const=True,
+                      help="draw every subject with y growing downwards")
     results.add_argument("--csv", action="store_true", help="print the subjects as CSV (one "
                          "row per subject) instead of the tables")
 

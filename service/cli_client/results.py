@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from service.contract.names import (
     is_attached,
+    made_from_image,
     subject_status,
 )
 
@@ -253,11 +254,13 @@ def _write_results(
         used.add(stem)
         path = out / "subjects" / f"{stem}.{args.format}"
         try:
-            points = rt.get_shape(job.collection_id, shape_id).points
-            if points is None:
+            shape = rt.get_shape(job.collection_id, shape_id)
+            if shape.points is None:
                 raise ValueError("the service sent no points")
+            # as the service draws it: pixel coordinates of an image downwards
+            y_down = made_from_image(shape.source_format) if args.y_down is None else args.y_down
             picture = render_subject(
-                subject, points, fmt=args.format, method=job.method, y_down=not args.y_up
+                subject, shape.points, fmt=args.format, method=job.method, y_down=y_down
             )
         except (ValueError, KeyError, TypeError) as e:
             problems.append(f"subject {name!r} (shape {shape_id}): {e}")

@@ -19,6 +19,7 @@ __all__ = [
     "DEFAULT_WORKING_POINTS",
     "GROUPING_METHOD",
     "IMAGE_MODES",
+    "IMAGE_SOURCE_PREFIXES",
     "JOB_STATUSES",
     "METHODS",
     "METHOD_FUNCTIONS",
@@ -38,6 +39,7 @@ __all__ = [
     "SubjectSort",
     "SubjectStatus",
     "is_attached",
+    "made_from_image",
     "subject_status",
 ]
 
@@ -128,6 +130,17 @@ class ProblemType(StrEnum):
     UNAVAILABLE = "/problems/unavailable"
     UNSUPPORTED_MEDIA_TYPE = "/problems/unsupported-media-type"
     VALIDATION_ERROR = "/problems/validation-error"
+
+
+#: ``source_format`` prefixes of shapes made from an image (PNG or JPEG upload): their points
+#: are pixel coordinates (y grows downwards) and their pose is the image's.
+IMAGE_SOURCE_PREFIXES = ("png:", "jpeg:", "image:")
+
+
+def made_from_image(source_format: str) -> bool:
+    """Whether a shape with this ``source_format`` was made from an uploaded image: the
+    pictures of every surface (HTTP, export, CLI) then draw it with y growing downwards."""
+    return source_format.startswith(IMAGE_SOURCE_PREFIXES)
 
 
 def is_attached(subject: Mapping[str, Any]) -> bool:

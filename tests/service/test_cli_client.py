@@ -6,6 +6,7 @@ process, talking HTTP to ``regtree serve`` subprocesses from conftest.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import pty
@@ -17,6 +18,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from PIL import Image, ImageDraw
@@ -211,6 +213,26 @@ def test_upload_run_watch_results(service: Service, tmp_path: Path) -> None:
     for path in ("result.json", "tree.svg", "tree.png", "summary.png"):
         assert f"wrote {out / path}" in table
     assert f"wrote {len(names) - 1} subject picture(s)" in table
+
+    # each subject drawn as the service draws it: the PNG upload (pixel coordinates) with y
+    # downwards, the coordinate files upwards; --y-down draws them all downwards
+    def pixels(data: bytes) -> np.ndarray:
+        with Image.open(io.BytesIO(data)) as picture:
+            return np.asarray(picture.convert("L"))
+
+    ids = {s["name"]: s["shape_id"] for s in doc["subjects"]}
+    down = tmp_path / "down"
+    flipped = regtree("results", str(job_id), "--out", str(down), "--y-down", url=url)
+    assert flipped.returncode == 0, flipped.stderr
+    with httpx.Client(base_url=url) as http:
+        for name in ("01-chain1-step1", "02-chain1-step2", "99-ellipse"):
+            served = http.get(f"/v1/jobs/{job_id}/result/subjects/{ids[name]}/overlay.png")
+            assert served.status_code == 200, served.text
+            ours = (out / "subjects" / f"{name}.png").read_bytes()
+            assert np.array_equal(pixels(ours), pixels(served.content)), name
+            same = np.array_equal(pixels((down / "subjects" / f"{name}.png").read_bytes()),
+                                  pixels(ours))
+            assert same == (name == "99-ellipse"), name
 
     svg_out = tmp_path / "svg"
     some = regtree(

@@ -30,10 +30,10 @@ from service.api.routes.results import (
     root_subject,
     stored_result,
 )
-from service.contract.names import ProblemType, subject_status
+from service.contract.names import ProblemType, made_from_image, subject_status
 from service.contract.result import SimilarityDocument
 from service.jobs.document import json_safe
-from service.models import Job, Result, Shape, made_from_image
+from service.models import Job, Result, Shape
 from service.schemas import DbId
 
 router = APIRouter(prefix="/jobs", tags=["exports"])

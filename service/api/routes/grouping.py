@@ -18,9 +18,9 @@ from service.api.deps import DbDep
 from service.api.picture_cache import WidthQuery, cached_picture, picture_route
 from service.api.problems import ProblemError, operation
 from service.api.routes.results import stored_result
-from service.contract.names import GROUPING_METHOD, ProblemType
+from service.contract.names import GROUPING_METHOD, ProblemType, made_from_image
 from service.contract.result import GroupingDocument
-from service.models import Job, Shape, made_from_image
+from service.models import Job, Shape
 from service.schemas import DbId
 
 if TYPE_CHECKING:  # service.plots (matplotlib): imported on the first picture

@@ -12,14 +12,13 @@ from sqlalchemy.orm import Session
 from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
 from service.api.problems import ProblemError, not_found, operation
-from service.contract.names import GROUPING_METHOD, ProblemType
+from service.contract.names import GROUPING_METHOD, ProblemType, made_from_image
 from service.jobs import callbacks
 from service.jobs.queue import JobQueue, JobRefused, JobSpec, Outcome
 from service.models import (
     Collection,
     Job,
     Shape,
-    made_from_image,
     utcnow,
 )
 from service.progress import seconds_left

@@ -18,8 +18,8 @@ from service.api.deps import DbDep
 from service.api.picture_cache import WidthQuery, cached_picture, picture_route
 from service.api.problems import ProblemError
 from service.api.routes.results import _subject, _succeeded_job
-from service.contract.names import ProblemType
-from service.models import Job, Result, ResultSubject, Shape, made_from_image
+from service.contract.names import ProblemType, made_from_image
+from service.models import Job, Result, ResultSubject, Shape
 from service.schemas import DbId
 
 if TYPE_CHECKING:  # service.plots (matplotlib): imported on the first picture
