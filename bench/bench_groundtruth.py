@@ -25,13 +25,16 @@ Families (collections with exact ground truth):
   (``../shared/data/chui_rangarajan``): per trial, the model X (root) and that trial's
   targets of deformation levels 1-5;
 - ``generated``: :func:`registration.synthetic.chained_family` with its defaults (root 0).
-- ``mpeg7`` / ``outline`` / ``outline-random``: shape classes no default was tuned on,
+- ``mpeg7`` / ``outline`` / ``outline-random`` / ``outline-arc``: shape classes no default
+  was tuned on,
   deformed as the glyphs (root 0, the first seed only): the first instance of each MPEG-7
   class (400 points a shape, random subsets as the glyphs), and the first lmfree2d contour
   of each class (100 points), three Momocs hearts (80) and three North Sea fishes (120),
   their outlines densified 20x so that each shape samples its own points off them: evenly
-  from a random start (``outline``, as outlines are digitised) or as random subsets
-  (``outline-random``).
+  from a random start in the undeformed outline's spacing, which the warps stretch
+  (``outline``), as random subsets (``outline-random``), or evenly along each deformed
+  outline's own length (``outline-arc``, as an outline digitised anew on every shape: its
+  sampling says nothing of the warp, bench/RESULTS.md 7.22).
 - ``glyph-other``: five other characters (書水心東龍) rendered from the Noto CJK fonts
   when this machine has them (sans regular, serif bold), their edge pixels chained as the
   永 glyphs' (root 0, the first seed only): glyph sets no default was tuned on.
@@ -207,18 +210,25 @@ def outline_sources() -> dict[str, list[tuple[str, np.ndarray, int]]]:
     return out
 
 
+#: The outline families and how each samples its shapes' points
+#: (:func:`registration.synthetic.deformation_chains`' ``sampling``).
+OUTLINE_SAMPLINGS = {"outline": "even", "outline-random": "random", "outline-arc": "arclength"}
+
+
 def outline_cases(kind: str, seeds: list[int],
                   sources: dict[str, list[tuple[str, np.ndarray, int]]] | None = None
                   ) -> list[Case]:
     """`deformation_chains` (its defaults but the points per shape) of each outline of
-    `kind` (see :func:`outline_sources`), root 0. ``outline`` samples each shape evenly
-    along its outline from a random start, as outlines are digitised; ``outline-random``
-    takes random subsets instead (as the glyph and MPEG-7 families do): gaps and clusters
-    at 80-120 points that real outline data does not have. `sources`: those of
+    `kind` (see :func:`outline_sources`), root 0, sampled as :data:`OUTLINE_SAMPLINGS`
+    says: ``outline`` every n-th dense point from a random start (even in the undeformed
+    outline's spacing, stretched by the warps); ``outline-random`` random subsets (as the
+    glyph and MPEG-7 families do: gaps and clusters at 80-120 points that real outline data
+    does not have); ``outline-arc`` evenly along each deformed outline's own length, as an
+    outline digitised anew on every shape. `sources`: those of
     :func:`outline_sources`, read again when not given."""
     cases = []
-    source = "outline" if kind == "outline-random" else kind
-    sampling = "even" if kind == "outline" else "random"
+    source = "outline" if kind in OUTLINE_SAMPLINGS else kind
+    sampling = OUTLINE_SAMPLINGS.get(kind, "random")
     for name, dense, n in (sources or outline_sources())[source]:
         for seed in seeds:
             fam = deformation_chains(dense, n_points=n, seed=seed, sampling=sampling)
@@ -596,7 +606,7 @@ def main() -> None:
                     help="Chui & Rangarajan trials per series (default 3)")
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
-                    "generated mpeg7 outline outline-random glyph-other)")
+                    "generated mpeg7 outline outline-random outline-arc glyph-other)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
@@ -633,13 +643,12 @@ def main() -> None:
     elif DATA.is_dir():
         print(f"NOTE: {CHUI} lacks the def series: skipping the Chui & Rangarajan families")
     cases += generated_cases(seeds)
-    if not args.quick or (args.only and {"mpeg7", "outline", "outline-random"}
-                          & set(args.only)):
+    if not args.quick or (args.only and {"mpeg7", *OUTLINE_SAMPLINGS} & set(args.only)):
         sources = outline_sources()
-        for kind in ("mpeg7", "outline", "outline-random"):
-            if sources["outline" if kind == "outline-random" else kind]:
+        for kind in ("mpeg7", *OUTLINE_SAMPLINGS):
+            if sources["mpeg7" if kind == "mpeg7" else "outline"]:
                 cases += outline_cases(kind, seeds[:1], sources)
-            elif DATA.is_dir() and kind != "outline-random":
+            elif DATA.is_dir() and kind in ("mpeg7", "outline"):
                 print(f"NOTE: no {kind} shapes under {DATA}: skipping that family")
     if not args.quick or (args.only and "glyph-other" in args.only):
         others = other_glyph_cases(seeds[:1])

@@ -31,8 +31,8 @@ from registration import cpd_nonrigid
 from registration._error import registration_error
 from registration._points import mean_spacing2, normalise
 
-FAMILIES = ("edge", "skel", "mpeg7", "outline", "outline-random", "glyph-other", "generated",
-            "fish", "chinese")
+FAMILIES = ("edge", "skel", "mpeg7", "outline", "outline-random", "outline-arc", "glyph-other",
+            "generated", "fish", "chinese")
 
 
 def run_scheme(scheme: str, model: np.ndarray, subject: np.ndarray) -> np.ndarray:
@@ -60,7 +60,7 @@ def cases_of(family: str, sources: dict) -> list[bg.Case]:
         if not (bg.GLYPHS / "index.csv").exists():
             return []
         return bg.glyph_cases(family, bg.pick_designs(None, 3), [0, 1], False)
-    if family in ("mpeg7", "outline", "outline-random"):
+    if family in ("mpeg7", *bg.OUTLINE_SAMPLINGS):
         return bg.outline_cases(family, [0], sources)
     if family == "glyph-other":
         return bg.other_glyph_cases([0])

@@ -233,6 +233,8 @@ MIN_STEP_JACOBIAN = 0.2
 #: Gaussian width of the RBF displacement bumps, relative to the shape's RMS radius.
 RBF_WIDTH = 0.5
 _MAX_STEP_ATTEMPTS = 200
+#: How :func:`deformation_chains` may sample each shape's points off its dense points.
+SAMPLINGS = ("random", "even", "arclength")
 
 
 @dataclass(frozen=True)
@@ -399,6 +401,28 @@ class DeformationFamily:
         return u * self._scale + self._center
 
 
+def _arclength_indices(outline: FloatArray, n_points: int, phase: float) -> NDArray[np.intp]:
+    """Indices of the dense points of the closed `outline` (in order along it) nearest to
+    `n_points` even steps of its length, the first `phase` (in [0, 1)) of a step in;
+    sorted and distinct (a dense point nearest two steps is taken once, the next free one
+    along the outline for the other)."""
+    n = len(outline)
+    seg = np.linalg.norm(np.roll(outline, -1, axis=0) - outline, axis=1)
+    cum = np.r_[0.0, np.cumsum(seg)]  # cum[k]: length from point 0 to point k (cum[n]: all)
+    total = float(cum[-1])
+    targets = (phase + np.arange(n_points)) * (total / n_points)
+    k = np.clip(np.searchsorted(cum, targets), 1, n)
+    nearer_before = (targets - cum[k - 1]) <= (cum[k] - targets)
+    idx = np.where(nearer_before, k - 1, k) % n
+    taken: set[int] = set()
+    for j, i in enumerate(idx):  # in order along the outline: a repeat moves on by one
+        while int(i) in taken:
+            i = (i + 1) % n
+        taken.add(int(i))
+        idx[j] = i
+    return np.sort(idx).astype(np.intp)
+
+
 def deformation_chains(
     dense_points: ArrayLike,
     *,
@@ -446,11 +470,15 @@ def deformation_chains(
         Largest shear of one step; in [0, 1).
     seed : int
         Seed of the random generator: equal arguments give equal families.
-    sampling : {"random", "even"}
+    sampling : {"random", "even", "arclength"}
         How each shape picks its `n_points` dense points: a random subset (for unordered
-        points such as edge pixels), or every ``n / n_points``-th point from a random start
-        ("even": evenly along an outline whose dense points are in order along it, as
-        outlines are digitised; the warps stretch the spacing, as on real shapes).
+        points such as edge pixels); every ``n / n_points``-th point from a random start
+        ("even": evenly along an outline whose dense points are in order along it, in the
+        undeformed shape's spacing, which the warps stretch, so the sampling density
+        follows the deformation); or, from a random start, the dense point nearest each of
+        `n_points` even steps of the shape's own closed outline length ("arclength":
+        evenly along each deformed shape as it is, as an outline digitised anew on every
+        shape; the sampling then says nothing of the warp).
 
     Returns
     -------
@@ -483,8 +511,8 @@ def deformation_chains(
             raise ValueError(f"{label} must be a finite non-negative number; got {amount!r}")
     if shear >= 1:
         raise ValueError(f"shear must be below 1; got {shear}")
-    if sampling not in ("random", "even"):
-        raise ValueError(f"sampling must be 'random' or 'even'; got {sampling!r}")
+    if sampling not in SAMPLINGS:
+        raise ValueError(f"sampling must be 'random', 'even' or 'arclength'; got {sampling!r}")
     rng = np.random.default_rng(seed)
     lo, hi = p.min(axis=0), p.max(axis=0)
     steps: list[tuple[_RBFStep, ...]] = [()]
@@ -516,6 +544,8 @@ def deformation_chains(
             start = int(rng.integers(n_dense))
             idx = np.sort((start + (np.arange(n_points) * n_dense) // n_points) % n_dense)
             idx = idx.astype(np.intp)
+        elif sampling == "arclength":
+            idx = _arclength_indices(img, n_points, float(rng.random()))
         else:
             idx = np.sort(rng.choice(n_dense, size=n_points, replace=False)).astype(np.intp)
         indices.append(idx)

@@ -146,6 +146,42 @@ def test_even_sampling_takes_evenly_spaced_dense_points_from_a_random_start() ->
     assert any(len(set(np.diff(i))) > 1 for i in random.indices)
 
 
+def _gap_spread(shape: np.ndarray) -> float:
+    """Coefficient of variation of the gaps between successive points of a closed outline."""
+    gaps = np.linalg.norm(np.roll(shape, -1, axis=0) - shape, axis=1)
+    return float(gaps.std() / gaps.mean())
+
+
+def test_arclength_sampling_is_even_along_each_deformed_shape() -> None:
+    """sampling="arclength": each shape's points evenly spaced along its own outline as it
+    is (the warp leaves no trace in the spacing, unlike "even", which keeps the undeformed
+    shape's index spacing), distinct and in order, from a phase of each shape's own; the
+    truth still holds."""
+    fam = deformation_chains(DENSE, n_chains=2, chain_length=3, n_points=100, seed=4,
+                             sampling="arclength")
+    even = deformation_chains(DENSE, n_chains=2, chain_length=3, n_points=100, seed=4,
+                              sampling="even")
+    dense_gap = float(np.linalg.norm(np.diff(DENSE, axis=0), axis=1).max())
+    for idx, shape, img in zip(fam.indices, fam.shapes, fam.dense_images, strict=True):
+        assert len(idx) == 100 and np.all(np.diff(idx) > 0)
+        np.testing.assert_array_equal(shape, img[idx])
+        gaps = np.linalg.norm(np.roll(shape, -1, axis=0) - shape, axis=1)
+        # within a dense point of the even step (a warp step stretches by at most ~2x)
+        assert np.all(np.abs(gaps - gaps.mean()) <= 2.5 * dense_gap), shape
+    assert max(_gap_spread(s) for s in fam.shapes) < 0.05
+    assert min(_gap_spread(s) for s in even.shapes[1:]) > 0.2
+    assert len({int(i[0]) for i in fam.indices}) > 1, "every shape sampled from one phase"
+    np.testing.assert_allclose(fam.root_images(0)[0], fam.shapes[0])
+    # a dense outline with fewer points than asked keeps all of them
+    small = deformation_chains(base_outline(60), n_chains=1, chain_length=1, n_points=400,
+                               seed=0, sampling="arclength")
+    assert all(np.array_equal(i, np.arange(60)) for i in small.indices)
+    # nearly as many points as dense ones: two steps nearest one dense point still get two
+    tight = deformation_chains(base_outline(110), n_chains=1, chain_length=2, n_points=100,
+                               seed=1, sampling="arclength")
+    assert all(len(i) == 100 and np.all(np.diff(i) > 0) and i[-1] < 110 for i in tight.indices)
+
+
 @pytest.mark.parametrize(
     ("dense", "kwargs", "match"),
     [
@@ -161,7 +197,7 @@ def test_even_sampling_takes_evenly_spaced_dense_points_from_a_random_start() ->
         (DENSE, {"step": float("nan")}, "step must be a finite non-negative number"),
         (DENSE, {"rotation_deg": float("inf")}, "rotation_deg must be"),
         (DENSE, {"shear": 1.0}, "shear must be below 1"),
-        (DENSE, {"sampling": "grid"}, "sampling must be 'random' or 'even'"),
+        (DENSE, {"sampling": "grid"}, "sampling must be 'random', 'even' or 'arclength'"),
         (DENSE, {"step": 5.0}, "Jacobian determinant"),
     ],
 )
