@@ -50,8 +50,10 @@ def _fail(message: str, code: int) -> int:
     return code
 
 
-def describe_error(e: RegtreeError) -> str:
-    """``<title>: <detail> (HTTP <status>)``, field errors after the first, and notes."""
+def describe_error(e: RegtreeError, *, notes: bool = True) -> str:
+    """``<title>: <detail> (HTTP <status>)``, field errors after the first, every invalid
+    file or shape of a refused upload after the first, and (with `notes`) the exception's
+    notes."""
     if e.status is None:
         return str(e)
     text = str(e.title or "Error")
@@ -61,8 +63,15 @@ def describe_error(e: RegtreeError) -> str:
     for error in (e.errors or [])[1:]:
         where = ".".join(str(part) for part in error.get("loc") or [])
         text += f"; {where}: {error.get('msg')}" if where else f"; {error.get('msg')}"
-    for note in getattr(e, "__notes__", []):
-        text += f"; {note}"
+    invalid = e.problem.get("invalid")
+    if isinstance(invalid, list):
+        for item in invalid[1:]:
+            if isinstance(item, dict):
+                where = item.get("file") or item.get("shape") or f"#{item.get('index')}"
+                text += f"; {where}: {item.get('detail')}"
+    if notes:
+        for note in getattr(e, "__notes__", []):
+            text += f"; {note}"
     return text
 
 

@@ -81,12 +81,14 @@ def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
         )
     except RegtreeError as e:
         code = Exit.FAILED if e.status is not None else Exit.CONNECTION
-        message = describe_error(e) if e.status is not None else f"{e}"
+        # the client's note on what earlier batches stored is said below, for the CLI
+        message = describe_error(e, notes=False) if e.status is not None else f"{e}"
         if e.type == ProblemType.NAME_CONFLICT:
             message += "; to upload anyway: --on-conflict replace or --on-conflict keep"
         raise CLIError(
-            f"{message}; collection {collection.name!r} (id {collection.id}) keeps the "
-            f"{len(e.stored)} shape(s) of the earlier batches",
+            f"{message}; nothing of the refused batch was stored; collection "
+            f"{collection.name!r} (id {collection.id}) keeps the {len(e.stored)} shape(s) of "
+            "the earlier batches",
             code,
         ) from e
     except KeyboardInterrupt:

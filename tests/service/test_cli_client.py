@@ -299,6 +299,18 @@ def test_failures_exit_codes(service: Service, tmp_path: Path) -> None:
     (tmp_path / "one" / "a.txt").write_text("0 0\n1 0\n0 1\n")
     missing = regtree("upload", str(tmp_path / "one"), "--collection", "nope", url=url)
     assert_error(missing, 1, "no collection named 'nope'")
+    # a folder with several broken files: every one named in the one error line, nothing of
+    # that batch stored, and none of the Python client's wording
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "a-two.txt").write_text("0 0\n1 1\n")
+    (tmp_path / "broken" / "b-ok.txt").write_text("0 0\n1 0\n0 1\n")
+    (tmp_path / "broken" / "c-nan.txt").write_text("0 0\n1 nan\n0 1\n")
+    refused = regtree("upload", str(tmp_path / "broken"), "--collection", "broken", "--create",
+                      url=url)
+    line = assert_error(refused, 1, "a-two.txt: got 2 points", "1 more of the 3 files",
+                        "c-nan.txt: ", "nothing of the refused batch was stored",
+                        "keeps the 0 shape(s)")
+    assert "exc." not in line, line
 
     # a job that fails on the worker: exit 1 with the server's error
     run = regtree("run", "--collection", "degenerate", "--model", "dot", "--wait", url=url)

@@ -99,6 +99,47 @@ def test_degenerate_shapes_are_refused_and_nothing_is_stored(
     assert shapes_of(client, cid) == {kept["id"]: "kept"}
 
 
+def test_a_batch_names_every_invalid_file_at_once_and_stores_none(client: httpx.Client) -> None:
+    """A folder with several broken files is fixed in one go: the 422 lists each invalid file
+    (name, position, why) in ``invalid``; its detail names the first and counts the rest;
+    the batch's valid files are not stored either."""
+    cid = create_collection(client, "broken-folder")
+    url = f"/v1/collections/{cid}/shapes"
+    kept = client.post(url, json={"name": "kept", "points": circle(20).tolist()}).json()
+    files = [
+        ("files", ("a-two.txt", b"1 2\n3 4\n", "text/plain")),
+        ("files", ("b-ok.txt", b"0 0\n1 0\n1 1\n0 1\n", "text/plain")),
+        ("files", ("c-nan.txt", b"0 0\n1 nan\n2 1\n3 3\n", "text/plain")),
+        ("files", ("d-words.csv", b"hello world\n", "text/csv")),
+    ]
+    problem = assert_problem(client.post(url, files=files), 422)
+    assert problem["type"] == "/problems/invalid-shape"
+    assert [(i["file"], i["index"]) for i in problem["invalid"]] == [
+        ("a-two.txt", 0), ("c-nan.txt", 2), ("d-words.csv", 3)
+    ]
+    assert "at least 3" in problem["invalid"][0]["detail"]
+    assert "non-finite" in problem["invalid"][1]["detail"]
+    assert problem["detail"].startswith("a-two.txt: ")
+    assert problem["detail"].endswith("; 2 more of the 4 files are invalid too")
+    assert (problem["file"], problem["index"]) == ("a-two.txt", 0)  # the first, as before
+    assert shapes_of(client, cid) == {kept["id"]: "kept"}
+
+    # a JSON batch the same way, by position
+    body = {"shapes": [{"name": "fine", "points": circle(12).tolist()},
+                       {"name": "two", "points": [[0, 0], [1, 1]]}, "not an object"]}
+    problem = assert_problem(client.post(url, json=body), 422)
+    assert [(i["shape"], i["index"]) for i in problem["invalid"]] == [
+        ("shapes[1]", 1), ("shapes[2]", 2)
+    ]
+    assert problem["detail"].startswith("shapes[1]: ")
+    assert "expected an object" in problem["invalid"][1]["detail"]
+    assert shapes_of(client, cid) == {kept["id"]: "kept"}
+    # one invalid file alone: the detail as before, nothing counted
+    one = assert_problem(client.post(url, files=files[:2]), 422)
+    assert one["detail"].startswith("a-two.txt: ") and "more of the" not in one["detail"]
+    assert len(one["invalid"]) == 1
+
+
 def test_a_shape_just_above_the_size_tolerance_registers(client: httpx.Client) -> None:
     """What the upload accepts, the library accepts: the upload's tolerance is the stricter."""
     from registration import normalise

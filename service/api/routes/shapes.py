@@ -59,9 +59,11 @@ collection) answers 409 naming the existing shapes; `replace` deletes them and s
 new ones under new ids (409 if an unfinished job uses one); `keep` stores the new ones
 beside them, the name repeated. One upload naming two shapes alike is a 422 unless `keep`.
 
-Shapes whose points all coincide, or nearly, are refused. An upload is all-or-nothing: the
-first bad file answers 422 naming the file, and nothing is stored; a refused upload leaves
-the collection as it was.
+Shapes whose points all coincide, or nearly, are refused. An upload is all-or-nothing: a
+bad file answers 422 and nothing is stored; a refused upload leaves the collection as it
+was. The problem document lists every invalid file of the batch (or shape of a JSON batch)
+in `invalid`, each with its `file` (or `shape`), `index` and `detail`; its `detail` names
+the first and counts the others, and `file` (or `shape`) and `index` repeat the first.
 """
 
 #: The limits, as the operation's description states them (placeholders: service.core.limits).
@@ -231,21 +233,44 @@ def _decode_json_body(
         items = [obj]
         batch = False
     decoded: list[NewShape] = []
+    invalid: list[dict[str, Any]] = []
     for i, item in enumerate(items):
         label = f"shapes[{i}]" if batch else "body"
-        if not isinstance(item, dict):
-            raise _invalid(f'{label}: expected an object {{"name": ..., "points": [[x, y], ...]}}')
-        name = item.get("name")
-        if name is not None and (not isinstance(name, str) or not 0 < len(name) <= 300):
-            raise _invalid(f"{label}: name must be a string of 1 to 300 characters")
-        if name is not None and "\x00" in name:
-            raise _invalid(f"{label}: name must not contain NUL characters")
         try:
-            points = ingest.points_from_json(item, limits=limits)
+            decoded.append(_json_shape(item, label, limits))
         except ingest.IngestError as e:
-            raise _invalid(f"{label}: {e}") from e
-        decoded.append(NewShape(name or content_name(points), "json", points, label))
+            invalid.append({"shape": label, "index": i, "detail": str(e)})
+    if invalid and not batch:
+        raise _invalid(f"body: {invalid[0]['detail']}")
+    if invalid:
+        raise _invalid_batch(invalid, len(items), "shape")
     return decoded, batch
+
+
+def _json_shape(item: Any, label: str, limits: ingest.Limits) -> NewShape:
+    """One shape of a JSON body (`label`: where it is, for its name when it has none)."""
+    if not isinstance(item, dict):
+        raise ingest.IngestError('expected an object {"name": ..., "points": [[x, y], ...]}')
+    name = item.get("name")
+    if name is not None and (not isinstance(name, str) or not 0 < len(name) <= 300):
+        raise ingest.IngestError("name must be a string of 1 to 300 characters")
+    if name is not None and "\x00" in name:
+        raise ingest.IngestError("name must not contain NUL characters")
+    points = ingest.points_from_json(item, limits=limits)
+    return NewShape(name or content_name(points), "json", points, label)
+
+
+def _invalid_batch(invalid: list[dict[str, Any]], total: int, what: str) -> ProblemError:
+    """The 422 for a batch some of whose `what`s (``file`` or ``shape``) are invalid: the
+    detail names the first and counts the others; ``invalid`` lists every one (its
+    ``what``, ``index`` and ``detail``), so that a folder is fixed in one go. The first's
+    ``what`` and ``index`` are also top-level members, as for a batch with one invalid."""
+    first = invalid[0]
+    detail = f"{first[what]}: {first['detail']}"
+    if len(invalid) > 1:
+        detail += f"; {len(invalid) - 1} more of the {total} {what}s are invalid too"
+    return _invalid(detail, extra={what: first[what], "index": first["index"],
+                                   "invalid": invalid})
 
 
 def _decode_files(
@@ -255,6 +280,7 @@ def _decode_files(
     limits: ingest.Limits,
 ) -> list[NewShape]:
     decoded: list[NewShape] = []
+    invalid: list[dict[str, Any]] = []
     for i, (filename, content_type, data) in enumerate(files):
         label = filename or f"file {i}"
         try:
@@ -267,9 +293,12 @@ def _decode_files(
                 limits=limits,
             )
         except ingest.IngestError as e:
-            raise _invalid(f"{label}: {e}", extra={"file": label, "index": i}) from e
+            invalid.append({"file": label, "index": i, "detail": str(e)})
+            continue
         name = _stem(filename) or content_name(upload.points)
         decoded.append(NewShape(name, upload.source_format, upload.points, label))
+    if invalid:
+        raise _invalid_batch(invalid, len(files), "file")
     return decoded
 
 
