@@ -89,7 +89,9 @@ class CollectionsAndShapes(HttpClient):
         Each batch is stored all-or-nothing by the service; batches end at ``batch_size``
         files or ``max_batch_bytes`` (keep it under the service's body limit). If a batch is
         refused, the exception says which batch and carries the shapes stored by the earlier
-        batches in ``exc.stored``. ``on_batch(done_files, total_files)`` is called after each.
+        batches in ``exc.stored``; for invalid files, ``exc.problem["invalid"]`` lists every
+        one of that batch (``file``, ``index``, ``detail``).
+        ``on_batch(done_files, total_files)`` is called after each.
         The shape name is the file name without its extension; ``on_conflict`` says what
         happens to names the collection holds already (see :meth:`upload_points`).
         """

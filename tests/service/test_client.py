@@ -160,6 +160,7 @@ def test_folder_upload_job_progress_result_and_transform(rt: RegtreeClient, tmp_
     with pytest.raises(ValidationError) as refused:
         rt.upload_folder(broken.id, tmp_path, pattern="*.*", batch_size=4)
     assert "zz-broken.txt" in (refused.value.detail or "")
+    assert [i["file"] for i in refused.value.problem["invalid"]] == ["zz-broken.txt"]
     assert [s.name for s in refused.value.stored] == names[:8]
     assert "batch 3 of 3" in "".join(refused.value.__notes__)
     assert rt.get_collection(broken.id).n_shapes == 8
