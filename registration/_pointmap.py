@@ -93,10 +93,15 @@ def jacobian_matrices(transform: PointTransform, points: FloatArray, *, h: float
 
 def central_differences(transform: PointTransform, points: FloatArray, h: float = 1e-4
                          ) -> FloatArray:
+    """Jacobian matrices of `transform` at `points` by central differences of step `h`.
+    Where the transform gives a non-finite point (a caller's map blowing up far away), the
+    matrix is non-finite, quietly: every caller treats a non-finite Jacobian as no usable
+    one (a fold, a point without a preimage)."""
     ex = np.array([h, 0.0])
     ey = np.array([0.0, h])
     out = transform.apply(np.concatenate([points + ex, points - ex, points + ey, points - ey]))
     n = points.shape[0]
-    dx = (out[:n] - out[n : 2 * n]) / (2 * h)  # d out / dx
-    dy = (out[2 * n : 3 * n] - out[3 * n :]) / (2 * h)  # d out / dy
+    with np.errstate(invalid="ignore", over="ignore"):
+        dx = (out[:n] - out[n : 2 * n]) / (2 * h)  # d out / dx
+        dy = (out[2 * n : 3 * n] - out[3 * n :]) / (2 * h)  # d out / dy
     return np.stack([dx, dy], axis=2)
