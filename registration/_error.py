@@ -6,7 +6,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from ._cpd._fgt import _compiled
+from ._cpd._switch import compiled as _compiled
 from ._points import as_points
 
 #: Up to this many pairs e's nearest neighbours come from the compiled pass over every

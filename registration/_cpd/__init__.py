@@ -34,10 +34,10 @@ option), :mod:`._estep` (the E-step engine), :mod:`._mstep` (dense and low-rank 
 :mod:`._field` (:class:`NonrigidTransform`) and :mod:`._pycpd` (the pycpd backend).
 """
 
-from ._estep import compiled_kernel, compiled_simd
 from ._field import NonrigidTransform
 from ._nonrigid import CPDResult, cpd_nonrigid, interpolating_field
 from ._options import DTYPES, CPDOptions, Range
+from ._switch import compiled_kernel, compiled_simd
 
 __all__ = ["DTYPES", "CPDOptions", "CPDResult", "NonrigidTransform", "Range",
            "compiled_kernel", "compiled_simd", "cpd_nonrigid", "interpolating_field"]

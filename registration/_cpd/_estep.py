@@ -7,7 +7,6 @@ Both return the sums the M-step needs (``P1``, ``Pt1``, ``P X``) and the objecti
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -17,6 +16,7 @@ import scipy.sparse
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from . import _switch
 from ._boxfgt import BOX_WIDTHS, BoxGrid, box_rank, box_work
 from ._fgt import FGT_MAX_RANK, ChebGrid, bounding_box, fgt_ranks
 from ._field import (
@@ -27,54 +27,6 @@ from ._field import (
     _gauss_kernel,
 )
 from ._neighbours import _scan_compiled, near_pairs
-
-_compiled: Any
-try:  # CPD's compiled passes (setup.py: built when a C compiler is there)
-    from . import _ckernel as _compiled
-except ImportError:  # pragma: no cover - depends on the install
-    _compiled = None
-#: The compiled passes in use: None runs the same computation with numpy (also with
-#: ``REGTREE_NO_CKERNEL=1`` in the environment, read at import).
-_CKERNEL: Any = None if os.environ.get("REGTREE_NO_CKERNEL") == "1" else _compiled
-
-
-def compiled_kernel() -> bool:
-    """Whether CPD runs its compiled passes (the E-step, dense and truncated, with the
-    truncated one's neighbour list searched and pruned, the Chebyshev grids' interpolation
-    weights, the final correspondences, the field's dense kernel product and the low-rank
-    factor; also the nearest neighbours of e, eq. 10, and of the similarity's affine ICP).
-
-    ``registration._cpd._ckernel`` is built at install when a C compiler is present; without
-    it (or with ``REGTREE_NO_CKERNEL=1`` set before the import) numpy runs the same sums,
-    equal to rounding (1e-11 relative in float64; float32 runs within their 1e-5), in
-    about twice the truncated step's time at thousands of points and 2-3x the dense
-    E-step's.
-
-    Returns
-    -------
-    bool
-        True when the compiled passes are in use.
-    """
-    return _CKERNEL is not None
-
-
-def compiled_simd() -> str | None:
-    """The instruction set CPD's compiled passes run with on this machine.
-
-    :mod:`._ckernel` is built in several clones and the CPU picks one at import: with GCC
-    12 or later ``"x86-64-v4"`` (AVX-512 with FMA), ``"x86-64-v3"`` (AVX2 with FMA) or
-    ``"baseline"``; older GCC and clang builds name their clone's feature (``"avx512f"``,
-    ``"avx2"``, ``"fma"``), without FMA. The dense pass takes about twice as long a pair
-    without FMA (bench/RESULTS.md 7.20): benchmarks and the service's workers report this
-    beside their times, so that figures from different machines can be compared.
-
-    Returns
-    -------
-    str or None
-        The clone's name, or None when numpy runs the passes (see :func:`compiled_kernel`).
-    """
-    return None if _CKERNEL is None else str(_CKERNEL.simd())
-
 
 #: Cost of the grid E-step per point, ``FGT_NODE_COST * (r_x r_y) ** FGT_NODE_POWER``, in
 #: units of one pair of the float64 dense E-step (fitted on fish contours of 8000 points
@@ -250,7 +202,7 @@ class _EStep:
     def dense(self, t: FloatArray, sigma2: float) -> _EStepOut:
         m, n, x = self.m, self.n, self.x
         c = _outlier_const(sigma2, self.w, m, n)
-        if _CKERNEL is not None:
+        if _switch.CKERNEL is not None:
             return self._dense_compiled(t, sigma2, c)
         # float32's exp keeps its vector path below -708 (see _kernel_in_place)
         clip = self.dtype == np.float64 and _max_exponent(t, x, sigma2) > -_EXP_MIN
@@ -315,9 +267,9 @@ class _EStep:
         p1 = np.empty(m)
         px = np.empty((2, m))
         pt1 = np.empty(n)
-        sumlog = _CKERNEL.dense(np.ascontiguousarray(t.T, dtype=np.float64), self.x_c,
-                               0.5 / sigma2, c, _DEN_FLOOR, self.dtype == np.float32, p1,
-                               px, pt1)
+        ck = _switch.CKERNEL
+        sumlog = ck.dense(np.ascontiguousarray(t.T, dtype=np.float64), self.x_c,
+                          0.5 / sigma2, c, _DEN_FLOOR, self.dtype == np.float32, p1, px, pt1)
         return _EStepOut(p1, pt1, px.T, n * math.log(sigma2) - sumlog, m * n)
 
     # -- grid (fast Gauss transform) ----------------------------------------------------
@@ -434,13 +386,13 @@ class _EStep:
         m, n = self.m, self.n
         xj, indptr, j32, kern = self._xj, self._indptr, self._j32, self._kern
         assert xj is not None and indptr is not None and j32 is not None and kern is not None
-        _CKERNEL.kernels(np.ascontiguousarray(t, dtype=np.float64), xj, indptr, 0.5 / sigma2,
-                         kern)
+        ck = _switch.CKERNEL
+        ck.kernels(np.ascontiguousarray(t, dtype=np.float64), xj, indptr, 0.5 / sigma2, kern)
         colsum, q, p1 = np.empty(n), np.empty((n, 3)), np.empty(m)
         px, pt1 = np.empty((m, 2)), np.empty(n)
-        sumlog = _CKERNEL.sums(kern, indptr, j32, np.ascontiguousarray(self.x, dtype=np.float64),
-                               _outlier_const(sigma2, self.w, m, n), _DEN_FLOOR,
-                               colsum, q, p1, px, pt1)
+        sumlog = ck.sums(kern, indptr, j32, np.ascontiguousarray(self.x, dtype=np.float64),
+                         _outlier_const(sigma2, self.w, m, n), _DEN_FLOOR,
+                         colsum, q, p1, px, pt1)
         return _EStepOut(p1, pt1, px, -sumlog + n * math.log(sigma2), len(kern))
 
     def _truncated_numpy(self, t: FloatArray, sigma2: float) -> _EStepOut:
@@ -505,7 +457,7 @@ class _EStep:
             return False
         if r_build + self._moved(t) > self._r_build:
             return False
-        if _CKERNEL is not None:
+        if _switch.CKERNEL is not None:
             # the compiled scan of the cell list's search, over each centroid's run of the
             # list: the same pairs in the same order in one pass to count and one to write
             # (8000 points: 1.3 ms a prune against numpy's 6.8; bench/RESULTS.md 7.19)
@@ -545,7 +497,7 @@ class _EStep:
         self._indptr = indptr
         # the compiled passes: int32 subject indices, and the kernel's array (kept with
         # the list: a fresh one each step costs its page faults, ~1 ms at 2M pairs)
-        compiled = _CKERNEL is not None and self.n < 2**31
+        compiled = _switch.CKERNEL is not None and self.n < 2**31
         self._j32 = pj.astype(np.int32) if compiled else None
         # float32 runs keep the kernel in float32 here (no casts to pay for, unlike numpy's
         # passes: the exp and the list's traffic halve); every sum is float64
@@ -579,7 +531,7 @@ def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float,
     :data:`POSTERIOR_DENSE_MAX_PAIRS_COMPILED` pairs whatever the last E-step was.
     """
     m, n = len(t), len(x)
-    if _CKERNEL is not None and m * n <= POSTERIOR_DENSE_MAX_PAIRS_COMPILED:
+    if _switch.CKERNEL is not None and m * n <= POSTERIOR_DENSE_MAX_PAIRS_COMPILED:
         return _posterior_max_dense(t, x, sigma2, w)
     if m * n <= POSTERIOR_DENSE_MAX_PAIRS and not sparse:
         return _posterior_max_dense(t, x, sigma2, w)
@@ -631,12 +583,12 @@ def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float
     points); float64 throughout."""
     m, n = len(t), len(x)
     c = _outlier_const(sigma2, w, m, n)
-    if _CKERNEL is not None:  # one pass (see _EStep._dense_compiled)
+    if _switch.CKERNEL is not None:  # one pass (see _EStep._dense_compiled)
         arg = np.empty(m, dtype=np.int64)
         best = np.empty(m)
-        _CKERNEL.posterior_max(np.ascontiguousarray(t.T, dtype=np.float64),
-                               np.ascontiguousarray(x, dtype=np.float64), 0.5 / sigma2, c,
-                               _DEN_FLOOR, arg, best)
+        _switch.CKERNEL.posterior_max(np.ascontiguousarray(t.T, dtype=np.float64),
+                                      np.ascontiguousarray(x, dtype=np.float64), 0.5 / sigma2,
+                                      c, _DEN_FLOOR, arg, best)
         return arg.astype(np.intp, copy=False), np.clip(best, 0.0, 1.0)
     ta = _exponent_rows(t, sigma2)
     xsq = np.einsum("ij,ij->i", x, x)
@@ -707,7 +659,7 @@ def _choose_estep(estep: _EStep, t: FloatArray, sigma2: float, truncate: bool | 
     dense_cost = m * n * (DENSE_PAIR_COST_F32 if estep.dtype == np.float32 else 1.0)
     # the dense pass's cost as the grid's and the box's estimates see it
     dense_vs_grids = dense_vs_box = dense_cost
-    if _CKERNEL is not None and m * n <= COMPILED_DENSE_MAX_PAIRS:
+    if _switch.CKERNEL is not None and m * n <= COMPILED_DENSE_MAX_PAIRS:
         dense_vs_grids = dense_cost / COMPILED_DENSE_SPEEDUP_GRID
         dense_vs_box = dense_cost / COMPILED_DENSE_SPEEDUP_BOX
     grid_cost = estep.grid_cost(t, sigma2) if gauss_grid is not False else None

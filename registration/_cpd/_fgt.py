@@ -29,6 +29,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ._switch import compiled as _compiled
+
 FloatArray = NDArray[np.float64]
 
 #: Absolute error of one interpolated 1-D kernel value (the kernel's peak is 1).
@@ -156,14 +158,6 @@ def gauss_transform(src: FloatArray, q: FloatArray, tgt: FloatArray, sigma: floa
     conv = grid.spread(lx, ly, q.reshape(len(src), -1))
     tx, ty = grid.interp(tgt)
     return grid.gather(tx, ty, conv)
-
-
-def _compiled() -> Any:
-    """CPD's compiled passes (:mod:`._ckernel`) when in use, else None: the E-step's switch
-    (``_estep._CKERNEL``), looked up at each call so that one switch covers every pass."""
-    from . import _estep  # _estep imports this module
-
-    return _estep._CKERNEL
 
 
 def pivoted_cholesky(y: FloatArray, beta: float, rank: int | None,

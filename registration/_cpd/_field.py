@@ -10,7 +10,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._repr import number_text, points_text
-from ._fgt import _compiled, bounding_box, gauss_transform, grid_nodes
+from ._fgt import bounding_box, gauss_transform, grid_nodes
+from ._switch import compiled as _compiled
 
 FloatArray = NDArray[np.float64]
 

@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ._fgt import bounding_box
 from ._field import FloatArray
+from ._switch import compiled as _compiled
 
 #: Candidates handled per block of centroids (their temporaries stay in the CPU cache).
 CANDIDATE_BLOCK = 1 << 16
@@ -94,7 +94,7 @@ def near_pairs(t: FloatArray, x: FloatArray, r: float, cap: int | None = None,
     ends = np.cumsum(per_centroid)
 
     r2 = r * r
-    if _estep_ckernel() is not None:
+    if _compiled() is not None:
         return _scan_compiled(t, xs0, xs1, order, starts, lens, r2, cap, distances)
     counts = np.zeros(m, dtype=np.intp)
     j_parts: list[NDArray[np.intp]] = []
@@ -144,14 +144,6 @@ def near_pairs(t: FloatArray, x: FloatArray, r: float, cap: int | None = None,
     return NearPairs(counts, j.astype(np.intp, copy=False), xj, dist)
 
 
-def _estep_ckernel() -> Any:
-    """The compiled passes the E-step uses (None: numpy's), looked up at each call so
-    that switching them (tests, ``REGTREE_NO_CKERNEL``) switches both."""
-    from . import _estep
-
-    return _estep._CKERNEL
-
-
 def _scan_compiled(t: FloatArray, xs0: FloatArray, xs1: FloatArray,
                    order: NDArray[np.intp], starts: NDArray[np.int64],
                    lens: NDArray[np.int64], r2: float, cap: int | None,
@@ -159,7 +151,7 @@ def _scan_compiled(t: FloatArray, xs0: FloatArray, xs1: FloatArray,
     """The candidates' scan of :func:`near_pairs` by :mod:`._ckernel`: a pass that counts
     each centroid's pairs (stopping once over ``cap``), then one that writes them, in the
     same order as numpy's scan (3-5 ns a candidate against 20-25)."""
-    ck = _estep_ckernel()
+    ck = _compiled()
     m = len(t)
     tc = np.ascontiguousarray(t, dtype=np.float64)
     st = np.ascontiguousarray(starts, dtype=np.int64)

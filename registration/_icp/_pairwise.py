@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from .._cpd._fgt import _compiled
+from .._cpd._switch import compiled as _compiled
 from .._points import as_points
 from .._pose import PoseSpec
 from ._fit import _MIN_ABS_DET, _fit_affine_batch

@@ -16,15 +16,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from registration._cpd import _estep, cpd_nonrigid
-from registration._cpd._estep import (
-    _EStep,
-    _posterior_max_dense,
-    compiled_kernel,
-    compiled_simd,
-)
+from registration._cpd import _estep, _switch, cpd_nonrigid
+from registration._cpd._estep import _EStep, _posterior_max_dense
 from registration._cpd._fgt import _cheb_nodes, _interp_matrix
 from registration._cpd._field import _gauss_kernel
+from registration._cpd._switch import compiled_kernel, compiled_simd
 
 from .test_cpd_fast import close, curve, naive_sums
 
@@ -67,17 +63,17 @@ def test_compiled_simd_names_the_dispatched_instruction_set() -> None:
 
 @pytest.fixture
 def ckernel() -> object:
-    if _estep._CKERNEL is None:
+    if _switch.CKERNEL is None:
         if REQUIRED:
             pytest.fail("REGTREE_REQUIRE_CKERNEL=1 but _ckernel is not importable")
         pytest.skip("registration._cpd._ckernel not built")
-    return _estep._CKERNEL
+    return _switch.CKERNEL
 
 
 def truncated(x: np.ndarray, t: np.ndarray, s2: float, w: float,
               engine: object, dtype: str = "float64") -> _estep._EStepOut:
-    saved = _estep._CKERNEL
-    _estep._CKERNEL = engine
+    saved = _switch.CKERNEL
+    _switch.CKERNEL = engine
     try:
         est = _EStep(x, len(t), w, dtype)
         est.force_truncate = True
@@ -86,7 +82,7 @@ def truncated(x: np.ndarray, t: np.ndarray, s2: float, w: float,
         assert (est._j32 is not None) == (engine is not None)  # the engine asked for ran
         return out
     finally:
-        _estep._CKERNEL = saved
+        _switch.CKERNEL = saved
 
 
 @pytest.mark.parametrize(("sigma", "w"), [(0.01, 0.1), (0.03, 0.1), (0.03, 0.0), (0.1, 0.5)])
@@ -131,8 +127,8 @@ def test_compiled_prune_keeps_the_pairs_numpys_keeps(ckernel: object) -> None:
     moved = t + 1e-4 * curve(450, 7)
     lists = []
     for engine in (ckernel, None):
-        saved = _estep._CKERNEL
-        _estep._CKERNEL = engine
+        saved = _switch.CKERNEL
+        _switch.CKERNEL = engine
         try:
             est = _EStep(x, len(t), 0.1, "float64")
             assert est._build_list(t, 0.3)
@@ -140,7 +136,7 @@ def test_compiled_prune_keeps_the_pairs_numpys_keeps(ckernel: object) -> None:
             lists.append((est._counts.copy(), est._pj.copy(), est._xj.copy(),  # type: ignore[union-attr]
                           est._indptr.copy()))  # type: ignore[union-attr]
         finally:
-            _estep._CKERNEL = saved
+            _switch.CKERNEL = saved
     (counts, pj, xj, indptr), (counts_np, pj_np, xj_np, indptr_np) = lists
     np.testing.assert_array_equal(counts, counts_np)
     np.testing.assert_array_equal(pj, pj_np)
@@ -163,33 +159,33 @@ def test_compiled_interpolation_weights_equal_numpys(ckernel: object, r: int) ->
     u = np.r_[np.random.default_rng(3).uniform(-1.0, 1.0, 500), -1.0, 1.0, nodes,
               nodes + 5e-324, nodes - 5e-324, nodes[0] + 1e-15]
     got = _interp_matrix(u, r)
-    saved = _estep._CKERNEL
-    _estep._CKERNEL = None
+    saved = _switch.CKERNEL
+    _switch.CKERNEL = None
     try:
         want = _interp_matrix(u, r)
         assert _interp_matrix(u[:0], r).shape == (0, r)
     finally:
-        _estep._CKERNEL = saved
+        _switch.CKERNEL = saved
     assert got.shape == want.shape == (len(u), r)
     np.testing.assert_allclose(got, want, rtol=0, atol=4e-15)
     np.testing.assert_array_equal(got[500 + 2:500 + 2 + 3 * r], want[500 + 2:500 + 2 + 3 * r])
     assert _interp_matrix(u[:0], r).shape == (0, r)
     with pytest.raises(ValueError, match="out"):
-        _estep._CKERNEL.interp(u, nodes, np.ones(r), np.empty((len(u), r + 1)))
+        _switch.CKERNEL.interp(u, nodes, np.ones(r), np.empty((len(u), r + 1)))
     with pytest.raises(ValueError, match="wb"):
-        _estep._CKERNEL.interp(u, nodes, np.ones(r + 1), np.empty((len(u), r)))
+        _switch.CKERNEL.interp(u, nodes, np.ones(r + 1), np.empty((len(u), r)))
 
 
 def test_whole_runs_agree(ckernel: object) -> None:
     model, subject = curve(900, 3), 1.1 * curve(800, 4, wobble=0.08) + 0.05
     runs = []
     for engine in (ckernel, None):
-        saved = _estep._CKERNEL
-        _estep._CKERNEL = engine
+        saved = _switch.CKERNEL
+        _switch.CKERNEL = engine
         try:
             runs.append(cpd_nonrigid(model, subject, tol=0.0, max_iter=60, truncate=True))
         finally:
-            _estep._CKERNEL = saved
+            _switch.CKERNEL = saved
     scale = math.sqrt(float(np.mean(np.sum((subject - subject.mean(0)) ** 2, axis=1))))
     assert np.max(np.abs(runs[0].warped - runs[1].warped)) < 1e-9 * scale
     assert runs[0].sigma2 == pytest.approx(runs[1].sigma2, rel=1e-9)
@@ -239,12 +235,12 @@ def test_compiled_passes_check_their_arrays(ckernel: object) -> None:
 
 
 def with_engine(engine: object, fn: Any) -> Any:
-    saved = _estep._CKERNEL
-    _estep._CKERNEL = engine
+    saved = _switch.CKERNEL
+    _switch.CKERNEL = engine
     try:
         return fn()
     finally:
-        _estep._CKERNEL = saved
+        _switch.CKERNEL = saved
 
 
 @pytest.mark.parametrize("sigma", [1.0, 0.1, 0.02, 0.005])

@@ -19,7 +19,7 @@ import math
 import numpy as np
 import pytest
 
-from registration._cpd import _boxfgt, _estep, cpd_nonrigid
+from registration._cpd import _boxfgt, _estep, _switch, cpd_nonrigid
 from registration._cpd._boxfgt import BOX_ABS_TOL, box_gauss_transform, box_rank
 from registration._cpd._estep import _EStep, _posterior_max, _posterior_max_dense
 from registration._cpd._fgt import _cheb_nodes, _interp_matrix, gauss_transform, pivoted_cholesky
@@ -337,9 +337,9 @@ def test_the_compiled_dense_estep_is_weighed_against_the_grids_at_its_speed(
     pairs = len(t) * len(x)
     dense = pairs * (_estep.DENSE_PAIR_COST_F32 if dtype == "float32" else 1.0)
     est = _EStep(x, len(t), 0.1, dtype)
-    if _estep._compiled is None:
+    if _switch.BUILT is None:
         pytest.skip("the compiled passes are not built here")
-    monkeypatch.setattr(_estep, "_CKERNEL", _estep._compiled)
+    monkeypatch.setattr(_switch, "CKERNEL", _switch.BUILT)
     monkeypatch.setattr(_estep, "COMPILED_DENSE_MAX_PAIRS", pairs)
 
     def choose(grid: float | None, box: float | None) -> str:
@@ -363,7 +363,7 @@ def test_the_compiled_dense_estep_is_weighed_against_the_grids_at_its_speed(
     assert choose(0.5 * dense, None) == "grid"
     assert choose(None, 0.5 * dense) == "box"
     monkeypatch.setattr(_estep, "COMPILED_DENSE_MAX_PAIRS", pairs)
-    monkeypatch.setattr(_estep, "_CKERNEL", None)
+    monkeypatch.setattr(_switch, "CKERNEL", None)
     assert choose(0.5 * dense, None) == "grid"
     assert choose(None, 0.5 * dense) == "box"
     assert choose(1.1 * dense, 1.2 * dense) == "dense"

@@ -8,10 +8,10 @@ import os
 import numpy as np
 import pytest
 
-from registration._cpd import _estep, _neighbours
+from registration._cpd import _neighbours, _switch
 from registration._cpd._neighbours import near_pairs
 
-COMPILED = _estep._CKERNEL
+COMPILED = _switch.CKERNEL
 
 
 @pytest.fixture(autouse=True, params=["compiled", "numpy"])
@@ -21,9 +21,9 @@ def engine(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> s
             if os.environ.get("REGTREE_REQUIRE_CKERNEL") == "1":
                 pytest.fail("REGTREE_REQUIRE_CKERNEL=1 but _ckernel is not importable")
             pytest.skip("registration._cpd._ckernel not built")
-        monkeypatch.setattr(_estep, "_CKERNEL", COMPILED)
+        monkeypatch.setattr(_switch, "CKERNEL", COMPILED)
     else:
-        monkeypatch.setattr(_estep, "_CKERNEL", None)
+        monkeypatch.setattr(_switch, "CKERNEL", None)
     return str(request.param)
 
 
@@ -114,9 +114,9 @@ def test_both_scans_list_the_same_pairs_in_the_same_order(
     t = contour(1200, 8) * 1.02
     for r in (0.01, 0.08, 0.4):
         got = near_pairs(t, x, r)
-        monkeypatch.setattr(_estep, "_CKERNEL", None)
+        monkeypatch.setattr(_switch, "CKERNEL", None)
         want = near_pairs(t, x, r)
-        monkeypatch.setattr(_estep, "_CKERNEL", COMPILED)
+        monkeypatch.setattr(_switch, "CKERNEL", COMPILED)
         assert got is not None and want is not None
         for a, b in ((got.counts, want.counts), (got.j, want.j), (got.xj, want.xj),
                      (got.dist, want.dist)):

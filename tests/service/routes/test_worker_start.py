@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from registration._cpd import _estep
+from registration._cpd import _switch
 from service.worker import Worker
 
 from .conftest import make_settings
@@ -20,7 +20,7 @@ def test_worker_start_reports_the_compiled_kernel(
         tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch,
         compiled: bool) -> None:
     fake = types.SimpleNamespace(simd=lambda: "x86-64-v3")
-    monkeypatch.setattr(_estep, "_CKERNEL", fake if compiled else None)
+    monkeypatch.setattr(_switch, "CKERNEL", fake if compiled else None)
     worker = Worker(make_settings(tmp_path), worker_id="w-test")
     with caplog.at_level(logging.INFO, logger="regtree"):
         worker.run(burst=True)
