@@ -85,10 +85,11 @@ def cmd_upload(args: argparse.Namespace, rt: RegtreeClient) -> int:
         message = describe_error(e, notes=False) if e.status is not None else f"{e}"
         if e.type == ProblemType.NAME_CONFLICT:
             message += "; to upload anyway: --on-conflict replace or --on-conflict keep"
+        if e.status is not None:  # the service answered: it stored none of that batch
+            message += "; nothing of the refused batch was stored"
         raise CLIError(
-            f"{message}; nothing of the refused batch was stored; collection "
-            f"{collection.name!r} (id {collection.id}) keeps the {len(e.stored)} shape(s) of "
-            "the earlier batches",
+            f"{message}; collection {collection.name!r} (id {collection.id}) keeps the "
+            f"{len(e.stored)} shape(s) of the earlier batches",
             code,
         ) from e
     except KeyboardInterrupt:
