@@ -215,6 +215,11 @@ def outline_sources() -> dict[str, list[tuple[str, np.ndarray, int]]]:
 OUTLINE_SAMPLINGS = {"outline": "even", "outline-random": "random", "outline-arc": "arclength"}
 
 
+def outline_source(kind: str) -> str:
+    """The :func:`outline_sources` key a family `kind` draws its dense outlines from."""
+    return "outline" if kind in OUTLINE_SAMPLINGS else kind
+
+
 def outline_cases(kind: str, seeds: list[int],
                   sources: dict[str, list[tuple[str, np.ndarray, int]]] | None = None
                   ) -> list[Case]:
@@ -227,7 +232,7 @@ def outline_cases(kind: str, seeds: list[int],
     outline digitised anew on every shape. `sources`: those of
     :func:`outline_sources`, read again when not given."""
     cases = []
-    source = "outline" if kind in OUTLINE_SAMPLINGS else kind
+    source = outline_source(kind)
     sampling = OUTLINE_SAMPLINGS.get(kind, "random")
     for name, dense, n in (sources or outline_sources())[source]:
         for seed in seeds:
@@ -646,7 +651,7 @@ def main() -> None:
     if not args.quick or (args.only and {"mpeg7", *OUTLINE_SAMPLINGS} & set(args.only)):
         sources = outline_sources()
         for kind in ("mpeg7", *OUTLINE_SAMPLINGS):
-            if sources["mpeg7" if kind == "mpeg7" else "outline"]:
+            if sources[outline_source(kind)]:
                 cases += outline_cases(kind, seeds[:1], sources)
             elif DATA.is_dir() and kind in ("mpeg7", "outline"):
                 print(f"NOTE: no {kind} shapes under {DATA}: skipping that family")
