@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg.lapack
 
+from . import _switch
 from ._estep import _EStepOut
 from ._fgt import pivoted_cholesky
 from ._field import FloatArray
@@ -19,6 +20,11 @@ from ._field import FloatArray
 #: ground-truth error to four digits. At 1e-8 that error moved (0.664 -> 0.667 %, 0.274 ->
 #: 0.281 %): too loose (bench/RESULTS.md 7.9).
 LOW_RANK_TRACE_TOL = 1e-10
+#: Largest rank the compiled low-rank M-step takes (:class:`LowRankMStep`); above it numpy
+#: and LAPACK, whose blocked products and Cholesky keep ahead once the k x k system
+#: outgrows the second-level cache (400 points: the compiled pass takes 0.35-0.5x numpy's
+#: time at rank 33-63, 0.7x at 117-132, 0.9x at 157 and 1.1x at 283).
+COMPILED_MSTEP_MAX_RANK = 160
 _POTRF = scipy.linalg.lapack.dpotrf
 _POTRS = scipy.linalg.lapack.dpotrs
 
@@ -80,6 +86,40 @@ def _spd_solve(a: FloatArray, b: FloatArray) -> FloatArray:
         return x
     out: FloatArray = np.asarray(np.linalg.lstsq(a, b, rcond=None)[0], dtype=np.float64)
     return out
+
+
+class LowRankMStep:
+    """The low-rank M-step of one CPD run, its kernel ``G ~= Q diag(lam) Q^T`` fixed
+    (:func:`_low_rank_factor`): called with ``(y, est, reg)`` it returns ``(w, disp)`` as
+    :func:`_mstep_low_rank` does.
+
+    The compiled pass (``_ckernel.lowrank_mstep``) solves the same system by Cholesky,
+    equal to rounding (1e-15 of the displacement), up to rank
+    :data:`COMPILED_MSTEP_MAX_RANK`; it reads ``Q`` row by row, padded with zeros to a
+    multiple of 8 columns, copied once per run. Where it finds the system not numerically
+    positive definite, above that rank, or without it, :func:`_mstep_low_rank` solves it.
+    """
+
+    def __init__(self, q: FloatArray, lam: FloatArray) -> None:
+        self.q = q
+        self.lam = np.ascontiguousarray(lam, dtype=np.float64)
+        self._padded: FloatArray | None = None
+
+    def __call__(self, y: FloatArray, est: _EStepOut, reg: float
+                 ) -> tuple[FloatArray, FloatArray]:
+        ck = _switch.CKERNEL
+        if ck is not None and len(self.lam) <= COMPILED_MSTEP_MAX_RANK:
+            if self._padded is None:
+                m, k = self.q.shape
+                self._padded = np.zeros((m, -(-k // 8) * 8))
+                self._padded[:, :k] = self.q
+            w = np.empty((len(y), 2))
+            disp = np.empty((len(y), 2))
+            if ck.lowrank_mstep(self._padded, self.lam, np.ascontiguousarray(y, np.float64),
+                                np.ascontiguousarray(est.p1, np.float64),
+                                np.ascontiguousarray(est.px, np.float64), float(reg), w, disp):
+                return w, disp
+        return _mstep_low_rank(self.q, self.lam, y, est, reg)
 
 
 def _cholesky_solve(a: FloatArray, b: FloatArray) -> FloatArray | None:

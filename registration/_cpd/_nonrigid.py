@@ -20,7 +20,7 @@ from .._points import as_points
 from .._repr import number_text, points_text
 from ._estep import _EStep, _posterior_max, run_estep
 from ._field import FloatArray, NonrigidTransform, _gauss_kernel, kernel_product
-from ._mstep import _low_rank_factor, _mstep_dense, _mstep_low_rank, _spd_solve
+from ._mstep import LowRankMStep, _low_rank_factor, _mstep_dense, _spd_solve
 from ._options import CPDOptions, check_run_options
 from ._pycpd import _run_pycpd
 
@@ -386,6 +386,7 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
 
     use_low_rank = (m > AUTO_LOW_RANK_MIN_M) if low_rank is None else bool(low_rank)
     basis = _low_rank_factor(y, beta, num_eig) if use_low_rank else None
+    mstep_low_rank = None if basis is None else LowRankMStep(*basis)
     gk: FloatArray | None = None if use_low_rank else _gauss_kernel(y, y, beta)
 
     estep = _EStep(x, m, w, dtype)
@@ -441,8 +442,8 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
             0.0 if lval == l_old else math.inf)
         # ---- M-step
         reg = lmbda * s2
-        if basis is not None:
-            w_new, disp = _mstep_low_rank(basis[0], basis[1], y, est, reg)
+        if mstep_low_rank is not None:
+            w_new, disp = mstep_low_rank(y, est, reg)
             t_new = y + disp
         else:
             assert gk is not None

@@ -396,3 +396,83 @@ def test_compiled_nearest_neighbours(ckernel: object) -> None:
     want = with_engine(None, lambda: _batch_icp(x, b[0], *start, 8))
     for g, w in zip(got, want, strict=True):
         np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-12)
+
+
+# --- the low-rank M-step -----------------------------------------------------------------
+
+
+def _mstep_inputs(m: int, seed: int) -> tuple[np.ndarray, Any]:
+    rng = np.random.default_rng(seed)
+    y = curve(m, seed)
+    p1 = rng.uniform(0.0, 2.0, m)
+    p1[::7] = 0.0  # centroids no subject point is near
+    px = p1[:, None] * (y + 0.05 * rng.standard_normal((m, 2)))
+    return y, _estep._EStepOut(p1=p1, pt1=np.ones(m), px=px, nll=0.0, nnz=0)
+
+
+@pytest.mark.parametrize("m", [157, 400])
+@pytest.mark.parametrize("beta", [2.0, 1.0, 0.5])
+def test_compiled_low_rank_mstep_equals_numpy(ckernel: object, m: int, beta: float) -> None:
+    """The compiled M-step (Gram matrix in register tiles, Cholesky by rows) solves the
+    same system as numpy and LAPACK: W and the displacement within 1e-13 of theirs, at
+    ranks that fill its tiles (multiples of 4 and 8) and ranks that do not."""
+    from registration._cpd._mstep import LowRankMStep, _low_rank_factor, _mstep_low_rank
+
+    y, est = _mstep_inputs(m, 3)
+    q, lam = _low_rank_factor(y, beta, None)
+    for rank in (len(lam), 1, 8, 13):
+        qr, lr = np.ascontiguousarray(q[:, :rank]), lam[:rank]
+        for reg in (1e-3, 2.0):
+            got = with_engine(ckernel, lambda qr=qr, lr=lr, reg=reg: LowRankMStep(qr, lr)(
+                y, est, reg))
+            want = _mstep_low_rank(qr, lr, y, est, reg)
+            for g, w in zip(got, want, strict=True):
+                assert np.max(np.abs(g - w)) <= 1e-13 * max(1.0, float(np.max(np.abs(w))))
+
+
+def test_compiled_low_rank_mstep_leaves_indefinite_systems_to_lapack(
+        ckernel: object, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A system rounding leaves indefinite (no subject point near most centroids, no
+    regulariser) is not solved by the compiled pass, which writes nothing: numpy's solve
+    with its ridge takes it, with the same result as without the compiled pass. Above
+    COMPILED_MSTEP_MAX_RANK numpy solves every system."""
+    from registration._cpd import _mstep
+    from registration._cpd._mstep import LowRankMStep, _low_rank_factor, _mstep_low_rank
+
+    y, est = _mstep_inputs(200, 5)
+    q, lam = _low_rank_factor(y, 0.5, None)
+    est.p1[5:] = 0.0
+    est.px[5:] = 0.0
+    kp = -(-len(lam) // 8) * 8
+    padded = np.zeros((len(y), kp))
+    padded[:, :len(lam)] = q
+    w, disp = np.full((len(y), 2), 7.0), np.full((len(y), 2), 7.0)
+    assert not ckernel.lowrank_mstep(padded, lam, y, est.p1, est.px, 0.0, w, disp)  # type: ignore[attr-defined]
+    assert (w == 7.0).all() and (disp == 7.0).all()
+    got = with_engine(ckernel, lambda: LowRankMStep(q, lam)(y, est, 0.0))
+    want = _mstep_low_rank(q, lam, y, est, 0.0)
+    for g, wt in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, wt)
+    y, est = _mstep_inputs(200, 6)
+    monkeypatch.setattr(_mstep, "COMPILED_MSTEP_MAX_RANK", len(lam) - 1)
+    got = with_engine(ckernel, lambda: LowRankMStep(q, lam)(y, est, 1e-3))
+    want = _mstep_low_rank(q, lam, y, est, 1e-3)
+    for g, wt in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, wt)
+
+
+def test_compiled_low_rank_mstep_checks_its_arrays(ckernel: object) -> None:
+    ck = ckernel
+    y, p1, px = np.zeros((5, 2)), np.ones(5), np.zeros((5, 2))
+    w, disp = np.empty((5, 2)), np.empty((5, 2))
+    lam = np.ones(3)
+    assert ck.lowrank_mstep(np.eye(5, 8), lam, y, p1, px, 1.0, w, disp)  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(disp, 0.0)
+    with pytest.raises(ValueError, match="multiple of 8"):
+        ck.lowrank_mstep(np.eye(5, 4), lam, y, p1, px, 1.0, w, disp)  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="multiple of 8"):
+        ck.lowrank_mstep(np.eye(5, 8), np.ones(9), y, p1, px, 1.0, w, disp)  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="y holds"):
+        ck.lowrank_mstep(np.eye(5, 8), lam, np.zeros(5), p1, px, 1.0, w, disp)  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="disp holds"):
+        ck.lowrank_mstep(np.eye(5, 8), lam, y, p1, px, 1.0, w, np.empty(4))  # type: ignore[attr-defined]
