@@ -9,7 +9,7 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -69,6 +69,34 @@ def _blas_limit() -> Iterator[None]:
         yield
 
 
+class _Posterior:
+    """A run's final correspondences (:func:`~._estep._posterior_max` at its last
+    centroids and variance), computed when first asked for."""
+
+    __slots__ = ("_args", "_value")
+
+    def __init__(self, t: FloatArray, x: FloatArray, s2: float, w: float, sparse: bool
+                 ) -> None:
+        self._args: tuple[FloatArray, FloatArray, float, float, bool] | None = (
+            t, x, s2, w, sparse)
+        self._value: tuple[NDArray[np.intp], FloatArray] | None = None
+
+    def value(self) -> tuple[NDArray[np.intp], FloatArray]:
+        if self._value is None:
+            assert self._args is not None
+            corr, prob = _posterior_max(*self._args)
+            corr.setflags(write=False)
+            prob.setflags(write=False)
+            self._value, self._args = (corr, prob), None
+        return self._value
+
+    def __getstate__(self) -> tuple[NDArray[np.intp], FloatArray]:
+        return self.value()  # sent to another process: computed here, where it was made
+
+    def __setstate__(self, state: tuple[NDArray[np.intp], FloatArray]) -> None:
+        self._args, self._value = None, state
+
+
 @dataclass(frozen=True, eq=False)
 class CPDResult:
     """Outcome of :func:`cpd_nonrigid`.
@@ -87,7 +115,9 @@ class CPDResult:
         That maximum, ``max_n P(m | x_n)``, in ``[0, 1]``.  ``P(m | x_n)`` is the CPD
         posterior of centroid ``m`` given data point ``x_n`` (it sums to at most 1 over ``m``,
         the remainder being the outlier class), so a value near 1 means some subject point
-        is explained by this model point alone.
+        is explained by this model point alone. Both are computed when first read (a pass
+        over every pair, as an E-step): most runs inside the tree are intermediate steps
+        whose correspondences nobody reads.
     sigma2 : float
         Final GMM variance, in the caller's subject units squared.
     iterations : int
@@ -103,12 +133,21 @@ class CPDResult:
 
     warped: FloatArray
     transform: NonrigidTransform
-    correspondence: NDArray[np.intp]
-    probability: FloatArray
     sigma2: float
     iterations: int
     converged: bool
     objective: float = float("nan")
+    _posterior: _Posterior | None = field(default=None, repr=False)
+
+    @property
+    def correspondence(self) -> NDArray[np.intp]:
+        assert self._posterior is not None, "CPDResult is made by cpd_nonrigid"
+        return self._posterior.value()[0]
+
+    @property
+    def probability(self) -> FloatArray:
+        assert self._posterior is not None, "CPDResult is made by cpd_nonrigid"
+        return self._posterior.value()[1]
 
     def __repr__(self) -> str:  # short: the arrays are not printed
         return (
@@ -581,12 +620,9 @@ def _finish(x: FloatArray, y: FloatArray, *, wmat: FloatArray,
         t = moved + kernel_product(moved, y, wmat, beta)
     else:
         t = y + (g @ wmat if g is not None else kernel_product(y, y, wmat, beta))
-    corr, prob = _posterior_max(t, x, s2, w, sparse)
     warped = t * xs + xd
     warped.setflags(write=False)
-    corr.setflags(write=False)
-    prob.setflags(write=False)
-    return CPDResult(warped=warped, transform=transform, correspondence=corr,
-                     probability=prob, sigma2=float(s2 * xs * xs), iterations=iterations,
-                     converged=converged, objective=float(objective))
+    return CPDResult(warped=warped, transform=transform, sigma2=float(s2 * xs * xs),
+                     iterations=iterations, converged=converged, objective=float(objective),
+                     _posterior=_Posterior(t, x, s2, w, sparse))
 

@@ -314,8 +314,7 @@ def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
     cur, e_cur = start, e_start
     steps: list[PointTransform] = []
     quality: list[RegistrationQuality] = []
-    corr: IntArray = np.zeros(0, dtype=np.intp)
-    prob: FloatArray = np.zeros(0)
+    last: CPDResult | None = None  # the last stage kept
     for stage, factor in enumerate(POLISH_BETA_FACTORS):
         # the start already lies on the subject: sigma^2 from its residual (e = mean
         # squared nearest distance, both ways; sigma^2 is per coordinate), not from the
@@ -335,8 +334,11 @@ def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
         steps.append(res.transform)
         quality.append(q)
         cur, e_cur = warped, e
-        corr = np.asarray(res.correspondence, dtype=np.intp)
-        prob = np.asarray(res.probability, dtype=np.float64)
+        last = res
+    # the correspondences of the last stage kept only (each is a pass over every pair)
+    corr = np.zeros(0, dtype=np.intp) if last is None else np.asarray(last.correspondence,
+                                                                       dtype=np.intp)
+    prob = np.zeros(0) if last is None else np.asarray(last.probability, dtype=np.float64)
     return _Stages(warped=cur, error=e_cur, steps=tuple(steps), quality=tuple(quality),
                    correspondence=corr, probability=prob)
 

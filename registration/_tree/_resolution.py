@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import numbers
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -142,6 +142,9 @@ class _FineTask:
     # resolution after its CPD (see `_stored_finish`); None: not finished
     model: FloatArray | None = None
     spacing2: float = 0.0  # the stored subject's h^2 (the collection's), for the finish
+    # whether the outcome's correspondences are read (not for an edge run only for the
+    # subject's children to start from); each is a pass over every stored pair
+    correspondences: bool = True
 
 
 @dataclass(frozen=True)
@@ -154,8 +157,12 @@ class _StoredFinish:
     step: PointTransform | None = None
     warped: FloatArray | None = None
     error: float | None = None
+    # when kept: the correspondences and their probabilities, read from `posterior` (in
+    # the task, only for the last finish kept: see `_last_kept`)
     correspondence: IntArray | None = None
     probability: FloatArray | None = None
+    posterior: Callable[[], tuple[NDArray[Any], NDArray[Any]]] | None = field(
+        default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -163,8 +170,9 @@ class _FineOutcome:
     subject: int
     warped: FloatArray
     error: float
-    correspondence: IntArray
-    probability: FloatArray
+    # None when a stored finish kept supplies them or none is read (`correspondences`)
+    correspondence: IntArray | None
+    probability: FloatArray | None
     step: NonrigidTransform
     min_jacobian: float  # of the edge's non-rigid warp (coarse then fine) on the stored model
     finish: _StoredFinish | None = None  # when the task asked for it
@@ -222,11 +230,33 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
             at, e_at = finish.warped, finish.error
         symmetric = _stored_symmetric(task.model, at, e_at, task.y, task.spacing2, o,
                                       task.control)
+        finish, symmetric = _last_kept(finish, symmetric)
+    kept = any(f is not None and f.step is not None for f in (finish, symmetric))
+    own = task.correspondences and not kept
     return _FineOutcome(subject=task.subject, warped=warped, error=error,
-                        correspondence=np.asarray(res.correspondence, dtype=np.intp),
-                        probability=np.asarray(res.probability, dtype=np.float64),
+                        correspondence=np.asarray(res.correspondence, dtype=np.intp)
+                        if own else None,
+                        probability=np.asarray(res.probability, dtype=np.float64)
+                        if own else None,
                         step=res.transform, min_jacobian=float(det.min()), finish=finish,
                         symmetric=symmetric)
+
+
+def _last_kept(finish: _StoredFinish, symmetric: _StoredFinish
+               ) -> tuple[_StoredFinish, _StoredFinish]:
+    """The two stored finishes with the correspondences of the last one kept read (the
+    subject's), the other's dropped unread: the outcome goes to another process."""
+    last = symmetric if symmetric.step is not None else finish
+    out = []
+    for fin in (finish, symmetric):
+        if fin is last and fin.posterior is not None:
+            corr, prob = fin.posterior()
+            fin = replace(fin, correspondence=np.asarray(corr, dtype=np.intp),
+                          probability=np.asarray(prob, dtype=np.float64), posterior=None)
+        elif fin.posterior is not None:
+            fin = replace(fin, posterior=None)
+        out.append(fin)
+    return out[0], out[1]
 
 
 def _stored_finish(model: FloatArray, warped: FloatArray, error: float, y: FloatArray,
@@ -287,10 +317,8 @@ def _stored_ruled(info: dict[str, Any], step: PointTransform, moved: FloatArray,
         return _StoredFinish(info)
     info["kept"] = True
     info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x {whose}"
-    corr, prob = correspondence(e)
     return _StoredFinish(info, step=step, warped=moved, error=e,
-                         correspondence=np.asarray(corr, dtype=np.intp),
-                         probability=np.asarray(prob, dtype=np.float64))
+                         posterior=lambda: correspondence(e))
 
 
 def _stored_symmetric(model: FloatArray, warped: FloatArray, error: float, y: FloatArray,
@@ -435,7 +463,7 @@ def _refined_subjects(
             if built is not s.transform and s.index in needs_built:
                 tasks.append(_FineTask(subject=s.index, q=starts[s.index].q,
                                        steps=edges[s.index], y=full.normed[s.index], cpd=cpd,
-                                       control=control))
+                                       control=control, correspondences=False))
                 kinds.append("built")
         counted = _counting(progress, stage, done, total, len(group) / len(tasks))
         for kind, res in zip(kinds, _map_tasks(_refine_edge, tasks, executor, counted, stage),
@@ -459,7 +487,7 @@ def _refined_subjects(
                      "stored_min_jacobian": res.min_jacobian}
         s.error = res.error
         s.warped = full.norms[index].invert(res.warped)
-        s.correspondence = res.correspondence
+        s.correspondence = res.correspondence  # None: a stored finish kept has them
         s.probability = res.probability
         s.transform = final_chain[index]
         for key, fin, said in (("stored_finish", res.finish, "finished again"),
@@ -470,15 +498,15 @@ def _refined_subjects(
             if fin.step is None:
                 continue
             assert fin.warped is not None and fin.error is not None
-            assert fin.correspondence is not None and fin.probability is not None
             s.error = fin.error
             s.warped = full.norms[index].invert(fin.warped)
-            s.correspondence = fin.correspondence
+            s.correspondence = fin.correspondence  # None: the symmetric one kept has them
             s.probability = fin.probability
             chain = s.transform
             s.transform = ChainTransform(source=chain.source, target=chain.target,
                                          steps=(*chain.steps, fin.step), path=chain.path)
             s.reason = f"{s.reason}; {said} at the stored resolution"
+        assert s.correspondence is not None and s.probability is not None
     return [out[s.index] for s in subjects]
 
 

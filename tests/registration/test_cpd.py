@@ -524,3 +524,39 @@ def test_init_warped_is_validated(pair: Any) -> None:
         cpd_nonrigid(model, subject, init_warped=model, backend="pycpd")
     with pytest.raises(ValueError, match="init_warped"):
         cpd_nonrigid(model, subject, init_warped=np.full_like(model, np.nan))
+
+
+def test_correspondences_are_computed_when_first_read(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run's final correspondences cost a pass over every pair: they are computed when
+    first read (most of the tree's runs are intermediate steps nobody reads them of), once,
+    with the values an eager pass gives; a result sent to another process carries them."""
+    import pickle
+
+    from registration._cpd import _nonrigid
+    from registration._cpd._estep import _posterior_max
+
+    calls = []
+
+    def counting(*args: Any) -> Any:
+        calls.append(args)
+        return _posterior_max(*args)
+
+    monkeypatch.setattr(_nonrigid, "_posterior_max", counting)
+    t = np.linspace(0.0, 2.0 * np.pi, 60, endpoint=False)
+    model = np.column_stack([np.cos(t), 0.6 * np.sin(t)])
+    subject = model * 1.1 + 0.02 * np.sin(3 * t)[:, None]
+    res = cpd_nonrigid(model, subject)
+    assert calls == []
+    corr, prob = res.correspondence, res.probability
+    assert len(calls) == 1
+    assert res.correspondence is corr and res.probability is prob and len(calls) == 1
+    want = _posterior_max(*calls[0])
+    np.testing.assert_array_equal(corr, want[0])
+    np.testing.assert_array_equal(prob, want[1])
+    assert not corr.flags.writeable and not prob.flags.writeable
+    other = cpd_nonrigid(model, subject)
+    sent = pickle.loads(pickle.dumps(other))
+    assert len(calls) == 2  # computed where the run was made
+    np.testing.assert_array_equal(sent.correspondence, corr)
+    np.testing.assert_array_equal(sent.warped, res.warped)
+    assert len(calls) == 2
