@@ -1083,8 +1083,8 @@ static int use_avx2_fma = 0; /* set at import: the CPU runs AVX2 and FMA */
  * LAPACK's potrf reports it): nothing is written then. */
 CLONES static int lowrank64(Py_ssize_t m, Py_ssize_t k, Py_ssize_t kp, const double *qp,
                             const double *lam, const double *y, const double *p1,
-                            const double *px, double reg, double *s, double *h, double *b,
-                            double *w, double *disp) {
+                            const double *px, double reg, int plain, double *s, double *h,
+                            double *b, double *w, double *disp) {
     double *b0 = b, *b1 = b + kp;
     memset(b, 0, (size_t)(2 * kp) * sizeof(double));
     for (Py_ssize_t r = 0; r < m; r++) {
@@ -1100,7 +1100,7 @@ CLONES static int lowrank64(Py_ssize_t m, Py_ssize_t k, Py_ssize_t kp, const dou
         }
     }
 #if defined(CLONES_LEVELS) || defined(CLONES_FEATURES)
-    if (use_avx2_fma)
+    if (use_avx2_fma && !plain)
         gram_tiles_avx2(m, k, kp, s, qp, h);
     else
 #endif
@@ -1171,15 +1171,18 @@ CLONES static int lowrank64(Py_ssize_t m, Py_ssize_t k, Py_ssize_t kp, const dou
     return 1;
 }
 
-/* lowrank_mstep(qp, lam, y, p1, px, reg, w, disp) -> solved: CPD's low-rank M-step (see
- * above); qp (m, kp) float64 with kp a multiple of 8 and >= k (Q, zero past column k),
- * lam (k,), y and px (m, 2), p1 (m,) float64; w and disp (m, 2) float64 overwritten when
- * solved. False (nothing written) when the k x k system is not numerically positive
- * definite: the caller solves it its own way. */
+/* lowrank_mstep(qp, lam, y, p1, px, reg, w, disp[, plain]) -> solved: CPD's low-rank
+ * M-step (see above); qp (m, kp) float64 with kp a multiple of 8 and >= k (Q, zero past
+ * column k), lam (k,), y and px (m, 2), p1 (m,) float64; w and disp (m, 2) float64
+ * overwritten when solved. False (nothing written) when the k x k system is not
+ * numerically positive definite: the caller solves it its own way. `plain` true takes the
+ * plain tiles where the AVX2 ones would run (for the tests: a CPU without AVX2 runs them). */
 static PyObject *lowrank_mstep(PyObject *self, PyObject *args) {
     Py_buffer bq, bl, by, bp, bx, bw, bd;
     double reg;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*dw*w*", &bq, &bl, &by, &bp, &bx, &reg, &bw, &bd))
+    int plain = 0;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*dw*w*|p", &bq, &bl, &by, &bp, &bx, &reg, &bw, &bd,
+                          &plain))
         return NULL;
     PyObject *ret = NULL;
     Py_ssize_t m = bp.len / 8, k = bl.len / 8, kp = m > 0 ? bq.len / (8 * m) : 0;
@@ -1199,8 +1202,8 @@ static PyObject *lowrank_mstep(PyObject *self, PyObject *args) {
         double *s = work, *h = s + m * kp, *b = h + kp * kp;
         int solved;
         Py_BEGIN_ALLOW_THREADS
-        solved = lowrank64(m, k, kp, bq.buf, bl.buf, by.buf, bp.buf, bx.buf, reg, s, h, b,
-                           bw.buf, bd.buf);
+        solved = lowrank64(m, k, kp, bq.buf, bl.buf, by.buf, bp.buf, bx.buf, reg, plain, s,
+                           h, b, bw.buf, bd.buf);
         Py_END_ALLOW_THREADS
         ret = PyBool_FromLong(solved);
     }
@@ -1260,7 +1263,7 @@ static PyMethodDef methods[] = {
     {"interp", interp, METH_VARARGS,
      "interp(u, nodes, wb, out): barycentric weights of the nodes at u, out (n, r)"},
     {"lowrank_mstep", lowrank_mstep, METH_VARARGS,
-     "lowrank_mstep(qp, lam, y, p1, px, reg, w, disp) -> solved"},
+     "lowrank_mstep(qp, lam, y, p1, px, reg, w, disp[, plain]) -> solved"},
     {"pair_fill", pair_fill, METH_VARARGS,
      "pair_fill(t, xs0, xs1, order, starts, lens, r2, j, xj, d2 or None)"},
     {NULL, NULL, 0, NULL},

@@ -415,7 +415,8 @@ def _mstep_inputs(m: int, seed: int) -> tuple[np.ndarray, Any]:
 def test_compiled_low_rank_mstep_equals_numpy(ckernel: object, m: int, beta: float) -> None:
     """The compiled M-step (Gram matrix in register tiles, Cholesky by rows) solves the
     same system as numpy and LAPACK: W and the displacement within 1e-13 of theirs, at
-    ranks that fill its tiles (multiples of 4 and 8) and ranks that do not."""
+    ranks that fill its tiles (multiples of 4 and 8) and ranks that do not, with the AVX2
+    tiles (where the CPU has them) and the plain ones."""
     from registration._cpd._mstep import LowRankMStep, _low_rank_factor, _mstep_low_rank
 
     y, est = _mstep_inputs(m, 3)
@@ -427,6 +428,14 @@ def test_compiled_low_rank_mstep_equals_numpy(ckernel: object, m: int, beta: flo
                 y, est, reg))
             want = _mstep_low_rank(qr, lr, y, est, reg)
             for g, w in zip(got, want, strict=True):
+                assert np.max(np.abs(g - w)) <= 1e-13 * max(1.0, float(np.max(np.abs(w))))
+            # the plain tiles, which a CPU without AVX2 and FMA runs
+            padded = np.zeros((m, -(-rank // 8) * 8))
+            padded[:, :rank] = qr
+            plain = np.empty((m, 2)), np.empty((m, 2))
+            assert ckernel.lowrank_mstep(padded, np.ascontiguousarray(lr), y, est.p1,  # type: ignore[attr-defined]
+                                         est.px, reg, *plain, True)
+            for g, w in zip(plain, want, strict=True):
                 assert np.max(np.abs(g - w)) <= 1e-13 * max(1.0, float(np.max(np.abs(w))))
 
 
