@@ -1,9 +1,9 @@
 """The optional compiled part of the library; everything else is in pyproject.toml.
 
 ``registration._cpd._ckernel`` (CPD's compiled passes: the E-step, dense and truncated, the
-correspondences, kernel products and low-rank factor with a vectorised exp, and the
-nearest neighbours of e and the similarity's ICP; plain C through the buffer protocol, no
-numpy headers) is built when a C compiler is present.
+correspondences, kernel products and low-rank factor with a vectorised exp, the low-rank
+M-step, and the nearest neighbours of e and the similarity's ICP; plain C through the
+buffer protocol, no numpy headers) is built when a C compiler is present.
 Without one the install still succeeds (``optional=True``) and the library runs the same
 computation with numpy (`registration.compiled_kernel()` says which is in use).
 """

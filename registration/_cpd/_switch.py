@@ -2,9 +2,9 @@
 
 ``CKERNEL`` is the compiled module in use, or None: numpy then runs the same sums (also
 with ``REGTREE_NO_CKERNEL=1`` in the environment, read at import). Every pass (the E-step's,
-the Chebyshev grids', the field's products, the low-rank factor, the nearest neighbours of
-e and of the similarity's ICP) reads it at each call, through :func:`compiled`, so that
-setting it (as the tests do) switches them all at once. A leaf module: the passes import
+the Chebyshev grids', the field's products, the low-rank factor and M-step, the nearest
+neighbours of e and of the similarity's ICP) reads it at each call, through
+:func:`compiled`, so that setting it (as the tests do) switches them all at once. A leaf module: the passes import
 it, it imports none of them.
 """
 
@@ -33,8 +33,9 @@ def compiled() -> Any:
 def compiled_kernel() -> bool:
     """Whether CPD runs its compiled passes (the E-step, dense and truncated, with the
     truncated one's neighbour list searched and pruned, the Chebyshev grids' interpolation
-    weights, the final correspondences, the field's dense kernel product and the low-rank
-    factor; also the nearest neighbours of e, eq. 10, and of the similarity's affine ICP).
+    weights, the final correspondences, the field's dense kernel product, the low-rank
+    factor and the low-rank M-step; also the nearest neighbours of e, eq. 10, and of the
+    similarity's affine ICP).
 
     ``registration._cpd._ckernel`` is built at install when a C compiler is present; without
     it (or with ``REGTREE_NO_CKERNEL=1`` set before the import) numpy runs the same sums,
