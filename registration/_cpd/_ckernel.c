@@ -1073,9 +1073,9 @@ __attribute__((target("avx2,fma"))) static void gram_tiles_avx2(Py_ssize_t m, Py
         }
     }
 }
-#endif
 
 static int use_avx2_fma = 0; /* set at import: the CPU runs AVX2 and FMA */
+#endif
 
 /* The M-step (see above): qp (m, kp) = Q row by row, zero past column k; lam (k,), y and
  * px (m, 2), p1 (m,); w and disp (m, 2) written. Work: s (m kp), h (kp kp), b (2 kp).
@@ -1103,6 +1103,8 @@ CLONES static int lowrank64(Py_ssize_t m, Py_ssize_t k, Py_ssize_t kp, const dou
     if (use_avx2_fma && !plain)
         gram_tiles_avx2(m, k, kp, s, qp, h);
     else
+#else
+    (void)plain; /* the plain tiles are the only ones here */
 #endif
         gram_tiles(m, k, kp, s, qp, h);
     /* Cholesky h = U^T U in place in the upper triangle, by rows (each update runs along a
