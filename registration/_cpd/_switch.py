@@ -4,8 +4,8 @@
 with ``REGTREE_NO_CKERNEL=1`` in the environment, read at import). Every pass (the E-step's,
 the Chebyshev grids', the field's products, the low-rank factor and M-step, the nearest
 neighbours of e and of the similarity's ICP) reads it at each call, through
-:func:`compiled`, so that setting it (as the tests do) switches them all at once. A leaf module: the passes import
-it, it imports none of them.
+:func:`compiled`, so that setting it (as the tests do) switches them all at once. A leaf
+module: the passes import it, it imports none of them.
 """
 
 from __future__ import annotations

@@ -528,8 +528,9 @@ def test_init_warped_is_validated(pair: Any) -> None:
 
 def test_correspondences_are_computed_when_first_read(monkeypatch: pytest.MonkeyPatch) -> None:
     """A run's final correspondences cost a pass over every pair: they are computed when
-    first read (most of the tree's runs are intermediate steps nobody reads them of), once,
-    with the values an eager pass gives; a result sent to another process carries them."""
+    first read (most of the tree's runs are intermediate steps whose correspondences nobody
+    reads), once, with the values an eager pass gives; a result sent to another process
+    carries them."""
     import pickle
 
     from registration._cpd import _nonrigid
