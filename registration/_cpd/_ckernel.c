@@ -1078,13 +1078,14 @@ static int use_avx2_fma = 0; /* set at import: the CPU runs AVX2 and FMA */
 #endif
 
 /* The M-step (see above): qp (m, kp) = Q row by row, zero past column k; lam (k,), y and
- * px (m, 2), p1 (m,); w and disp (m, 2) written. Work: s (m kp), h (kp kp), b (2 kp).
+ * px (m, 2), p1 (m,); w and disp (m, 2) written. Work: s (m kp), h (kp kp), b and c
+ * (2 kp each).
  * Returns 0 when the system is not numerically positive definite (a pivot <= 0 or NaN, as
  * LAPACK's potrf reports it): nothing is written then. */
 CLONES static int lowrank64(Py_ssize_t m, Py_ssize_t k, Py_ssize_t kp, const double *qp,
                             const double *lam, const double *y, const double *p1,
                             const double *px, double reg, int plain, double *s, double *h,
-                            double *b, double *w, double *disp) {
+                            double *b, double *c, double *w, double *disp) {
     double *b0 = b, *b1 = b + kp;
     memset(b, 0, (size_t)(2 * kp) * sizeof(double));
     for (Py_ssize_t r = 0; r < m; r++) {
@@ -1147,8 +1148,8 @@ CLONES static int lowrank64(Py_ssize_t m, Py_ssize_t k, Py_ssize_t kp, const dou
         b0[i] = (b0[i] - d0) / ui[i];
         b1[i] = (b1[i] - d1) / ui[i];
     }
-    /* W = Q (v / lam) and the displacement Q v, row by row; s is free again for v / lam */
-    double *c0 = s, *c1 = s + kp;
+    /* W = Q (v / lam) and the displacement Q v, row by row */
+    double *c0 = c, *c1 = c + kp;
     for (Py_ssize_t i = 0; i < kp; i++) {
         c0[i] = i < k ? b0[i] / lam[i] : 0.0;
         c1[i] = i < k ? b1[i] / lam[i] : 0.0;
@@ -1198,14 +1199,14 @@ static PyObject *lowrank_mstep(PyObject *self, PyObject *args) {
         || check_len(&bx, 2 * m, 8, "px") || check_len(&bw, 2 * m, 8, "w")
         || check_len(&bd, 2 * m, 8, "disp"))
         goto done;
-    if ((work = workspace(m * kp + kp * kp + 2 * kp, sizeof(double))) == NULL)
+    if ((work = workspace(m * kp + kp * kp + 4 * kp, sizeof(double))) == NULL)
         goto done;
     {
-        double *s = work, *h = s + m * kp, *b = h + kp * kp;
+        double *s = work, *h = s + m * kp, *b = h + kp * kp, *c = b + 2 * kp;
         int solved;
         Py_BEGIN_ALLOW_THREADS
         solved = lowrank64(m, k, kp, bq.buf, bl.buf, by.buf, bp.buf, bx.buf, reg, plain, s,
-                           h, b, bw.buf, bd.buf);
+                           h, b, c, bw.buf, bd.buf);
         Py_END_ALLOW_THREADS
         ret = PyBool_FromLong(solved);
     }

@@ -477,6 +477,12 @@ def test_compiled_low_rank_mstep_checks_its_arrays(ckernel: object) -> None:
     lam = np.ones(3)
     assert ck.lowrank_mstep(np.eye(5, 8), lam, y, p1, px, 1.0, w, disp)  # type: ignore[attr-defined]
     np.testing.assert_array_equal(disp, 0.0)
+    # one centroid, rank 1: (0.25 + 1) v = 0.5, W = disp = 0.5 v
+    one = np.empty((1, 2)), np.empty((1, 2))
+    assert ck.lowrank_mstep(np.full((1, 8), 0.5) * (np.arange(8) == 0), np.ones(1),  # type: ignore[attr-defined]
+                            np.zeros((1, 2)), np.ones(1), np.ones((1, 2)), 1.0, *one)
+    np.testing.assert_allclose(one[0], 0.2, rtol=1e-15)
+    np.testing.assert_allclose(one[1], 0.2, rtol=1e-15)
     with pytest.raises(ValueError, match="multiple of 8"):
         ck.lowrank_mstep(np.eye(5, 4), lam, y, p1, px, 1.0, w, disp)  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="multiple of 8"):
