@@ -30,6 +30,7 @@ from ._executor import (
     SerialExecutor,
     WorkerProcessDied,
     default_executor,
+    start_fork_server,
 )
 from ._grouping import (
     GroupingResult,
@@ -88,4 +89,5 @@ __all__ = [
     "registration_error",
     "resample",
     "similarity_matrix",
+    "start_fork_server",
 ]

@@ -15,7 +15,7 @@ from contextlib import contextmanager
 from contextvars import ContextVar
 from typing import Protocol, TypeVar
 
-from ._pool import LocalProcessExecutor, WorkerProcessDied, available_cpus
+from ._pool import LocalProcessExecutor, WorkerProcessDied, available_cpus, start_fork_server
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -28,6 +28,7 @@ __all__ = [
     "available_cpus",
     "default_executor",
     "owned_executor",
+    "start_fork_server",
 ]
 
 

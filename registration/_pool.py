@@ -37,7 +37,7 @@ from typing import Any, Self, TypeVar
 T = TypeVar("T")
 R = TypeVar("R")
 
-__all__ = ["LocalProcessExecutor", "WorkerProcessDied", "available_cpus"]
+__all__ = ["LocalProcessExecutor", "WorkerProcessDied", "available_cpus", "start_fork_server"]
 
 logger = logging.getLogger("regtree.executor")
 
@@ -121,6 +121,27 @@ def _context(method: str | None) -> Any:
     if method == "forkserver":
         context.set_forkserver_preload(["registration"])
     return context
+
+
+def start_fork_server() -> bool:
+    """Start the fork server that pools started beside threads take their processes from
+    (see :class:`LocalProcessExecutor`), with the library preloaded, now rather than at
+    the first pool's first task; True when there is one (False where the platform has no
+    fork server).
+
+    The first pool of a process with threads (a service worker: its job's heartbeat
+    thread runs) otherwise waits for the server to start and import the library, about
+    0.75 s on a 2-core machine against 0.02-0.03 s for every later pool
+    (bench/RESULTS.md 7.24). The server imports the library in its own process: this call
+    returns at once, and a pool started meanwhile waits only for what is left of it.
+    """
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return False
+    from multiprocessing import forkserver
+
+    _context("forkserver")  # sets the preload, as every pool does
+    forkserver.ensure_running()
+    return True
 
 
 class ClosedOnExit:

@@ -22,7 +22,7 @@ import threading
 import uuid
 from types import FrameType
 
-from registration import compiled_kernel, compiled_simd
+from registration import compiled_kernel, compiled_simd, start_fork_server
 from service.core.collector import tune_collector
 from service.core.config import Settings
 from service.core.logging import configure_logging
@@ -104,6 +104,10 @@ class Worker:
                 "not built (install with a C compiler present) or REGTREE_NO_CKERNEL=1; "
                 "registrations of thousands of points take up to 1.4x longer",
                 extra={"worker": self.worker_id})
+        if self.settings.executor == "process":
+            # a job's pool starts beside threads, from the fork server: started now, the
+            # first job does not wait for it to import the library (about 0.75 s)
+            start_fork_server()
         if self.parent_pid is not None:
             threading.Thread(target=self._watch_parent, daemon=True).start()
         deliveries = None if burst else self._start_deliveries()

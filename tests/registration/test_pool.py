@@ -5,11 +5,19 @@ run the same pool through a job."""
 from __future__ import annotations
 
 import multiprocessing
+import os
+import threading
 import time
 
 import pytest
 
-from registration import Executor, LocalProcessExecutor, SerialExecutor, default_executor
+from registration import (
+    Executor,
+    LocalProcessExecutor,
+    SerialExecutor,
+    default_executor,
+    start_fork_server,
+)
 
 METHODS = [
     m for m in ("fork", "forkserver", "spawn") if m in multiprocessing.get_all_start_methods()
@@ -23,6 +31,10 @@ def _square(x: int) -> int:
 def _sleep(seconds: float) -> float:
     time.sleep(seconds)
     return seconds
+
+
+def _parent_pid(_: int) -> int:
+    return os.getppid()
 
 
 class Stop(BaseException):
@@ -53,6 +65,28 @@ def test_results_come_back_by_position_and_a_check_kills_the_tasks(method: str) 
         assert dict(pool.map_unordered(_square, [3])) == {0: 9}  # new processes
     finally:
         pool.close()
+
+
+def test_a_fork_server_started_ahead_serves_the_pools_started_beside_threads() -> None:
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        assert start_fork_server() is False
+        return
+    assert start_fork_server() is True
+    from multiprocessing import forkserver
+
+    server = forkserver._forkserver._forkserver_pid  # type: ignore[attr-defined]
+    assert server is not None
+    assert start_fork_server() is True  # already running: the same server
+    assert forkserver._forkserver._forkserver_pid == server  # type: ignore[attr-defined]
+    release = threading.Event()
+    thread = threading.Thread(target=release.wait, daemon=True)
+    thread.start()  # beside a thread the pool takes its processes from the fork server
+    try:
+        with LocalProcessExecutor(2) as pool:
+            parents = {pid for _, pid in pool.map_unordered(_parent_pid, range(4))}
+    finally:
+        release.set()
+    assert parents == {server}
 
 
 def test_a_forked_process_sees_the_end_of_its_pipe() -> None:
