@@ -126,14 +126,20 @@ def _context(method: str | None) -> Any:
 def start_fork_server() -> bool:
     """Start the fork server that pools started beside threads take their processes from
     (see :class:`LocalProcessExecutor`), with the library preloaded, now rather than at
-    the first pool's first task; True when there is one (False where the platform has no
-    fork server).
+    the first pool's first task.
 
     The first pool of a process with threads (a service worker: its job's heartbeat
     thread runs) otherwise waits for the server to start and import the library, about
     0.75 s on a 2-core machine against 0.02-0.03 s for every later pool
     (bench/RESULTS.md 7.24). The server imports the library in its own process: this call
     returns at once, and a pool started meanwhile waits only for what is left of it.
+    Calling it again while the server runs does nothing.
+
+    Returns
+    -------
+    bool
+        True when the fork server runs; False where the platform has none (pools then
+        spawn their processes).
     """
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return False
