@@ -21,6 +21,7 @@ import uvicorn
 from service import migrate
 from service.core.collector import tune_collector
 from service.core.config import Settings
+from service.jobs import wake
 from service.main import create_app
 from service.worker import run_worker_process
 
@@ -35,13 +36,16 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 
 def start_workers(settings: Settings, count: int) -> list[BaseProcess]:
-    """Start ``count`` worker processes (spawned, so they share no state with the server)."""
+    """Start ``count`` worker processes (spawned, so they share no state with the server)
+    and make the jobs this process queues wake them (:mod:`service.jobs.wake`)."""
     context = multiprocessing.get_context("spawn")
+    event = context.Event()
+    wake.install(event)
     processes: list[BaseProcess] = []
     for i in range(count):
         process = context.Process(
             target=run_worker_process,
-            args=(settings, os.getpid()),
+            args=(settings, os.getpid(), event),
             name=f"regtree-worker-{i}",
             daemon=False,  # a worker may start its own process pool
         )

@@ -21,12 +21,14 @@ import socket
 import threading
 import uuid
 from types import FrameType
+from typing import Any
 
 from registration import compiled_kernel, compiled_simd, start_fork_server
 from service.core.collector import tune_collector
 from service.core.config import Settings
 from service.core.logging import configure_logging
 from service.db import Database
+from service.jobs import wake
 from service.jobs.callbacks import Deliverer
 from service.jobs.queue import JobQueue, Outcome
 from service.jobs.runner import run_claimed
@@ -48,6 +50,7 @@ class Worker:
         *,
         worker_id: str | None = None,
         parent_pid: int | None = None,
+        wake_event: Any | None = None,
     ) -> None:
         self.settings = settings
         self.db = db or Database(
@@ -56,6 +59,9 @@ class Worker:
         self.worker_id = worker_id or make_worker_id()
         self.queue = JobQueue.from_settings(self.db, settings)
         self.parent_pid = parent_pid
+        # set by the API's process when it queues a job (embedded workers; see
+        # service.jobs.wake), else None: the poll alone
+        self.wake_event = wake_event
         self.shutdown = threading.Event()
 
     def _parent_gone(self) -> bool:
@@ -123,7 +129,7 @@ class Worker:
                     self._deliver_due()
                     break
                 # Jitter so that many idle workers do not poll in lock-step.
-                self.shutdown.wait(poll * random.uniform(0.5, 1.0))
+                wake.idle(self.wake_event, self.shutdown, poll * random.uniform(0.5, 1.0))
         if deliveries is not None:
             self.shutdown.set()
             deliveries.join(timeout=self.settings.callback_timeout_seconds + 5)
@@ -138,13 +144,15 @@ class Worker:
         signal.signal(signal.SIGINT, handle)
 
 
-def run_worker_process(settings: Settings, parent_pid: int | None = None) -> None:
-    """Entry point of a worker process (``regtree worker`` and the embedded workers)."""
+def run_worker_process(settings: Settings, parent_pid: int | None = None,
+                       wake_event: Any | None = None) -> None:
+    """Entry point of a worker process (``regtree worker`` and the embedded workers, which
+    get the event the API's process sets when it queues a job: `service.jobs.wake`)."""
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     configure_logging(settings.log_level, settings.log_style)
     tune_collector()  # a job's result document is millions of containers
-    worker = Worker(settings, parent_pid=parent_pid)
+    worker = Worker(settings, parent_pid=parent_pid, wake_event=wake_event)
     worker.install_signal_handlers()
     try:
         worker.run()

@@ -13,7 +13,7 @@ from service.api import idempotency
 from service.api.deps import DbDep, IdempotencyKeyDep, PaginationDep, SettingsDep
 from service.api.problems import ProblemError, not_found, operation
 from service.contract.names import GROUPING_METHOD, ProblemType, made_from_image
-from service.jobs import callbacks
+from service.jobs import callbacks, wake
 from service.jobs.queue import JobQueue, JobRefused, JobSpec, Outcome
 from service.models import (
     Collection,
@@ -217,6 +217,8 @@ def create_job(
                 resource_ids=[job.id],
             )
         out = job_out(session, job)
+    if entry is None:
+        wake.notify()  # committed: an idle embedded worker claims it now
     response.headers["Location"] = out.links.self
     return out
 

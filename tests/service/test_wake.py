@@ -1,0 +1,81 @@
+"""Idle embedded workers wake when a job is queued (service.jobs.wake), not at their poll."""
+
+from __future__ import annotations
+
+import multiprocessing
+import threading
+import time
+from collections.abc import Callable
+from datetime import datetime
+
+from service.jobs import wake
+from tests.service.conftest import (
+    Service,
+    create_collection,
+    family,
+    submit_job,
+    upload_family,
+    wait_job,
+)
+
+
+def _queued_seconds(job: dict[str, object]) -> float:
+    started = datetime.fromisoformat(str(job["started_at"]))
+    created = datetime.fromisoformat(str(job["created_at"]))
+    return (started - created).total_seconds()
+
+
+def test_a_queued_job_starts_at_once_though_the_poll_is_long(
+    make_service: Callable[..., Service],
+) -> None:
+    # with a 30 s poll the worker, idle after the first job, would leave the second
+    # queued for 15-30 s
+    service = make_service(workers=1, env={"REGTREE_WORKER_POLL_SECONDS": "30"}).start()
+    with service.client() as client:
+        cid = create_collection(client, "wake")
+        ids = upload_family(client, cid, family(n_chains=1, chain_length=3, n_points=40))
+        first = wait_job(client, submit_job(client, cid, ids[0])["id"], timeout=60)
+        assert first["status"] == "succeeded", first
+        time.sleep(0.5)  # the worker is idle again, in its long wait
+        second = wait_job(client, submit_job(client, cid, ids[0])["id"], timeout=60)
+        assert second["status"] == "succeeded", second
+    assert _queued_seconds(second) < 5.0, second
+
+
+def test_idle_returns_when_woken_and_clears_the_event() -> None:
+    event = multiprocessing.get_context("spawn").Event()
+    shutdown = threading.Event()
+    threading.Timer(0.2, event.set).start()
+    t = time.monotonic()
+    wake.idle(event, shutdown, 30.0)
+    assert time.monotonic() - t < 5.0
+    assert not event.is_set()  # the next job sets it again
+
+
+def test_idle_returns_on_shutdown_and_at_its_time() -> None:
+    event = multiprocessing.get_context("spawn").Event()
+    shutdown = threading.Event()
+    t = time.monotonic()
+    wake.idle(event, shutdown, 0.3)  # nothing queued: the poll's own time
+    assert 0.25 < time.monotonic() - t < 5.0
+    threading.Timer(0.2, shutdown.set).start()
+    t = time.monotonic()
+    wake.idle(event, shutdown, 30.0)
+    assert time.monotonic() - t < 5.0
+    shutdown.clear()
+    threading.Timer(0.2, shutdown.set).start()
+    t = time.monotonic()
+    wake.idle(None, shutdown, 30.0)  # a worker without the event: its shutdown alone
+    assert time.monotonic() - t < 5.0
+
+
+def test_notify_sets_the_installed_event_only() -> None:
+    event = multiprocessing.get_context("spawn").Event()
+    wake.install(None)
+    wake.notify()  # no embedded workers: nothing to wake
+    wake.install(event)
+    try:
+        wake.notify()
+        assert event.is_set()
+    finally:
+        wake.install(None)
