@@ -167,10 +167,20 @@ def farthest_point_indices(points: FloatArray, n: int) -> IntArray:
     chosen = np.empty(n, dtype=np.intp)
     chosen[0] = int(np.argmax(np.sum((points - points.mean(axis=0)) ** 2, axis=1)))
     d2 = np.sum((points - points[chosen[0]]) ** 2, axis=1)
-    # one coordinate at a time into preallocated buffers: the same sums (dx^2 + dy^2) as
-    # np.sum over the rows, bit for bit, in a sixth of the time (the coarse stage subsamples
-    # every stored shape this way, in the calling process, before anything runs in parallel)
     x, y = np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1])
+    from ._cpd._switch import compiled  # here: the CPD package imports this module
+
+    ckernel = compiled()
+    if ckernel is not None:
+        # the same sums and picks, bit for bit, in three passes a pick (400 of 2151 points:
+        # 4.3 ms -> 1 ms; the coarse stage subsamples every stored shape, in the calling
+        # process, before anything runs in parallel)
+        picks = np.empty(n, dtype=np.int64)
+        picks[0] = chosen[0]
+        ckernel.farthest(x, y, d2, picks)
+        return np.sort(picks).astype(np.intp, copy=False)
+    # one coordinate at a time into preallocated buffers: the same sums (dx^2 + dy^2) as
+    # np.sum over the rows, bit for bit, in a sixth of the time
     dx, dy = np.empty(m), np.empty(m)
     for k in range(1, n):
         nxt = int(d2.argmax())

@@ -945,6 +945,67 @@ done:
     return ret;
 }
 
+/* farthest(x, y, d2, chosen): the farthest-point subsample's remaining picks. x, y (m,)
+ * float64 the points' coordinates; d2 (m,) float64 each point's squared distance to the
+ * picks so far (overwritten); chosen (n,) int64 with chosen[0] the first pick, its rest
+ * written: each time the first point at the largest d2, then d2 lowered to the squared
+ * distances to it, dx^2 + dy^2, where smaller. Not among the clones: the baseline has no
+ * FMA to contract those sums into, so they and the picks are numpy's
+ * (`_points.farthest_point_indices`) bit for bit. Three vectorised passes a pick (lower,
+ * the largest, its first index) instead of numpy's seven. */
+static Py_ssize_t first_largest(Py_ssize_t m, const double *d2) {
+    double best = d2[0];
+#pragma omp simd reduction(max : best)
+    for (Py_ssize_t i = 0; i < m; i++)
+        best = d2[i] > best ? d2[i] : best;
+    for (Py_ssize_t i = 0; i < m; i++)
+        if (d2[i] == best)
+            return i;
+    return 0; /* NaN: numpy's argmax would name the first NaN; finite points have none */
+}
+
+static void farthest_picks(Py_ssize_t m, Py_ssize_t n, const double *x, const double *y,
+                           double *d2, int64_t *chosen) {
+    Py_ssize_t next = first_largest(m, d2);
+    for (Py_ssize_t k = 1; k < n; k++) {
+        chosen[k] = (int64_t)next;
+        const double px = x[next], py = y[next];
+#pragma omp simd
+        for (Py_ssize_t i = 0; i < m; i++) {
+            const double dx = x[i] - px, dy = y[i] - py;
+            const double dx2 = dx * dx, dy2 = dy * dy;
+            const double d = dx2 + dy2;
+            d2[i] = d < d2[i] ? d : d2[i];
+        }
+        next = first_largest(m, d2);
+    }
+}
+
+static PyObject *farthest(PyObject *self, PyObject *args) {
+    Py_buffer bx, by, bd, bc;
+    if (!PyArg_ParseTuple(args, "y*y*w*w*", &bx, &by, &bd, &bc))
+        return NULL;
+    PyObject *ret = NULL;
+    Py_ssize_t m = bd.len / 8, n = bc.len / 8;
+    if (check_len(&bx, m, 8, "x") || check_len(&by, m, 8, "y") || check_len(&bd, m, 8, "d2")
+        || check_len(&bc, n, 8, "chosen"))
+        goto done;
+    if (n > m || m < 1) {
+        PyErr_SetString(PyExc_ValueError, "_ckernel: farthest needs 1 <= len(chosen) <= m");
+        goto done;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    farthest_picks(m, n, bx.buf, by.buf, bd.buf, bc.buf);
+    Py_END_ALLOW_THREADS
+    ret = Py_NewRef(Py_None);
+done:
+    PyBuffer_Release(&bx);
+    PyBuffer_Release(&by);
+    PyBuffer_Release(&bd);
+    PyBuffer_Release(&bc);
+    return ret;
+}
+
 /* interp(u, nodes, wb, out): the barycentric Lagrange weights of the r Chebyshev nodes
  * (weights wb) at each of the n points u, out (n, r): wb_k / (u - node_k) over their
  * sum (times its inverse: within an ulp of numpy's division); a point whose sum is not
@@ -1267,6 +1328,8 @@ static PyMethodDef methods[] = {
      "interp(u, nodes, wb, out): barycentric weights of the nodes at u, out (n, r)"},
     {"lowrank_mstep", lowrank_mstep, METH_VARARGS,
      "lowrank_mstep(qp, lam, y, p1, px, reg, w, disp[, plain]) -> solved"},
+    {"farthest", farthest, METH_VARARGS,
+     "farthest(x, y, d2, chosen): the farthest-point picks after chosen[0]"},
     {"pair_fill", pair_fill, METH_VARARGS,
      "pair_fill(t, xs0, xs1, order, starts, lens, r2, j, xj, d2 or None)"},
     {NULL, NULL, 0, NULL},

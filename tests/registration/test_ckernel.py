@@ -21,6 +21,7 @@ from registration._cpd._estep import _EStep, _posterior_max_dense
 from registration._cpd._fgt import _cheb_nodes, _interp_matrix
 from registration._cpd._field import _gauss_kernel
 from registration._cpd._switch import compiled_kernel, compiled_simd
+from registration._points import farthest_point_indices
 
 from .test_cpd_fast import close, curve, naive_sums
 
@@ -491,3 +492,31 @@ def test_compiled_low_rank_mstep_checks_its_arrays(ckernel: object) -> None:
         ck.lowrank_mstep(np.eye(5, 8), lam, np.zeros(5), p1, px, 1.0, w, disp)  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="disp holds"):
         ck.lowrank_mstep(np.eye(5, 8), lam, y, p1, px, 1.0, w, np.empty(4))  # type: ignore[attr-defined]
+
+
+def test_compiled_farthest_point_picks_equal_numpy(ckernel: object) -> None:
+    """The same picks bit for bit (the same sums, no FMA), ties included: duplicated
+    points and points on a coarse grid."""
+    rng = np.random.default_rng(3)
+    sets = [rng.normal(size=(1900, 2)), curve(700, 1),
+            np.repeat(rng.normal(size=(30, 2)), 4, axis=0),
+            np.round(rng.normal(size=(500, 2)), 1)]
+    for pts in sets:
+        for n in (1, 2, 17, 100, 119):
+            got = farthest_point_indices(pts, n)
+            saved = _switch.CKERNEL
+            _switch.CKERNEL = None
+            try:
+                want = farthest_point_indices(pts, n)
+            finally:
+                _switch.CKERNEL = saved
+            assert got.dtype == want.dtype == np.intp
+            np.testing.assert_array_equal(got, want)
+
+
+def test_compiled_farthest_point_picks_check_their_arrays(ckernel: object) -> None:
+    x, y, d2 = np.zeros(5), np.zeros(5), np.ones(5)
+    with pytest.raises(ValueError, match="len"):
+        ckernel.farthest(x, y, d2, np.zeros(6, dtype=np.int64))  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="y"):
+        ckernel.farthest(x, np.zeros(4), d2, np.zeros(2, dtype=np.int64))  # type: ignore[attr-defined]
