@@ -7,7 +7,9 @@ document) and :class:`~service.contract.result.SubjectDetail` (each full subject
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -146,6 +148,20 @@ def json_safe(value: Any) -> Any:
     if isinstance(value, dict):
         return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
+        first = value[0] if value else None
+        numbers: Iterable[Any] | None = None
+        if type(first) is float or type(first) is int:
+            numbers = value
+        elif type(first) is list and first and type(first[0]) is float:  # points, rows
+            numbers = itertools.chain.from_iterable(value)
+        if numbers is not None:
+            # every number finite: the list as it is, checked in C (73 glyphs' 580 000
+            # points took 0.3 s checked point by point in Python, the job's last step)
+            try:
+                if all(map(math.isfinite, numbers)):
+                    return value if type(value) is list else list(value)
+            except (TypeError, OverflowError):  # not all numbers: the ways below
+                pass
         if all(type(v) is float for v in value):
             return [v if math.isfinite(v) else None for v in value]
         if all(type(v) is list and len(v) == 2 and type(v[0]) is float and type(v[1]) is float

@@ -243,3 +243,12 @@ def test_json_safe_replaces_every_non_finite_float_with_none() -> None:
     }
     big = [[float(k), math.pi] for k in range(1000)] + [[nan, 1.0]]
     assert json_safe(big)[-1] == [None, 1.0] and json_safe(big)[:-1] == big[:-1]
+    # lists of finite numbers and points pass as they are (checked in one C pass); any
+    # other entry sends them the slow way
+    finite = [[float(k), math.pi] for k in range(1000)]
+    assert json_safe(finite) is finite
+    assert json_safe((1.0, 2, 3.5)) == [1.0, 2, 3.5]
+    assert json_safe([[1.0, 2.0], [3.0, None], [inf, 1.0]]) == [[1.0, 2.0], [3.0, None],
+                                                                 [None, 1.0]]
+    assert json_safe([[1.0, 2.0], "a", {"k": nan}]) == [[1.0, 2.0], "a", {"k": None}]
+    assert json_safe([1, 10**400, nan]) == [1, 10**400, None]  # beyond a float: no C pass
