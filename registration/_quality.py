@@ -171,8 +171,8 @@ def measure_quality(
     det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
     min_jac = float(det.min())
     logdet = np.log(np.maximum(det, 1e-6))
-    sv = np.linalg.svd(J, compute_uv=False)
-    aniso = np.log(np.maximum(sv[:, 0], 1e-12) / np.maximum(sv[:, 1], 1e-12))
+    s1, s2 = singular_values_2x2(J)
+    aniso = np.log(np.maximum(s1, 1e-12) / np.maximum(s2, 1e-12))
     h = math.sqrt(max(spacing2, 1e-300))
     dist, _ = cKDTree(warped).query(subject)
     return RegistrationQuality(
@@ -184,6 +184,18 @@ def measure_quality(
         cpd_rotation=_similarity_rotation(prealigned, warped),
         coverage=float(np.mean(dist <= 2.0 * h)),
     )
+
+
+def singular_values_2x2(J: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The larger and the smaller singular value of each 2 x 2 matrix of `J` (shape (N, 2,
+    2)), in closed form: for ``[[a, b], [c, d]]``, with ``p = |(a + d, c - b)|`` and ``q =
+    |(a - d, b + c)|``, they are ``(p + q) / 2`` and ``|p - q| / 2``. Within a few ulp of
+    LAPACK's (``np.linalg.svd``), which took a quarter of the quality checks' time, a
+    call per matrix."""
+    a, b, c, d = J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1]
+    p = np.hypot(a + d, c - b)
+    q = np.hypot(a - d, b + c)
+    return 0.5 * (p + q), 0.5 * np.abs(p - q)
 
 
 def nearest_spacing(points: FloatArray) -> FloatArray:

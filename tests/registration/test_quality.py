@@ -107,3 +107,20 @@ def test_spacing_distortion_is_zero_under_a_similarity_and_small_under_a_smooth_
     assert np.isfinite(v_snapped)
     twice = np.r_[model, model[:5]]
     assert np.isfinite(spacing_distortion(twice, nearest_spacing(twice)))
+
+
+def test_closed_form_singular_values_match_lapack() -> None:
+    from registration._quality import singular_values_2x2
+
+    rng = np.random.default_rng(4)
+    J = rng.normal(size=(2000, 2, 2))
+    J[:5] = np.eye(2)  # equal singular values
+    J[5:10] = [[1.0, 2.0], [2.0, 4.0]]  # singular
+    J[10:15] = [[0.0, 1.0], [-1.0, 0.0]]  # a rotation
+    J[15:20] = [[-1.0, 0.0], [0.0, 1.0]]  # a reflection (a fold)
+    J[20:25] *= 1e-9
+    want = np.linalg.svd(J, compute_uv=False)
+    s1, s2 = singular_values_2x2(J)
+    np.testing.assert_allclose(s1, want[:, 0], rtol=1e-14)
+    np.testing.assert_allclose(s2, want[:, 1], rtol=0, atol=1e-14 * want[:, 0].max())
+    assert np.all(s1 >= s2) and np.all(s2 >= 0)
