@@ -35,7 +35,7 @@ def compiled_kernel() -> bool:
     truncated one's neighbour list searched and pruned, the Chebyshev grids' interpolation
     weights, the final correspondences, the field's dense kernel product, the low-rank
     factor and the low-rank M-step; also the nearest neighbours of e, eq. 10, and of the
-    similarity's affine ICP).
+    similarity's affine ICP, and the farthest-point subsamples of the coarse stage).
 
     ``registration._cpd._ckernel`` is built at install when a C compiler is present; without
     it (or with ``REGTREE_NO_CKERNEL=1`` set before the import) numpy runs the same sums,
