@@ -38,6 +38,11 @@ def _is_sqlite(url: str) -> bool:
     return make_url(url).get_backend_name() == "sqlite"
 
 
+def is_postgresql_url(url: str) -> bool:
+    """Whether a database URL names PostgreSQL."""
+    return make_url(url).get_backend_name() == "postgresql"
+
+
 def is_postgresql(session: Session) -> bool:
     """Whether a session talks to PostgreSQL."""
     return bool(session.get_bind().dialect.name == "postgresql")

@@ -27,7 +27,7 @@ from registration import compiled_kernel, compiled_simd, start_fork_server
 from service.core.collector import tune_collector
 from service.core.config import Settings
 from service.core.logging import configure_logging
-from service.db import Database
+from service.db import Database, is_postgresql_url
 from service.jobs import wake
 from service.jobs.callbacks import Deliverer
 from service.jobs.queue import JobQueue, Outcome
@@ -59,9 +59,12 @@ class Worker:
         self.worker_id = worker_id or make_worker_id()
         self.queue = JobQueue.from_settings(self.db, settings)
         self.parent_pid = parent_pid
-        # set by the API's process when it queues a job (embedded workers; see
-        # service.jobs.wake), else None: the poll alone
-        self.wake_event = wake_event
+        # what wakes this worker when a job is queued (service.jobs.wake): PostgreSQL's
+        # notifications, else the event an embedded worker shares with the API's process;
+        # None: the poll alone
+        self.waker: wake.Listener | wake.EventWaker | None = (
+            wake.Listener(settings.database_url) if is_postgresql_url(settings.database_url)
+            else wake.EventWaker(wake_event) if wake_event is not None else None)
         self.shutdown = threading.Event()
 
     def _parent_gone(self) -> bool:
@@ -129,7 +132,9 @@ class Worker:
                     self._deliver_due()
                     break
                 # Jitter so that many idle workers do not poll in lock-step.
-                wake.idle(self.wake_event, self.shutdown, poll * random.uniform(0.5, 1.0))
+                wake.idle(self.waker, self.shutdown, poll * random.uniform(0.5, 1.0))
+        if self.waker is not None:
+            self.waker.close()
         if deliveries is not None:
             self.shutdown.set()
             deliveries.join(timeout=self.settings.callback_timeout_seconds + 5)

@@ -58,6 +58,7 @@ from service.core.backoff import JOB_BACKOFF, Backoff
 from service.core.config import Settings
 from service.db import Database, lock_first
 from service.jobs import callbacks
+from service.jobs.wake import notify_in
 from service.models import (
     Collection,
     Job,
@@ -219,6 +220,7 @@ class JobQueue:
             )
             s.add(job)
             s.flush()
+            notify_in(s)  # PostgreSQL: listening workers wake at the commit
             logger.info("job queued", extra={"job_id": job.id})
             return job
 
@@ -397,6 +399,8 @@ class JobQueue:
                 lease_expires_at=None,
                 attempts=claim.attempt - 1,
             )
+            if held:
+                notify_in(session)  # due again now: another worker may take it
             return Outcome.released if held else Outcome.lost
 
     def settle_stalled(self) -> dict[int, Outcome]:

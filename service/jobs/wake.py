@@ -1,20 +1,40 @@
-"""Waking idle embedded workers when a job is queued, instead of leaving it to their poll.
+"""Waking idle workers when a job is queued, instead of leaving it to their poll.
 
 A worker looks for due jobs every ``worker_poll_seconds`` (1 s by default, with jitter), so
-a job queued just after a look waited 0.5 s on average before it started. The workers that
-``regtree serve`` (and the demo) starts share one ``multiprocessing`` event with the API's
-process: the job route sets it once the job is committed (:func:`notify`), and an idle
-worker waiting on it (:func:`idle`) wakes, clears it and looks at once. Workers started on
-their own (``regtree worker``, other machines) have no event and keep to their poll, as do
-jobs that become due later (a retry's backoff, a lost lease): the poll is still what makes
-every due job run; the event only makes the usual case prompt.
+a job queued just after a look waited 0.5 s on average before it started. Two ways wake
+them sooner:
+
+* On PostgreSQL, queueing a job (or giving one back) sends ``NOTIFY regtree_jobs`` in the
+  same transaction (:func:`notify_in`; PostgreSQL delivers it at the commit), and every
+  worker, on any machine, waits on a ``LISTEN`` connection of its own (:class:`Listener`).
+* On SQLite (one machine), the workers that ``regtree serve`` (and the demo) starts share
+  one ``multiprocessing`` event with the API's process: the job route sets it once the job
+  is committed (:func:`notify`), and an idle worker waiting on it wakes and clears it
+  (:class:`EventWaker`). Workers started on their own (``regtree worker``) have no event
+  and keep to their poll.
+
+Either way an idle worker waits in :func:`idle`. The poll is still what makes every due
+job run (a retry's backoff, a lost lease, a notification lost with its connection): a wake
+only makes the usual case prompt.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
-from typing import Any
+from typing import Any, Protocol
+
+from sqlalchemy import text
+from sqlalchemy.engine import make_url
+from sqlalchemy.orm import Session
+
+from service.db import is_postgresql
+
+logger = logging.getLogger("regtree.worker")
+
+#: The channel of PostgreSQL's notifications of queued jobs.
+CHANNEL = "regtree_jobs"
 
 #: The event of the embedded workers, in the process that serves the API (set by
 #: :func:`install`; None where the API serves workers it did not start).
@@ -38,10 +58,78 @@ def notify() -> None:
         _event.set()
 
 
-def idle(event: Any | None, shutdown: threading.Event, seconds: float) -> None:
-    """Wait `seconds`, or until `event` is set (a job was queued: the event is cleared for
-    the next one) or `shutdown` is; without an event, until `shutdown` is set."""
-    if event is None:
+def notify_in(session: Session) -> None:
+    """A job is due in `session`'s transaction: on PostgreSQL, notify the listening
+    workers when it commits (nothing happens if it rolls back); nothing on SQLite."""
+    if is_postgresql(session):
+        session.execute(text(f"NOTIFY {CHANNEL}"))
+
+
+class Waker(Protocol):
+    def wait(self, seconds: float) -> bool:
+        """Wait at most `seconds`; True when woken (a job was queued)."""
+
+
+class EventWaker:
+    """An embedded worker's side of the shared event (see :func:`install`)."""
+
+    def __init__(self, event: Any) -> None:
+        self.event = event
+
+    def wait(self, seconds: float) -> bool:
+        if self.event.wait(seconds):
+            # cleared before the claim: a job queued after it sets the event again
+            self.event.clear()
+            return True
+        return False
+
+    def close(self) -> None:
+        pass
+
+
+class Listener:
+    """A worker's ``LISTEN`` connection to PostgreSQL (psycopg, autocommit), opened at the
+    first wait and again after a failure; a connection that fails only costs the wake:
+    the wait then sleeps its time and the poll goes on."""
+
+    def __init__(self, database_url: str) -> None:
+        self.conninfo = make_url(database_url).set(drivername="postgresql").render_as_string(
+            hide_password=False)
+        self._connection: Any | None = None
+        self._warned = False
+
+    def wait(self, seconds: float) -> bool:
+        import psycopg
+
+        try:
+            if self._connection is None:
+                self._connection = psycopg.connect(self.conninfo, autocommit=True)
+                self._connection.execute(f"LISTEN {CHANNEL}")
+            for _ in self._connection.notifies(timeout=seconds, stop_after=1):
+                return True
+            return False
+        except psycopg.Error as e:
+            if not self._warned:
+                self._warned = True
+                logger.warning("cannot listen for queued jobs; polling only",
+                               extra={"error": str(e)})
+            self.close()
+            time.sleep(seconds)
+            return False
+
+    def close(self) -> None:
+        connection, self._connection = self._connection, None
+        if connection is not None:
+            try:
+                connection.close()
+            except Exception:  # pragma: no cover - closing a broken connection
+                pass
+
+
+def idle(waker: Waker | None, shutdown: threading.Event, seconds: float) -> None:
+    """Wait `seconds`, or until `waker` wakes (a job was queued) or `shutdown` is set;
+    without a waker, until `shutdown` is set."""
+    if waker is None:
         shutdown.wait(seconds)
         return
     deadline = time.monotonic() + seconds
@@ -49,7 +137,5 @@ def idle(event: Any | None, shutdown: threading.Event, seconds: float) -> None:
         left = deadline - time.monotonic()
         if left <= 0:
             return
-        if event.wait(min(left, WAKE_SLICE_SECONDS)):
-            # cleared before the claim: a job queued after it sets the event again
-            event.clear()
+        if waker.wait(min(left, WAKE_SLICE_SECONDS)):
             return

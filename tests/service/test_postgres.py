@@ -12,6 +12,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -348,3 +349,23 @@ def test_queue_outcomes_retries_and_callbacks(pg_url: str) -> None:
         assert attempts == 6
     finally:
         db.dispose()
+
+
+def test_a_worker_on_another_machine_wakes_when_a_job_is_queued(
+    pg_service: Callable[..., Service],
+) -> None:
+    """NOTIFY at the enqueue's commit wakes a `regtree worker` listening on its own
+    connection: with a 30 s poll, the second job would otherwise wait 15-30 s."""
+    svc = pg_service(workers=0, env={"REGTREE_WORKER_POLL_SECONDS": "30"}).start()
+    svc.start_worker()
+    with svc.client() as client:
+        cid = create_collection(client, "wake")
+        ids = upload_family(client, cid, family(n_chains=1, chain_length=3, n_points=40))
+        first = wait_job(client, submit_job(client, cid, ids[0])["id"], timeout=90)
+        assert first["status"] == "succeeded", first
+        time.sleep(0.5)  # the worker is idle again, listening
+        second = wait_job(client, submit_job(client, cid, ids[0])["id"], timeout=60)
+        assert second["status"] == "succeeded", second
+    started = datetime.fromisoformat(second["started_at"])
+    created = datetime.fromisoformat(second["created_at"])
+    assert (started - created).total_seconds() < 5.0, second

@@ -1,4 +1,5 @@
-"""Idle embedded workers wake when a job is queued (service.jobs.wake), not at their poll."""
+"""Idle workers wake when a job is queued (service.jobs.wake), not at their poll (on
+PostgreSQL: tests/service/test_postgres.py)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import threading
 import time
 from collections.abc import Callable
 from datetime import datetime
+
+import pytest
 
 from service.jobs import wake
 from tests.service.conftest import (
@@ -47,7 +50,7 @@ def test_idle_returns_when_woken_and_clears_the_event() -> None:
     shutdown = threading.Event()
     threading.Timer(0.2, event.set).start()
     t = time.monotonic()
-    wake.idle(event, shutdown, 30.0)
+    wake.idle(wake.EventWaker(event), shutdown, 30.0)
     assert time.monotonic() - t < 5.0
     assert not event.is_set()  # the next job sets it again
 
@@ -56,11 +59,11 @@ def test_idle_returns_on_shutdown_and_at_its_time() -> None:
     event = multiprocessing.get_context("spawn").Event()
     shutdown = threading.Event()
     t = time.monotonic()
-    wake.idle(event, shutdown, 0.3)  # nothing queued: the poll's own time
+    wake.idle(wake.EventWaker(event), shutdown, 0.3)  # nothing queued: the poll's own time
     assert 0.25 < time.monotonic() - t < 5.0
     threading.Timer(0.2, shutdown.set).start()
     t = time.monotonic()
-    wake.idle(event, shutdown, 30.0)
+    wake.idle(wake.EventWaker(event), shutdown, 30.0)
     assert time.monotonic() - t < 5.0
     shutdown.clear()
     threading.Timer(0.2, shutdown.set).start()
@@ -79,3 +82,12 @@ def test_notify_sets_the_installed_event_only() -> None:
         assert event.is_set()
     finally:
         wake.install(None)
+
+
+def test_a_listener_that_cannot_connect_sleeps_its_time_and_wakes_nobody() -> None:
+    pytest.importorskip("psycopg", reason="the psycopg driver is not installed")
+    listener = wake.Listener("postgresql+psycopg://nobody:x@127.0.0.1:1/none")
+    t = time.monotonic()
+    assert listener.wait(0.2) is False  # refused: polling only, no busy loop
+    assert 0.15 < time.monotonic() - t < 10.0
+    listener.close()
