@@ -41,7 +41,8 @@ def test_a_worker_process_runs_its_jobs_with_the_raised_threshold(
     seen: list[tuple[int, int, int]] = []
 
     class Recorder:
-        def __init__(self, settings: Settings, parent_pid: int | None = None) -> None:
+        def __init__(self, settings: Settings, parent_pid: int | None = None,
+                     wake_event: Any | None = None) -> None:
             self.db = self
 
         def install_signal_handlers(self) -> None:
