@@ -152,7 +152,8 @@ def json_safe(value: Any) -> Any:
         numbers: Iterable[Any] | None = None
         if type(first) is float or type(first) is int:
             numbers = value
-        elif type(first) is list and first and type(first[0]) is float:  # points, rows
+        elif (type(first) is list and first and type(first[0]) is float
+              and set(map(type, value)) == {list}):  # points, rows of numbers
             numbers = itertools.chain.from_iterable(value)
         if numbers is not None:
             # every number finite: the list as it is, checked in C (73 glyphs' 580 000

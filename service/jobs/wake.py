@@ -87,23 +87,35 @@ class EventWaker:
         pass
 
 
+#: After a failed ``LISTEN`` connection, a worker tries again this much later (polling
+#: meanwhile), not at every wait.
+LISTEN_RETRY_SECONDS = 30.0
+#: How long opening that connection may take.
+LISTEN_CONNECT_SECONDS = 5
+
+
 class Listener:
     """A worker's ``LISTEN`` connection to PostgreSQL (psycopg, autocommit), opened at the
-    first wait and again after a failure; a connection that fails only costs the wake:
-    the wait then sleeps its time and the poll goes on."""
+    first wait and again :data:`LISTEN_RETRY_SECONDS` after a failure; a connection that
+    fails only costs the wake: the waits then sleep their time and the poll goes on."""
 
     def __init__(self, database_url: str) -> None:
         self.conninfo = make_url(database_url).set(drivername="postgresql").render_as_string(
             hide_password=False)
         self._connection: Any | None = None
+        self._retry_at = 0.0
         self._warned = False
 
     def wait(self, seconds: float) -> bool:
         import psycopg
 
+        if self._connection is None and time.monotonic() < self._retry_at:
+            time.sleep(seconds)
+            return False
         try:
             if self._connection is None:
-                self._connection = psycopg.connect(self.conninfo, autocommit=True)
+                self._connection = psycopg.connect(self.conninfo, autocommit=True,
+                                                   connect_timeout=LISTEN_CONNECT_SECONDS)
                 self._connection.execute(f"LISTEN {CHANNEL}")
             for _ in self._connection.notifies(timeout=seconds, stop_after=1):
                 return True
@@ -114,6 +126,7 @@ class Listener:
                 logger.warning("cannot listen for queued jobs; polling only",
                                extra={"error": str(e)})
             self.close()
+            self._retry_at = time.monotonic() + LISTEN_RETRY_SECONDS
             time.sleep(seconds)
             return False
 

@@ -252,3 +252,4 @@ def test_json_safe_replaces_every_non_finite_float_with_none() -> None:
                                                                  [None, 1.0]]
     assert json_safe([[1.0, 2.0], "a", {"k": nan}]) == [[1.0, 2.0], "a", {"k": None}]
     assert json_safe([1, 10**400, nan]) == [1, 10**400, None]  # beyond a float: no C pass
+    assert json_safe([[1.0, 2.0], {3.0: nan}]) == [[1.0, 2.0], {"3.0": None}]

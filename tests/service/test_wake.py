@@ -90,4 +90,10 @@ def test_a_listener_that_cannot_connect_sleeps_its_time_and_wakes_nobody() -> No
     t = time.monotonic()
     assert listener.wait(0.2) is False  # refused: polling only, no busy loop
     assert 0.15 < time.monotonic() - t < 10.0
+    connect = listener.conninfo
+    listener.conninfo = "not even a conninfo"  # the next attempt would fail at once...
+    t = time.monotonic()
+    assert listener.wait(0.2) is False  # ...but none is made before its retry time
+    assert 0.15 < time.monotonic() - t < 10.0 and listener._connection is None
+    assert connect.startswith("postgresql://")
     listener.close()
