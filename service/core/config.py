@@ -81,7 +81,14 @@ class Settings(BaseSettings):
     # --- job queue -------------------------------------------------------------------------
     worker_lease_seconds: float = Field(default=60.0, gt=0)
     worker_heartbeat_seconds: float = Field(default=10.0, gt=0)
-    worker_poll_seconds: float = Field(default=1.0, gt=0)
+    worker_poll_seconds: float = Field(
+        default=1.0,
+        gt=0,
+        description="How often an idle worker looks for due jobs (with jitter: 0.5-1x). A "
+        "job queued through the API wakes an idle worker at once (on PostgreSQL any "
+        "worker, by NOTIFY; on SQLite the workers `regtree serve` starts); the poll covers "
+        "the rest (retries after their backoff, jobs whose worker was lost).",
+    )
     cancel_poll_seconds: float = Field(
         default=1.0,
         gt=0,

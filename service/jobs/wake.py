@@ -40,8 +40,8 @@ CHANNEL = "regtree_jobs"
 #: :func:`install`; None where the API serves workers it did not start).
 _event: Any | None = None
 
-#: Longest single wait on the event: a worker's shutdown (a threading event it cannot wait
-#: on together with the process-shared one) is seen within this.
+#: Longest single wait on a waker: a worker's shutdown (a threading event it cannot wait
+#: on together with the shared event or the connection) is seen within this.
 WAKE_SLICE_SECONDS = 0.1
 
 
