@@ -249,8 +249,12 @@ class JobQueue:
 
     def claim(self, owner: str) -> Claim | None:
         """Settle stalled jobs, then claim the oldest queued job that is due; None if none."""
-        now = utcnow()
         with self.db.write() as session:
+            # the time once the transaction holds the write lock (SQLite: BEGIN IMMEDIATE
+            # waits for a writer that may be queueing a job): read before, a job created
+            # and committed meanwhile could start before its own created_at
+            session.connection()
+            now = utcnow()
             self._settle(session, now)
             due = and_(
                 Job.status == JobStatus.queued.value,

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from sqlalchemy import text
+from sqlalchemy import select, text
 from sqlalchemy.exc import OperationalError
 
 from service import migrate
@@ -482,3 +482,30 @@ def test_settings_give_each_backoff_whole(db: Database, monkeypatch: pytest.Monk
     monkeypatch.setenv("REGTREE_CALLBACK_BACKOFF_MAX_SECONDS", "-1")
     with pytest.raises(ValueError, match="callback_backoff_max_seconds"):
         Settings(_env_file=None)  # type: ignore[call-arg]
+
+
+def test_a_claim_waiting_for_a_queueing_writer_starts_the_job_after_its_creation(
+        db: Database) -> None:
+    """A worker's claim that waits for SQLite's write lock while the API queues a job
+    reads the time once it holds the lock: the job starts after it was created."""
+    import threading
+
+    q = queue(db)
+    first = q.claim("w0")  # the fixture's job, out of the way
+    assert first is not None
+    claimed: list[Any] = []
+    worker = threading.Thread(target=lambda: claimed.append(q.claim("w1")))
+    with db.write() as session:
+        collection = session.scalars(select(Collection)).first()  # holds the write lock
+        assert collection is not None
+        worker.start()
+        time.sleep(0.2)  # the claim has begun and waits for the lock
+        session.add(direct_job(collection.id))
+        session.flush()  # created_at is set here, after the claim began
+        time.sleep(0.1)
+    worker.join(10)
+    assert claimed and claimed[0] is not None
+    with db.read() as session:
+        job = session.get(Job, claimed[0].job_id)
+        assert job is not None and job.started_at is not None
+        assert job.started_at >= job.created_at
