@@ -15,7 +15,7 @@ family instead. ``--points N`` resamples every shape to at most N points on the 
 before uploading (the service stores what it gets); by default the files go up as they are.
 
     .venv/bin/python bench/bench_service.py [--points 400] [--url http://127.0.0.1:8000]
-        [--workers 2] [--allow-generated] [--model NAME] [--timeout 3600]
+        [--workers 2] [--allow-generated] [--model NAME] [--timeout 3600] [--repeat 3]
 
 Stage times come from polling the job (``--poll`` seconds apart, and the server writes
 progress at most every 0.1 s when this script starts it), so each is accurate to about one
@@ -205,6 +205,19 @@ def _fmt(value: Any, digits: int = 4) -> str:
     return str(value)
 
 
+def _one_job(client: RegtreeClient, collection_id: int, model_id: int,
+             args: argparse.Namespace) -> tuple[Any, Any, StageTimes, float, float]:
+    """Submit the job and follow it to its end: (job, final state, stage times, submit
+    time, done time)."""
+    times = StageTimes()
+    t_submit = time.monotonic()
+    job = client.start_job(collection_id, model_id, method=args.method,
+                           compare_direct=args.compare_direct)
+    final = client.wait(job.id, poll=args.poll, timeout=args.timeout, on_progress=times.see,
+                        raise_on_failure=False)
+    return job, final, times, t_submit, time.monotonic()
+
+
 def run(
     args: argparse.Namespace, url: str, shapes: list[tuple[str, np.ndarray]], label: str
 ) -> int:
@@ -227,22 +240,8 @@ def run(
         if model_name not in by_name:
             print(f"no shape named {model_name!r}; names look like {shapes[0][0]!r}")
             return 2
-        times = StageTimes()
-        t_submit = time.monotonic()
-        job = client.start_job(
-            collection.id,
-            by_name[model_name],
-            method=args.method,
-            compare_direct=args.compare_direct,
-        )
-        final = client.wait(
-            job.id,
-            poll=args.poll,
-            timeout=args.timeout,
-            on_progress=times.see,
-            raise_on_failure=False,
-        )
-        t_done = time.monotonic()
+        job, final, times, t_submit, t_done = _one_job(client, collection.id,
+                                                       by_name[model_name], args)
         if final.started_at and final.created_at:
             queued = (final.started_at - final.created_at).total_seconds()
             rows.append(("queued wait", queued, "server created_at -> started_at"))
@@ -262,6 +261,21 @@ def run(
             ("result fetch full", time.monotonic() - t1, f"{len(str(full)) / 1e6:.1f} MB as JSON")
         )
         rows.append(("job (submit -> done)", t_done - t_submit, f"{job.method}, poll {args.poll}s"))
+        # the same job again in the same workers (no process starts any more): the machine's
+        # own swings between runs are often larger than a change being measured
+        repeats = [t_done - t_submit]
+        for _ in range(args.repeat - 1):
+            again, ended, stages, t0, t1 = _one_job(client, collection.id, by_name[model_name],
+                                                   args)
+            if ended.status != "succeeded":
+                print(f"job {again.id} ended {ended.status}: {ended.error}")
+                return 1
+            repeats.append(t1 - t0)
+            parts = ", ".join(f"{name} {sec:.2f}" for name, sec, _ in stages.rows())
+            rows.append((f"job again ({len(repeats)})", t1 - t0, parts))
+        if len(repeats) > 1:
+            rows.append(("job, median of runs", float(np.median(repeats)),
+                         f"{len(repeats)} runs: " + ", ".join(f"{t:.2f}" for t in repeats)))
 
     print(
         f"\nregtree service bench: {label}: {len(shapes)} shapes, points per shape "
@@ -321,6 +335,9 @@ def main(argv: list[str] | None = None) -> int:
         help="also run direct CPD from the model, as issue 9's first target (default on)",
     )
     parser.add_argument("--poll", type=float, default=0.2, help="seconds between polls")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="run the job this many times in the same workers and print "
+                        "every run's time and their median (default 1)")
     parser.add_argument(
         "--timeout",
         type=float,
@@ -330,6 +347,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.points is not None and args.points < 3:
         parser.error("--points must be at least 3")
+    if args.repeat < 1:
+        parser.error("--repeat must be at least 1")
 
     if sorted(EDGES.glob("*_edge.txt")):
         shapes, label = load_edges(args.points), "glyphs_yong edges"
