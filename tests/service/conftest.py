@@ -19,6 +19,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -325,6 +326,22 @@ def submit_job(
     assert response.headers["location"] == f"/v1/jobs/{response.json()['id']}"
     job: dict[str, Any] = response.json()
     return job
+
+
+def second_job_queued_seconds(client: httpx.Client, first_timeout: float = 60.0) -> float:
+    """Run a small job, then, once the worker is idle again, a second one; how long the
+    second waited between its creation and its start (the tests of waking idle workers:
+    with a long poll it would wait most of it)."""
+    cid = create_collection(client, "wake")
+    ids = upload_family(client, cid, family(n_chains=1, chain_length=3, n_points=40))
+    first = wait_job(client, submit_job(client, cid, ids[0])["id"], timeout=first_timeout)
+    assert first["status"] == "succeeded", first
+    time.sleep(0.5)  # the worker is idle again, in its long wait
+    second = wait_job(client, submit_job(client, cid, ids[0])["id"], timeout=60)
+    assert second["status"] == "succeeded", second
+    started = datetime.fromisoformat(str(second["started_at"]))
+    created = datetime.fromisoformat(str(second["created_at"]))
+    return (started - created).total_seconds()
 
 
 def wait_job(
