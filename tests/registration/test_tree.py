@@ -617,7 +617,8 @@ def test_the_consensus_is_kept_only_up_to_its_e_ratio_to_the_chains(family, monk
         return out
 
     monkeypatch.setattr(polish_module, "_stages", stages)
-    monkeypatch.setattr(polish_module, "_finish", lambda task, best: (best, None))
+    # no finish kept: a refused consensus is not kept once finished either
+    monkeypatch.setattr(polish_module, "_finish", lambda task, best: (best, {"kept": False}))
     monkeypatch.setattr(polish_module, "_symmetric", lambda task, best: (best, None))
     task = _consensus_task(family, 4)
     out = polish_module._polish_task(task)
@@ -636,6 +637,62 @@ def test_the_consensus_is_kept_only_up_to_its_e_ratio_to_the_chains(family, monk
     for step in out.steps:
         p = step.apply(p)
     assert np.allclose(p, out.warped, atol=1e-8)
+
+
+@pytest.mark.parametrize("finished", ["halfway lower", "just above", "halfway refused"])
+def test_a_refused_consensus_is_judged_again_once_finished(family, monkeypatch, finished):
+    """A consensus refused by its e rule (its e set just above CONSENSUS_MAX_E_RATIO times
+    the chain's) is kept when, once it and the chain are each finished from the root, its
+    finished e is at most CONSENSUS_FINISHED_MAX_E_RATIO times the chain's and its finish
+    was kept; else the finished chain stands."""
+    from dataclasses import replace
+
+    from registration._tree import _polish as polish_module
+
+    real = polish_module._stages
+    runs: list = []
+
+    def stages(*args, **kwargs):
+        out = real(*args, **kwargs)
+        runs.append(out)
+        if len(runs) == 3:  # from halfway: refused by the consensus's own rule
+            assert out.steps, "no stage from halfway passed its checks here"
+            out = replace(out, error=runs[0].error * polish_module.CONSENSUS_MAX_E_RATIO
+                          * (1 + 1e-9))
+        return out
+
+    finishes: list = []
+
+    def finish(task, best):
+        # the finish adds no step here; it sets the e each candidate reaches
+        halfway = len(best.steps) > len(runs[0].steps)
+        ratio = polish_module.CONSENSUS_FINISHED_MAX_E_RATIO
+        e = runs[0].error * (0.5 if not halfway else
+                             0.5 * ratio * (1 - 1e-9) if finished != "just above" else
+                             0.5 * ratio * (1 + 1e-9))
+        kept = not (halfway and finished == "halfway refused")
+        finishes.append(halfway)
+        return replace(best, error=e if kept else best.error), {"kept": kept, "error": e}
+
+    monkeypatch.setattr(polish_module, "_stages", stages)
+    monkeypatch.setattr(polish_module, "_finish", finish)
+    monkeypatch.setattr(polish_module, "_symmetric", lambda task, best: (best, None))
+    out = polish_module._polish_task(_consensus_task(family, 4))
+    chain, found = runs[0], runs[2]
+    assert sorted(finishes) == [False, True]  # both finished, once each
+    info = out.consensus
+    assert info is not None and info["chain_finished_error"] == pytest.approx(0.5 * chain.error)
+    if finished == "halfway lower":
+        assert info["kept"] is True
+        assert info["reason"] == ("e above 1.1x the chain's; kept once finished: e at most "
+                                  "1x the finished chain's")
+        assert info["finished_error"] < info["chain_finished_error"]
+        assert out.steps[: len(chain.steps)] == chain.steps
+        assert len(out.steps) == len(chain.steps) + 1 + len(found.steps)
+        return
+    assert info["kept"] is False and info["reason"] == "e above 1.1x the chain's"
+    assert out.steps == chain.steps and np.array_equal(out.warped, chain.warped)
+    assert out.error == pytest.approx(0.5 * chain.error)
 
 
 def test_a_folding_direct_registration_gives_no_consensus(family, monkeypatch):
