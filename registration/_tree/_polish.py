@@ -355,8 +355,7 @@ def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
                    correspondence=corr, probability=prob)
 
 
-def _consensus(task: _PolishTask, chain: _Stages
-               ) -> tuple[_Stages | None, _Stages | None, dict[str, Any]]:
+def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[str, Any]]:
     """The consensus of the chain's (polished) registration with the root's own.
 
     The root model is registered onto the subject directly (as a layer-2 edge would be,
@@ -365,16 +364,16 @@ def _consensus(task: _PolishTask, chain: _Stages
     interpolating_field`) and polished from there.
     The two registrations err differently: the chain by its links' slides adding up, the
     direct one by the large shape difference a single CPD bridges; halfway, part of each
-    cancels (measured, not assumed: bench/RESULTS.md 0.0000000). Kept (None otherwise) when
+    cancels (measured, not assumed: bench/RESULTS.md 0.0000000). Kept when
     the step and the stages do not fold, at least one stage passes its checks and the e
     reached is at most :data:`CONSENSUS_MAX_E_RATIO` times the chain's: a direct
     registration that went wrong (as on the large differences the tree exists for) leaves
     a far worse e and is not kept.
 
-    Returns the consensus when kept (else None), the halfway registration (the step and
-    the stages from there, whatever passed; None when there is no step: the direct
-    registration or the step folds), for :func:`_finished_apart` to judge again, and what
-    was found.
+    Returns the halfway registration (the step and the stages from there, whatever
+    passed; None when there is no step: the direct registration or the step folds) and
+    what was found, ``kept`` among it: a refused one is for :func:`_finished_apart` to
+    judge again.
     """
     assert task.direct is not None
     direct = (task.direct if isinstance(task.direct, _RegOutcome)
@@ -382,26 +381,26 @@ def _consensus(task: _PolishTask, chain: _Stages
     info: dict[str, Any] = {"direct_error": direct.error, "pose": direct.pose, "kept": False}
     if not direct.min_jacobian > 0:
         info["reason"] = "the direct registration folds"
-        return None, None, info
+        return None, info
     other = _stages(direct.warped, direct.error, task.y, task.cpd, task.spacing2,
                     task.model_irregularity, task.irregularity)
     info["direct_polished_error"] = other.error
     moved = _polished_halfway(task, chain.warped, other.warped)
     if moved is None:
         info["reason"] = "the step halfway folds"
-        return None, None, info
+        return None, info
     step, found = moved
     info["error"] = found.error
     halfway = replace(found, steps=(step, *found.steps))
     if not found.steps:
         info["reason"] = "no stage from halfway passed the checks"
-        return None, halfway, info
+        return halfway, info
     if not found.error <= CONSENSUS_MAX_E_RATIO * chain.error:
         info["reason"] = f"e above {CONSENSUS_MAX_E_RATIO:g}x the chain's"
-        return None, halfway, info
+        return halfway, info
     info["kept"] = True
     info["reason"] = f"e at most {CONSENSUS_MAX_E_RATIO:g}x the chain's"
-    return halfway, halfway, info
+    return halfway, info
 
 
 def _finished_apart(task: _PolishTask, chain: _Stages, halfway: _Stages,
@@ -706,9 +705,9 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
             edge_info["reason"] = "the chain's polish reached a lower e, and halfway failed"
     best, info, finish = chain, None, None
     if task.direct is not None:
-        found, halfway, info = _consensus(task, chain)
-        if found is not None:
-            best = _extends(chain, found)
+        halfway, info = _consensus(task, chain)
+        if halfway is not None and info["kept"]:
+            best = _extends(chain, halfway)
         elif halfway is not None:
             best, finish = _finished_apart(task, chain, _extends(chain, halfway), info)
     if finish is None:
