@@ -21,6 +21,8 @@ Stage times come from polling the job (``--poll`` seconds apart, and the server 
 progress at most every 0.1 s when this script starts it), so each is accurate to about one
 poll interval, and a stage shorter than that may not be seen at all (its time then counts in
 the stage before it); the queued wait uses the server's own ``created_at`` / ``started_at``.
+Before the jobs and after them the script times a fixed CPD in its own process (``machine
+reference``), so that runs on different days can be told apart by the machine's speed.
 """
 
 from __future__ import annotations
@@ -197,6 +199,36 @@ class StageTimes:
         return out
 
 
+#: The machine reference's workload: one CPD of this many points a shape, run for exactly
+#: this many EM iterations (`machine_reference`).
+REFERENCE_POINTS = 400
+REFERENCE_ITERATIONS = 60
+
+
+def machine_reference(repeats: int = 10) -> float:
+    """Seconds for a fixed CPU workload like the job's, in this process: one CPD between
+    two fixed 400-point curves, 60 EM iterations (its E-step the compiled dense pass, as
+    the job's working resolution), the least of `repeats` runs.
+
+    The job's time on this 2-core machine moved by a third between sessions for the same
+    code (bench/RESULTS.md 7.24-7.25); this figure, measured beside it while the service's
+    workers idle, tells a slower machine from a slower change."""
+    from registration import cpd_nonrigid
+
+    angle = np.linspace(0.0, 2.0 * np.pi, REFERENCE_POINTS, endpoint=False)
+    radius = 1.0 + 0.2 * np.sin(5.0 * angle)
+    model = np.column_stack([radius * np.cos(angle), radius * np.sin(angle)])
+    bent = 1.0 + 0.2 * np.sin(5.0 * angle + 0.3) + 0.05 * np.cos(3.0 * angle)
+    subject = np.column_stack([1.1 * bent * np.cos(angle + 0.05), bent * np.sin(angle + 0.05)])
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = cpd_nonrigid(model, subject, max_iter=REFERENCE_ITERATIONS, tol=0.0)
+        best = min(best, time.perf_counter() - t0)
+        assert res.iterations == REFERENCE_ITERATIONS, res.iterations
+    return best
+
+
 def _fmt(value: Any, digits: int = 4) -> str:
     if value is None:
         return "-"
@@ -229,6 +261,7 @@ def run(
     ):
         files = write_point_files(shapes, Path(tmp))
         size = sum(f.stat().st_size for f in files)
+        reference = [machine_reference()]
 
         t0 = time.monotonic()
         collection = client.create_collection(f"bench {label}", f"bench_service.py, {label}")
@@ -276,6 +309,11 @@ def run(
         if len(repeats) > 1:
             rows.append(("job, median of runs", float(np.median(repeats)),
                          f"{len(repeats)} runs: " + ", ".join(f"{t:.2f}" for t in repeats)))
+        reference.append(machine_reference())
+        rows.append(("machine reference", min(reference),
+                     f"one {REFERENCE_POINTS}-point CPD, {REFERENCE_ITERATIONS} EM iterations, "
+                     "in this process: before the jobs "
+                     + ", after ".join(f"{t:.3f}" for t in reference)))
 
     print(
         f"\nregtree service bench: {label}: {len(shapes)} shapes, points per shape "
