@@ -207,13 +207,13 @@ REFERENCE_ITERATIONS = 60
 
 def machine_reference(repeats: int = 10) -> float:
     """Seconds for a fixed CPU workload like the job's, in this process: one CPD between
-    two fixed 400-point curves, 60 EM iterations (its E-step the compiled dense pass, as
-    the job's working resolution), the least of `repeats` runs.
+    two fixed 400-point curves, 60 EM iterations in the tree's precision (its E-step the
+    compiled dense pass, as at the job's working resolution), the least of `repeats` runs.
 
     The job's time on this 2-core machine moved by a third between sessions for the same
     code (bench/RESULTS.md 7.24-7.25); this figure, measured beside it while the service's
     workers idle, tells a slower machine from a slower change."""
-    from registration import cpd_nonrigid
+    from registration import CPDOptions, cpd_nonrigid
 
     angle = np.linspace(0.0, 2.0 * np.pi, REFERENCE_POINTS, endpoint=False)
     radius = 1.0 + 0.2 * np.sin(5.0 * angle)
@@ -223,7 +223,8 @@ def machine_reference(repeats: int = 10) -> float:
     best = float("inf")
     for _ in range(repeats):
         t0 = time.perf_counter()
-        res = cpd_nonrigid(model, subject, max_iter=REFERENCE_ITERATIONS, tol=0.0)
+        res = cpd_nonrigid(model, subject, max_iter=REFERENCE_ITERATIONS, tol=0.0,
+                           dtype=CPDOptions().dtype)
         best = min(best, time.perf_counter() - t0)
         assert res.iterations == REFERENCE_ITERATIONS, res.iterations
     return best
