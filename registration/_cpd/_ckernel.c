@@ -1139,14 +1139,14 @@ static int use_avx2_fma = 0; /* set at import: the CPU runs AVX2 and FMA */
 #endif
 
 /* The M-step (see above): qp (m, kp) = Q row by row, zero past column k; lam (k,), y and
- * px (m, 2), p1 (m,); w and disp (m, 2) written. Work: s (m kp), h (kp kp), b and c
- * (2 kp each).
+ * px (m, 2), p1 (m,); w and disp (m, 2) written, and the sums of `lowrank_mstep` when
+ * `sums` is not NULL. Work: s (m kp), h (kp kp), b and c (2 kp each).
  * Returns 0 when the system is not numerically positive definite (a pivot <= 0 or NaN, as
  * LAPACK's potrf reports it): nothing is written then. */
 CLONES static int lowrank64(Py_ssize_t m, Py_ssize_t k, Py_ssize_t kp, const double *qp,
                             const double *lam, const double *y, const double *p1,
                             const double *px, double reg, int plain, double *s, double *h,
-                            double *b, double *c, double *w, double *disp) {
+                            double *b, double *c, double *w, double *disp, double *sums) {
     double *b0 = b, *b1 = b + kp;
     memset(b, 0, (size_t)(2 * kp) * sizeof(double));
     for (Py_ssize_t r = 0; r < m; r++) {
@@ -1217,6 +1217,7 @@ CLONES static int lowrank64(Py_ssize_t m, Py_ssize_t k, Py_ssize_t kp, const dou
         if (i >= k)
             b0[i] = b1[i] = 0.0;
     }
+    double s_p1 = 0.0, s_tt = 0.0, s_xt = 0.0, s_wd = 0.0, finite = 0.0;
     for (Py_ssize_t r = 0; r < m; r++) {
         const double *qr = qp + r * kp;
         double w0 = 0.0, w1 = 0.0, d0 = 0.0, d1 = 0.0;
@@ -1231,26 +1232,49 @@ CLONES static int lowrank64(Py_ssize_t m, Py_ssize_t k, Py_ssize_t kp, const dou
         w[2 * r + 1] = w1;
         disp[2 * r] = d0;
         disp[2 * r + 1] = d1;
+        if (sums != NULL) {
+            const double t0 = y[2 * r] + d0, t1 = y[2 * r + 1] + d1;
+            s_p1 += p1[r];
+            s_tt += p1[r] * (t0 * t0 + t1 * t1);
+            s_xt += px[2 * r] * t0 + px[2 * r + 1] * t1;
+            s_wd += w0 * d0 + w1 * d1;
+            finite += (w0 - w0) + (w1 - w1) + (t0 - t0) + (t1 - t1); /* NaN unless finite */
+        }
+    }
+    if (sums != NULL) {
+        sums[0] = s_p1;
+        sums[1] = s_tt;
+        sums[2] = s_xt;
+        sums[3] = s_wd;
+        sums[4] = finite == 0.0 ? 1.0 : 0.0;
     }
     return 1;
 }
 
-/* lowrank_mstep(qp, lam, y, p1, px, reg, w, disp[, plain]) -> solved: CPD's low-rank
- * M-step (see above); qp (m, kp) float64 with kp a multiple of 8 and >= k (Q, zero past
- * column k), lam (k,), y and px (m, 2), p1 (m,) float64; w and disp (m, 2) float64
+/* lowrank_mstep(qp, lam, y, p1, px, reg, w, disp[, plain[, sums]]) -> solved: CPD's
+ * low-rank M-step (see above); qp (m, kp) float64 with kp a multiple of 8 and >= k (Q, zero
+ * past column k), lam (k,), y and px (m, 2), p1 (m,) float64; w and disp (m, 2) float64
  * overwritten when solved. False (nothing written) when the k x k system is not
  * numerically positive definite: the caller solves it its own way. `plain` true takes the
- * plain tiles where the AVX2 ones would run (for the tests: a CPU without AVX2 runs them). */
+ * plain tiles where the AVX2 ones would run (for the tests: a CPU without AVX2 runs them).
+ * `sums` (5,) float64 (or None): when solved, the EM loop's next sums from the same pass
+ * over the rows, with t = y + disp: sum p1, sum p1 |t|^2, sum px . t, sum w . disp, and
+ * 1.0 when every w and t is finite (else 0.0). */
 static PyObject *lowrank_mstep(PyObject *self, PyObject *args) {
-    Py_buffer bq, bl, by, bp, bx, bw, bd;
+    Py_buffer bq, bl, by, bp, bx, bw, bd, bs;
     double reg;
-    int plain = 0;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*dw*w*|p", &bq, &bl, &by, &bp, &bx, &reg, &bw, &bd,
-                          &plain))
+    int plain = 0, have_sums = 0;
+    PyObject *sums_obj = Py_None;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*dw*w*|pO", &bq, &bl, &by, &bp, &bx, &reg, &bw, &bd,
+                          &plain, &sums_obj))
         return NULL;
     PyObject *ret = NULL;
-    Py_ssize_t m = bp.len / 8, k = bl.len / 8, kp = m > 0 ? bq.len / (8 * m) : 0;
     double *work = NULL;
+    Py_ssize_t m = bp.len / 8, k = bl.len / 8, kp = m > 0 ? bq.len / (8 * m) : 0;
+    if ((have_sums = optional_buffer(sums_obj, &bs, 5, 8, "sums")) < 0) {
+        have_sums = 0;
+        goto done;
+    }
     if (m < 1 || k < 1 || kp < k || kp % 8 != 0) {
         PyErr_Format(PyExc_ValueError, "_ckernel: qp must be (m, kp) with kp a multiple of 8 "
                      "and >= k = %zd, m >= 1; got m = %zd, %zd bytes", k, m, bq.len);
@@ -1267,12 +1291,14 @@ static PyObject *lowrank_mstep(PyObject *self, PyObject *args) {
         int solved;
         Py_BEGIN_ALLOW_THREADS
         solved = lowrank64(m, k, kp, bq.buf, bl.buf, by.buf, bp.buf, bx.buf, reg, plain, s,
-                           h, b, c, bw.buf, bd.buf);
+                           h, b, c, bw.buf, bd.buf, have_sums ? (double *)bs.buf : NULL);
         Py_END_ALLOW_THREADS
         ret = PyBool_FromLong(solved);
     }
 done:
     free(work);
+    if (have_sums)
+        PyBuffer_Release(&bs);
     PyBuffer_Release(&bq);
     PyBuffer_Release(&bl);
     PyBuffer_Release(&by);

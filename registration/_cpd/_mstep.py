@@ -91,7 +91,7 @@ def _spd_solve(a: FloatArray, b: FloatArray) -> FloatArray:
 class LowRankMStep:
     """The low-rank M-step of one CPD run, its kernel ``G ~= Q diag(lam) Q^T`` fixed
     (:func:`_low_rank_factor`): called with ``(y, est, reg)`` it returns ``(w, disp)`` as
-    :func:`_mstep_low_rank` does.
+    :func:`_mstep_low_rank` does (:meth:`solve`: with the EM loop's next sums too).
 
     The compiled pass (``_ckernel.lowrank_mstep``) solves the same system by Cholesky,
     equal to rounding (1e-15 of the displacement), up to rank
@@ -107,6 +107,16 @@ class LowRankMStep:
 
     def __call__(self, y: FloatArray, est: _EStepOut, reg: float
                  ) -> tuple[FloatArray, FloatArray]:
+        w, disp, _ = self.solve(y, est, reg)
+        return w, disp
+
+    def solve(self, y: FloatArray, est: _EStepOut, reg: float
+              ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """``(w, disp, sums)``: the M-step as :meth:`__call__`, and when the compiled pass
+        solved it the sums the EM loop reads next, taken in the same pass over the rows
+        (with ``t = y + disp``): ``sum P1``, ``sum_m P1_m |t_m|^2``, ``sum PX * t``,
+        ``sum w * disp`` (the regulariser's ``tr(W^T G W)``, as ``G W = disp``) and 1.0
+        when every ``w`` and ``t`` is finite (else 0.0); None when numpy solved it."""
         ck = _switch.CKERNEL
         if ck is not None and len(self.lam) <= COMPILED_MSTEP_MAX_RANK:
             if self._padded is None:
@@ -115,11 +125,14 @@ class LowRankMStep:
                 self._padded[:, :k] = self.q
             w = np.empty((len(y), 2))
             disp = np.empty((len(y), 2))
+            sums = np.empty(5)
             if ck.lowrank_mstep(self._padded, self.lam, np.ascontiguousarray(y, np.float64),
                                 np.ascontiguousarray(est.p1, np.float64),
-                                np.ascontiguousarray(est.px, np.float64), float(reg), w, disp):
-                return w, disp
-        return _mstep_low_rank(self.q, self.lam, y, est, reg)
+                                np.ascontiguousarray(est.px, np.float64), float(reg), w, disp,
+                                False, sums):
+                return w, disp, sums
+        w, disp = _mstep_low_rank(self.q, self.lam, y, est, reg)
+        return w, disp, None
 
 
 def _cholesky_solve(a: FloatArray, b: FloatArray) -> FloatArray | None:

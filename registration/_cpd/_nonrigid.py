@@ -460,6 +460,8 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
     # accelerate: the plain EM iterates since the last extrapolation, and (while the state
     # is an extrapolated one) the EM iterate it replaced with the objective it must beat
     history: list[tuple[FloatArray, FloatArray, float]] = []
+    # sum(W * (T - Y)) of the current state when the M-step that made it gave it, else None
+    reg_term: float | None = None
     fallback: tuple[tuple[FloatArray, FloatArray, float], float] | None = None
     step_max = ACCEL_STEP_MAX
     while it < max_iter:
@@ -468,7 +470,9 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
         est = run_estep(estep, t, s2, truncate, gauss_grid, sample)
         # (np.add.reduce: np.sum's own reduction, bit for bit, without its Python wrapper,
         # 2-3 us a call: 2 % of a serial tree's CPU in these EM loops)
-        lval = est.nll + 0.5 * lmbda * float(_sum(wmat * (t - y)))  # G W = T - Y
+        if reg_term is None:
+            reg_term = float(_sum(wmat * (t - y)))  # G W = T - Y
+        lval = est.nll + 0.5 * lmbda * reg_term
         extrapolated = fallback is not None
         if fallback is not None:
             (wmat_em, t_em, s2_em), l_beat = fallback
@@ -477,6 +481,7 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
                 # the extrapolated state did not lower the objective: back to EM's own
                 # iterate (this E-step counts as an iteration, so max_iter still bounds)
                 wmat, t, s2 = wmat_em, t_em, s2_em
+                reg_term = None
                 history = []
                 step_max = ACCEL_STEP_RESTART
                 it += 1
@@ -488,24 +493,33 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
             0.0 if lval == l_old else math.inf)
         # ---- M-step
         reg = lmbda * s2
+        sums = None
         if mstep_low_rank is not None:
-            w_new, disp = mstep_low_rank(y, est, reg)
+            w_new, disp, sums = mstep_low_rank.solve(y, est, reg)
             t_new = y + disp
         else:
             assert gk is not None
             w_new = _mstep_dense(gk, y, est, reg)
             t_new = y + gk @ w_new
-        np_sum = float(_sum(est.p1))
-        s2_new = abs(float(np.dot(est.pt1, estep.xsq))
-                     + float(np.dot(est.p1, np.einsum("ij,ij->i", t_new, t_new)))
-                     - 2.0 * float(_sum(est.px * t_new))) / (np_sum * 2.0) if np_sum > 0 \
-            else math.nan
-        if not (np.isfinite(w_new).all() and np.isfinite(t_new).all()
-                and math.isfinite(s2_new)):
+        if sums is not None:
+            # the compiled M-step's sums over its rows (LowRankMStep.solve)
+            np_sum, p1_tt, px_t, reg_new = float(sums[0]), float(sums[1]), float(sums[2]), \
+                float(sums[3])
+            finite = sums[4] == 1.0
+        else:
+            np_sum = float(_sum(est.p1))
+            p1_tt = float(np.dot(est.p1, np.einsum("ij,ij->i", t_new, t_new)))
+            px_t = float(_sum(est.px * t_new))
+            reg_new = None
+            finite = bool(np.isfinite(w_new).all() and np.isfinite(t_new).all())
+        s2_new = abs(float(np.dot(est.pt1, estep.xsq)) + p1_tt - 2.0 * px_t) / (np_sum * 2.0) \
+            if np_sum > 0 else math.nan
+        if not (finite and math.isfinite(s2_new)):
             break
         if accelerate:
             history.append((wmat, t, s2))
         wmat, t, objective, l_old = w_new, t_new, lval, lval
+        reg_term = reg_new
         it += 1
         hit_floor = s2_new <= floor
         s2 = floor if hit_floor else s2_new
@@ -524,6 +538,7 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
             if jump is not None:
                 fallback = ((wmat, t, s2), lval)
                 wmat, t, s2 = jump
+                reg_term = None
     if fallback is not None:  # stopped on an extrapolated state not yet checked
         wmat, t, s2 = fallback[0]
     return _finish(x, y, wmat=wmat, g=gk, s2=s2, w=w, beta=beta, xd=xd, xs=xs,
@@ -543,21 +558,32 @@ def _squarem(s0: tuple[FloatArray, FloatArray, float], s1: tuple[FloatArray, Flo
     ``[1, step_max]``. None when the step is 1 (that is ``s2`` itself) or sigma^2 would
     fall to its floor."""
     r_t = s1[1] - s0[1]
-    v_t = s2[1] - 2.0 * s1[1] + s0[1]
-    nr, nv = math.sqrt(float(_sum(r_t * r_t))), math.sqrt(float(_sum(v_t * v_t)))
+    v_t = s2[1] - s1[1]
+    v_t -= r_t
+    flat_r, flat_v = r_t.ravel(), v_t.ravel()
+    nr = math.sqrt(float(np.dot(flat_r, flat_r)))
+    nv = math.sqrt(float(np.dot(flat_v, flat_v)))
     if not (nv > 0 and math.isfinite(nr / nv)):
         return None
     a = min(step_max, nr / nv)
     if not a > 1.0:
         return None
-
-    def ext(p0: Any, p1: Any, p2: Any) -> Any:
-        return p0 + 2.0 * a * (p1 - p0) + a * a * (p2 - 2.0 * p1 + p0)
-
-    sig2 = float(ext(s0[2], s1[2], s2[2]))
+    sig2 = s0[2] + 2.0 * a * (s1[2] - s0[2]) + a * a * ((s2[2] - s1[2]) - (s1[2] - s0[2]))
     if not (math.isfinite(sig2) and sig2 > floor):
         return None
-    return ext(s0[0], s1[0], s2[0]), ext(s0[1], s1[1], s2[1]), sig2
+
+    def ext(p0: FloatArray, r: FloatArray, v: FloatArray) -> FloatArray:
+        # p0 + 2 a r + a^2 v, in place in the differences (fresh arrays)
+        r *= 2.0 * a
+        v *= a * a
+        r += v
+        r += p0
+        return r
+
+    r_w = s1[0] - s0[0]
+    v_w = s2[0] - s1[0]
+    v_w -= r_w
+    return ext(s0[0], r_w, v_w), ext(s0[1], r_t, v_t), float(sig2)
 
 
 def interpolating_field(points: ArrayLike, targets: ArrayLike, beta: float,

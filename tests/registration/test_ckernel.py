@@ -440,6 +440,28 @@ def test_compiled_low_rank_mstep_equals_numpy(ckernel: object, m: int, beta: flo
                 assert np.max(np.abs(g - w)) <= 1e-13 * max(1.0, float(np.max(np.abs(w))))
 
 
+def test_compiled_low_rank_mstep_sums_equal_numpy(ckernel: object) -> None:
+    """The sums the EM loop reads after the compiled M-step (``LowRankMStep.solve``) are
+    numpy's of the same W and displacement to rounding: sum P1, sum P1 |T|^2, sum PX . T,
+    sum W . disp (T = Y + disp), and the finiteness flag, which a non-finite input turns
+    off; numpy's route gives no sums."""
+    from registration._cpd._mstep import LowRankMStep, _low_rank_factor
+
+    y, est = _mstep_inputs(300, 7)
+    q, lam = _low_rank_factor(y, 1.0, None)
+    w, disp, sums = with_engine(ckernel, lambda: LowRankMStep(q, lam).solve(y, est, 1e-2))
+    assert sums is not None
+    t = y + disp
+    want = [est.p1.sum(), np.dot(est.p1, (t * t).sum(axis=1)), (est.px * t).sum(),
+            (w * disp).sum()]
+    np.testing.assert_allclose(sums[:4], want, rtol=1e-12)
+    assert sums[4] == 1.0
+    est.px[3, 1] = np.inf
+    sums = with_engine(ckernel, lambda: LowRankMStep(q, lam).solve(y, est, 1e-2))[2]
+    assert sums is not None and sums[4] == 0.0
+    assert with_engine(None, lambda: LowRankMStep(q, lam).solve(y, est, 1e-2))[2] is None
+
+
 def test_compiled_low_rank_mstep_leaves_indefinite_systems_to_lapack(
         ckernel: object, monkeypatch: pytest.MonkeyPatch) -> None:
     """A system rounding leaves indefinite (no subject point near most centroids, no
