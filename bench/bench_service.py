@@ -262,13 +262,14 @@ def run(
     ):
         files = write_point_files(shapes, Path(tmp))
         size = sum(f.stat().st_size for f in files)
-        reference = [machine_reference()]
 
         t0 = time.monotonic()
         collection = client.create_collection(f"bench {label}", f"bench_service.py, {label}")
         stored = client.upload_files(collection.id, files, batch_size=100)
         rows.append(("upload", time.monotonic() - t0, f"{len(stored)} shapes, {size / 1e6:.1f} MB"))
 
+        # after the upload: by then the service's workers have started and idle
+        reference = [machine_reference()]
         by_name = {s.name: s.id for s in stored}
         model_name = args.model or shapes[0][0]
         if model_name not in by_name:
