@@ -22,7 +22,9 @@ progress at most every 0.1 s when this script starts it), so each is accurate to
 poll interval, and a stage shorter than that may not be seen at all (its time then counts in
 the stage before it); the queued wait uses the server's own ``created_at`` / ``started_at``.
 Before the jobs and after them the script times a fixed CPD in its own process (``machine
-reference``), so that runs on different days can be told apart by the machine's speed.
+reference``, the lesser of the two in the table), so that runs on different days can be
+told apart by the machine's speed; the first can read high while the service's worker
+processes are still starting.
 """
 
 from __future__ import annotations
@@ -268,7 +270,7 @@ def run(
         stored = client.upload_files(collection.id, files, batch_size=100)
         rows.append(("upload", time.monotonic() - t0, f"{len(stored)} shapes, {size / 1e6:.1f} MB"))
 
-        # after the upload: by then the service's workers have started and idle
+        # after the upload (the workers may still be starting: the table shows the lesser)
         reference = [machine_reference()]
         by_name = {s.name: s.id for s in stored}
         model_name = args.model or shapes[0][0]
