@@ -213,8 +213,8 @@ def machine_reference(repeats: int = 10) -> float:
     compiled dense pass, as at the job's working resolution), the least of `repeats` runs.
 
     The job's time on this 2-core machine moved by a third between sessions for the same
-    code (bench/RESULTS.md 7.24-7.25); this figure, measured beside it while the service's
-    workers idle, tells a slower machine from a slower change."""
+    code (bench/RESULTS.md 7.24-7.25); this figure, measured beside it (after the upload
+    and after the jobs), tells a slower machine from a slower change."""
     from registration import CPDOptions, cpd_nonrigid
 
     angle = np.linspace(0.0, 2.0 * np.pi, REFERENCE_POINTS, endpoint=False)

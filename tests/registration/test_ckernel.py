@@ -514,6 +514,14 @@ def test_compiled_low_rank_mstep_checks_its_arrays(ckernel: object) -> None:
         ck.lowrank_mstep(np.eye(5, 8), lam, np.zeros(5), p1, px, 1.0, w, disp)  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="disp holds"):
         ck.lowrank_mstep(np.eye(5, 8), lam, y, p1, px, 1.0, w, np.empty(4))  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="sums holds"):
+        ck.lowrank_mstep(np.eye(5, 8), lam, y, p1, px, 1.0, w, disp, False, np.empty(4))  # type: ignore[attr-defined]
+    # the sums of the one-centroid system above: P1, P1 |T|^2, PX . T, W . disp, finite
+    sums = np.empty(5)
+    assert ck.lowrank_mstep(np.full((1, 8), 0.5) * (np.arange(8) == 0), np.ones(1),  # type: ignore[attr-defined]
+                            np.zeros((1, 2)), np.ones(1), np.ones((1, 2)), 1.0, *one, False,
+                            sums)
+    np.testing.assert_allclose(sums, [1.0, 0.08, 0.4, 0.08, 1.0], rtol=1e-15)
 
 
 def test_compiled_farthest_point_picks_equal_numpy(ckernel: object) -> None:
