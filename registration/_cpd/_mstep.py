@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.linalg.lapack
 
@@ -31,21 +33,55 @@ _POTRS = scipy.linalg.lapack.dpotrs
 
 def _low_rank_factor(y: FloatArray, beta: float, num_eig: int | None
                      ) -> tuple[FloatArray, FloatArray]:
-    """``(Q, lam)`` with ``G ~= Q diag(lam) Q^T``, ``Q`` orthonormal, for the Gaussian
-    kernel of ``y`` (width ``beta``), without forming ``G``.
+    """``(Q, lam)`` with ``G ~= Q diag(lam) Q^T``, ``Q`` orthonormal (to about 1e-7 at
+    rank 150), for the Gaussian kernel of ``y`` (width ``beta``), without forming ``G``.
 
     A pivoted Cholesky factor ``G ~= L L^T`` (:func:`._fgt.pivoted_cholesky`: ``num_eig``
     columns, or with ``num_eig=None`` as many as :data:`LOW_RANK_TRACE_TOL` asks) is turned
-    into eigenpairs: ``L = Q0 R``, ``R R^T = V diag(lam) V^T``, ``Q = Q0 V``.  Cost
-    ``O(M k^2)`` instead of the ``O(M^2)`` kernel and its eigendecomposition.
+    into eigenpairs through its k x k Gram matrix: ``L^T L = V diag(lam) V^T``,
+    ``Q = L V diag(lam)^-1/2``, so ``Q diag(lam) Q^T = L L^T`` to rounding. Cost
+    ``O(M k^2)`` instead of the ``O(M^2)`` kernel and its eigendecomposition; 0.6x the
+    time of a QR of ``L`` first, whose ``Q`` is orthonormal to rounding: the M-step's
+    Woodbury solve needs only ``Q diag(lam) Q^T``, which both give to the factor's own
+    1e-9 (bench/RESULTS.md 7.26). The smallest ``lam`` kept are 1e-12 of the largest, far
+    above the Gram matrix's rounding (1e-16 of it).
+
+    The last few factors of up to :data:`FACTOR_CACHE_MAX_POINTS` points are kept
+    (:func:`_cached_factor`): one tree's finishes register the same root model onto every
+    subject.
     """
-    lmat = pivoted_cholesky(y, beta, num_eig, LOW_RANK_TRACE_TOL)
-    q0, r = np.linalg.qr(lmat)
-    lam, v = np.linalg.eigh(r @ r.T)
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    key = (y.tobytes(), y.shape, float(beta), num_eig, LOW_RANK_TRACE_TOL)
+    return (_cached_factor(*key) if len(y) <= FACTOR_CACHE_MAX_POINTS
+            else _factor(*key))
+
+
+def _factor(y_bytes: bytes, shape: tuple[int, ...], beta: float, num_eig: int | None,
+            tol: float) -> tuple[FloatArray, FloatArray]:
+    """:func:`_low_rank_factor` of the points in `y_bytes` (float64, `shape`), read-only."""
+    y = np.frombuffer(y_bytes, dtype=np.float64).reshape(shape)
+    lmat = pivoted_cholesky(y, beta, num_eig, tol)
+    lam, v = np.linalg.eigh(lmat.T @ lmat)
     order = np.argsort(lam)[::-1]
     lam, v = lam[order], v[:, order]
     keep = max(1, int(np.sum(lam > np.finfo(np.float64).eps * float(lam[0]) * 1e-4)))
-    return np.ascontiguousarray(q0 @ v[:, :keep]), lam[:keep]
+    lam = np.ascontiguousarray(lam[:keep])
+    q = np.ascontiguousarray(lmat @ (v[:, :keep] / np.sqrt(lam)))
+    q.setflags(write=False)
+    lam.setflags(write=False)
+    return q, lam
+
+
+#: :func:`_factor`, the last 32 kept. On the 73 full-resolution 永 glyphs 405 of a tree's
+#: 1398 factors repeat one made before in the same process (the finish's and the stored
+#: finish's root model, the direct registrations'); the last 32 catch 386 of them (the last
+#: 8 only 190). With the Gram route, the tree's factors took 0.9 s instead of 1.9 s (one
+#: process). A benchmark that times the same CPD again calls
+#: ``_cached_factor.cache_clear()`` first.
+_cached_factor = functools.lru_cache(maxsize=32)(_factor)
+#: Largest model (points) whose factor is kept: the tree's working resolution and its
+#: stored-resolution control points (at rank 150, 0.7 MB a factor).
+FACTOR_CACHE_MAX_POINTS = 600
 
 
 def _mstep_dense(g: FloatArray, y: FloatArray, est: _EStepOut, reg: float) -> FloatArray:

@@ -298,6 +298,13 @@ def test_pivoted_cholesky_and_eigen_form(beta: float) -> None:
     assert np.max(np.abs(g - (q * lam) @ q.T)) <= 1e-9
     _, lam5 = _low_rank_factor(y, beta, 5)
     assert len(lam5) == 5
+    # the same points again (another array): the factor made before, read-only
+    again = _low_rank_factor(y.copy(), beta, None)
+    assert again[0] is q and again[1] is lam
+    assert not q.flags.writeable and not lam.flags.writeable
+    moved = y.copy()
+    moved[0, 0] += 1e-9
+    assert _low_rank_factor(moved, beta, None)[0] is not q
 
 
 def test_small_problems_take_the_dense_estep_without_estimates(
