@@ -41,10 +41,10 @@ def _low_rank_factor(y: FloatArray, beta: float, num_eig: int | None
     into eigenpairs through its k x k Gram matrix: ``L^T L = V diag(lam) V^T``,
     ``Q = L V diag(lam)^-1/2``, so ``Q diag(lam) Q^T = L L^T`` to rounding. Cost
     ``O(M k^2)`` instead of the ``O(M^2)`` kernel and its eigendecomposition; 0.6x the
-    time of a QR of ``L`` first, whose ``Q`` is orthonormal to rounding: the M-step's
-    Woodbury solve needs only ``Q diag(lam) Q^T``, which both give to the factor's own
-    1e-9 (bench/RESULTS.md 7.26). The smallest ``lam`` kept are 1e-12 of the largest, far
-    above the Gram matrix's rounding (1e-16 of it).
+    time of a QR of ``L`` first, whose ``Q`` is orthonormal to rounding. Both give
+    ``Q diag(lam) Q^T`` to the factor's own 1e-9 (bench/RESULTS.md 7.26); where the Gram
+    route's ``Q`` is not orthonormal to :data:`FACTOR_GRAM_ORTHO_TOL` (eigenvalues near
+    its rounding, from a ``num_eig`` past the tolerance's rank) the QR route is taken.
 
     The last few factors of up to :data:`FACTOR_CACHE_MAX_POINTS` points are kept
     (:func:`_cached_factor`): one tree's finishes register the same root model onto every
@@ -62,14 +62,30 @@ def _factor(y_bytes: bytes, shape: tuple[int, ...], beta: float, num_eig: int | 
     y = np.frombuffer(y_bytes, dtype=np.float64).reshape(shape)
     lmat = pivoted_cholesky(y, beta, num_eig, tol)
     lam, v = np.linalg.eigh(lmat.T @ lmat)
+    q, lam = _ordered(lmat, lam, v, True)
+    off = q.T @ q
+    off.flat[:: len(lam) + 1] -= 1.0
+    if not float(np.max(np.abs(off))) <= FACTOR_GRAM_ORTHO_TOL:
+        # eigenvalues near the Gram matrix's rounding (a `num_eig` past the tolerance's
+        # rank): its Q is not orthonormal, which the M-step's W and displacement need
+        q0, r = np.linalg.qr(lmat)
+        lam, v = np.linalg.eigh(r @ r.T)
+        q, lam = _ordered(q0, lam, v, False)
+    q.setflags(write=False)
+    lam.setflags(write=False)
+    return q, lam
+
+
+def _ordered(basis: FloatArray, lam: FloatArray, v: FloatArray, scale: bool
+             ) -> tuple[FloatArray, FloatArray]:
+    """The eigenpairs `lam`, `v` largest first, the negligible ones dropped, and the
+    orthonormal columns ``basis v`` (`scale`: ``basis v diag(lam)^-1/2``)."""
     order = np.argsort(lam)[::-1]
     lam, v = lam[order], v[:, order]
     keep = max(1, int(np.sum(lam > np.finfo(np.float64).eps * float(lam[0]) * 1e-4)))
     lam = np.ascontiguousarray(lam[:keep])
-    q = np.ascontiguousarray(lmat @ (v[:, :keep] / np.sqrt(lam)))
-    q.setflags(write=False)
-    lam.setflags(write=False)
-    return q, lam
+    cols = v[:, :keep] / np.sqrt(lam) if scale else v[:, :keep]
+    return np.ascontiguousarray(basis @ cols), lam
 
 
 #: :func:`_factor`, the last 32 kept. On the 73 full-resolution 永 glyphs 405 of a tree's
@@ -82,6 +98,11 @@ _cached_factor = functools.lru_cache(maxsize=32)(_factor)
 #: Largest model (points) whose factor is kept: the tree's working resolution and its
 #: stored-resolution control points (at rank 150, 0.7 MB a factor).
 FACTOR_CACHE_MAX_POINTS = 600
+#: The Gram route's Q is used when it is orthonormal to this (max |Q^T Q - I|), else the
+#: QR route's: with the trace tolerance's rank, 2e-13 (rank 37) to 1e-7 (rank 144) on a
+#: 400-point glyph; with a `num_eig` past it, eigenvalues at the Gram matrix's rounding
+#: (1e-17 of the largest) left 0.2-0.5.
+FACTOR_GRAM_ORTHO_TOL = 1e-6
 
 
 def _mstep_dense(g: FloatArray, y: FloatArray, est: _EStepOut, reg: float) -> FloatArray:

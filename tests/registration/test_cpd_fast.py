@@ -305,6 +305,12 @@ def test_pivoted_cholesky_and_eigen_form(beta: float) -> None:
     moved = y.copy()
     moved[0, 0] += 1e-9
     assert _low_rank_factor(moved, beta, None)[0] is not q
+    # more columns than the tolerance asks: pivots at rounding level, whose Gram-route
+    # eigenvectors are not orthonormal; the QR route's are
+    q250, lam250 = _low_rank_factor(y, beta, 250)
+    assert len(lam250) > len(lam)
+    np.testing.assert_allclose(q250.T @ q250, np.eye(len(lam250)), atol=1e-10)
+    assert np.max(np.abs(g - (q250 * lam250) @ q250.T)) <= 1e-9
 
 
 def test_small_problems_take_the_dense_estep_without_estimates(
