@@ -89,9 +89,9 @@ def _ordered(basis: FloatArray, lam: FloatArray, v: FloatArray, scale: bool
 
 
 #: :func:`_factor`, the last 32 kept. On the 73 full-resolution 永 glyphs 405 of a tree's
-#: 1398 factors repeat one made before in the same process (the finish's and the stored
-#: finish's root model, the direct registrations'); the last 32 catch 386 of them (the last
-#: 8 only 190). With the Gram route, the tree's factors took 0.9 s instead of 1.9 s (one
+#: 1398 factors repeat one made before in the same process (the finishes' and the stored
+#: finishes' root model among them); the last 32 catch 386 of them (the last 8 only
+#: 190). With the Gram route, the tree's factors took 0.9 s instead of 1.9 s (one
 #: process). A benchmark that times the same CPD again calls
 #: ``_cached_factor.cache_clear()`` first.
 _cached_factor = functools.lru_cache(maxsize=32)(_factor)
