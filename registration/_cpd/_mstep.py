@@ -147,8 +147,8 @@ def _spd_solve(a: FloatArray, b: FloatArray) -> FloatArray:
 
 class LowRankMStep:
     """The low-rank M-step of one CPD run, its kernel ``G ~= Q diag(lam) Q^T`` fixed
-    (:func:`_low_rank_factor`): called with ``(y, est, reg)`` it returns ``(w, disp)`` as
-    :func:`_mstep_low_rank` does (:meth:`solve`: with the EM loop's next sums too).
+    (:func:`_low_rank_factor`): :meth:`solve` gives ``(w, disp)`` as
+    :func:`_mstep_low_rank` does, with the EM loop's next sums.
 
     The compiled pass (``_ckernel.lowrank_mstep``) solves the same system by Cholesky,
     equal to rounding (1e-15 of the displacement), up to rank
@@ -162,14 +162,9 @@ class LowRankMStep:
         self.lam = np.ascontiguousarray(lam, dtype=np.float64)
         self._padded: FloatArray | None = None
 
-    def __call__(self, y: FloatArray, est: _EStepOut, reg: float
-                 ) -> tuple[FloatArray, FloatArray]:
-        w, disp, _ = self.solve(y, est, reg)
-        return w, disp
-
     def solve(self, y: FloatArray, est: _EStepOut, reg: float
               ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
-        """``(w, disp, sums)``: the M-step as :meth:`__call__`, and when the compiled pass
+        """``(w, disp, sums)``: the M-step, and when the compiled pass
         solved it the sums the EM loop reads next, taken in the same pass over the rows
         (with ``t = y + disp``): ``sum P1``, ``sum_m P1_m |t_m|^2``, ``sum PX * t``,
         ``sum w * disp`` (the regulariser's ``tr(W^T G W)``, as ``G W = disp``) and 1.0
