@@ -61,6 +61,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from registration import CollectionResult, build_dynamic_tree, register_direct
 from registration.synthetic import chained_family, correspondence_error, deformation_chains
@@ -311,6 +312,29 @@ def gt_error(warped: np.ndarray | None, truth: np.ndarray, subject: np.ndarray) 
     return correspondence_error(warped[has], truth[has], subject)
 
 
+def error_along(warped: np.ndarray | None, truth: np.ndarray, subject: np.ndarray,
+                neighbours: int = 8) -> float | None:
+    """The part of :func:`gt_error` that lies along the subject's outline: the RMS of each
+    error vector's component along the outline's direction at the true image (the
+    principal direction of the subject's `neighbours` points nearest to it), over the
+    subject's RMS radius. A registration that slid along the outline errs along it, where
+    neither e (eq. 10) nor the data term of CPD sees anything; one off the outline errs
+    across it. At corners and junctions the direction is ill-defined, so read the share
+    pooled over many subjects."""
+    if warped is None:
+        return None
+    has = np.isfinite(truth).all(axis=1)
+    y = np.asarray(subject, dtype=np.float64)
+    t = truth[has]
+    k = min(neighbours, len(y))
+    _, idx = cKDTree(y).query(t, k)
+    nb = y[idx] - y[idx].mean(axis=1, keepdims=True)
+    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    along = np.einsum("ni,ni->n", warped[has] - t, vecs[:, :, 1])
+    scale = float(np.sqrt(((y - y.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    return float(np.sqrt(np.mean(along * along))) / scale
+
+
 def pose_diagnosis(warped: np.ndarray, truth: np.ndarray) -> str:
     """Best orthogonal map (Procrustes) from the true images to the warped model: a
     reflection or a large rotation means the method found a mirrored/rotated match."""
@@ -340,6 +364,7 @@ def per_subject(case: Case) -> list[dict[str, Any]]:
             s = case.results[m].subject(k)
             row[m] = {
                 "gt": gt_error(s.warped, case.truth[k], case.shapes[k]),
+                "along": error_along(s.warped, case.truth[k], case.shapes[k]),
                 "e": s.error, "layer": s.layer, "parent": s.parent, "attached": s.attached,
                 # newer library versions attach low-confidence leaves and give a confidence
                 "leaf": bool(getattr(s, "leaf", False)),
@@ -501,6 +526,12 @@ def summary(cases: list[Case], reports: list[dict[str, Any]],
                                      st["tree/plain"] <= 0.85, f2(st["tree/plain"]).strip()))
         if kind != "ALL":
             worst_t_all, worst_d_all = max(worst_t_all, worst_t), max(worst_d_all, worst_d)
+    far_runs = [(c.label, c.root, r["far"]["tree/plain"]) for c, r in zip(cases, reports,
+                strict=True) if c.kind.startswith("yong") and r["far"]["n"]]
+    far_over = [x for x in far_runs if not x[2] <= 0.6]
+    if far_runs:
+        verdicts.append(("every 永 run: tree* <= 0.6x plain on its far half", not far_over,
+                         f"{len(far_runs) - len(far_over)} of {len(far_runs)} runs"))
     verdicts.append(("every run: tree* <= 1.05x plain", worst_t_all <= 1.05,
                      f"worst {worst_t_all:.2f}"))
     verdicts.append(("every run: direct <= 1.05x plain", worst_d_all <= 1.05,
@@ -517,6 +548,8 @@ def summary(cases: list[Case], reports: list[dict[str, Any]],
     print("\nTargets (tree* = penalised for unattached subjects):")
     for text, ok, val in verdicts:
         print(f"  [{'PASS' if ok else 'FAIL'}] {text}: {val}")
+    for label, root, v in far_over:
+        print(f"    far half: tree*/plain {v:.2f} on {label}, root {root}")
     for label, root, v in over_t:
         print(f"    tree*/plain {v:.2f} on {label}, root {root}")
     for label, root, v in over_d:
@@ -537,6 +570,19 @@ def summary(cases: list[Case], reports: list[dict[str, Any]],
                         p_e.append(pe)
         print(f"  {kind:13s} n={len(t_e):3d}  tree mean/p95 {f4(_mean(t_e))}/{f4(_p95(t_e))}"
               f"   plain mean/p95 {f4(_mean(p_e))}/{f4(_p95(p_e))}")
+    print("\nwhere the error lies: share of the squared GT error along the subject's outline "
+          "(a slide, which e cannot see; the rest lies across it), all subjects / far half:")
+    for kind in kinds:
+        rows = [r for i, c in enumerate(cases) if c.kind == kind for r in rows_by_case[i]]
+        cells = []
+        for m in METHODS:
+            parts = []
+            for group in (rows, [r for r in rows if r["far"]]):
+                pairs = [(r[m]["gt"], r[m]["along"]) for r in group if r[m]["gt"] is not None]
+                total = sum(g * g for g, _ in pairs)
+                parts.append(f2(sum(a * a for _, a in pairs) / total if total > 0 else None))
+            cells.append(f"{m} {parts[0].strip()} / {parts[1].strip()}")
+        print(f"  {kind:13s} " + "   ".join(cells))
     print("\ntree subjects attached as low-confidence leaves (counted as attached above):")
     for kind in kinds:
         rows = [r for i, c in enumerate(cases) if c.kind == kind for r in rows_by_case[i]]
