@@ -112,7 +112,8 @@ class SubjectResult:
         CPD rotation, coverage, min Jacobian), the pose it started from and the e every
         pose reached; for a polished subject (see ``build_dynamic_tree(polish=...)``)
         also ``polish``: the e before it, its steps and checks, and what its consensus
-        with the root's direct registration, its edge registered again from the polished
+        with a partner's registration (``partner``: the member's index, or the root's
+        for its direct registration), its edge registered again from the polished
         parent, its finish from the root model and its symmetric finish (halfway to the
         subject registered back onto the root) found (each with ``kept`` and a
         ``reason``). When the decisions were taken at a working resolution

@@ -22,7 +22,7 @@ from ._collection import (
 )
 from ._options import MethodOptions, TreeOptions, takes_options
 from ._passes import _attach_leaves, _refine_parents
-from ._polish import POLISH_MIN_LAYER, _polish_subjects
+from ._polish import POLISH_MIN_LAYER, _polish_subjects, consensus_partner
 from ._resolution import (
     at_stored_resolution,
     check_working_points,
@@ -86,7 +86,9 @@ def build_dynamic_tree(
         e and keeps a confidence >= 0.2, and a rejected stage is skipped (see
         :mod:`._polish`): the slide a chain accumulates link by link can relax, then the
         finer deformation the edges' smooth kernel leaves out is fitted. Two links or
-        more from the root, the root is also registered onto the subject directly, and
+        more from the root, the subject is also registered from a partner (the member
+        nearest it by D that was polished before it, not its parent; the root itself,
+        directly, when none is nearer or the subject has fewer than 150 points), and
         halfway between the two (polished again) replaces the chain's registration when
         its e is at most 1.1x the chain's: the two registrations' errors partly cancel.
         Subjects are polished parents first, and two links or more from the root a
@@ -94,7 +96,7 @@ def build_dynamic_tree(
         is no larger than the chain's, both are polished and halfway between the two
         (polished again) is taken (the subject's transform then extends the parent's
         polished one). Up to two more CPD per subject; two links or more from the root,
-        up to twelve (thirteen when the direct registration also tries a rotated
+        up to twelve (thirteen when the partner's registration also tries a rotated
         pose). On the
         ground-truth chains of bench/bench_groundtruth.py it lowered the correspondence
         error on every family but randomly subsampled outlines (bench/RESULTS.md, 0.00,
@@ -203,10 +205,17 @@ def build_dynamic_tree(
     if polish:
         if options["compare_direct"]:  # run once, for the comparison and the consensus
             known = run.direct_outcomes(sim)
-        root_q = coll.normed[root]
-        _polish_subjects(coll, results, cpd, executor, progress,
-                         direct=lambda s: known[s] if known is not None
-                         else run.task(sim, root, s, 2, root_q))
+        def partner(s: int) -> _RegTask | _RegOutcome:
+            """Subject `s` registered from its consensus partner (run once polished)."""
+            m = consensus_partner(sim.D[:, s], results, nodes, s, root, len(coll.normed[s]))
+            if m == root:
+                return known[s] if known is not None else run.task(sim, root, s, 2,
+                                                                   coll.normed[root])
+            r = results[m]
+            assert r.warped is not None and r.layer is not None
+            return run.task(sim, m, s, r.layer + 1, coll.norms[m].apply(r.warped))
+
+        _polish_subjects(coll, results, cpd, executor, progress, partner=partner)
     return run.finish(
         "dynamic_tree", [results[s] for s in subjects_idx], sim, sim_rule,
         compare_direct=options["compare_direct"],

@@ -32,9 +32,12 @@ polished registrations, polished again (kept at up to ``CONSENSUS_MAX_E_RATIO`` 
 the lower e of the two; else the lower of the two); the subject's transform then extends
 the parent's polished chain (unless the chain's own polish won).
 
-At layer >= ``POLISH_CONSENSUS_MIN_LAYER`` the root model is also registered onto the
-subject directly and polished the same way, and the chain's polished points are moved
-halfway to those and polished again (`_consensus`): kept when that e is at most
+At layer >= ``POLISH_CONSENSUS_MIN_LAYER`` the subject is also registered from a partner
+(`consensus_partner`: the member nearest it by D, other than its parent and already
+polished, carried onto it by one edge; the root itself, a direct registration, when no
+member is nearer or the subject has fewer than ``CONSENSUS_PARTNER_MIN_POINTS`` points)
+and polished the same way, and the chain's polished points are moved halfway to those
+and polished again (`_consensus`): kept when that e is at most
 ``CONSENSUS_MAX_E_RATIO`` (1.1) times the chain's, or else when, once it and the chain are
 each finished (below), its e is no higher than the chain's (`_finished_apart`). The
 subject's transform stays its chain, extended by the polish's steps (the chain's stages,
@@ -48,14 +51,14 @@ points move halfway to where the inverse of that backward field puts them.
 Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine), 0.0000
 (layer 2, skipping) and 0.0000000 (the consensus); 7.4 (accelerated EM), 7.5 (the
 consensus's e rule), 7.7 (edges from polished parents, the halfway step), 7.11 (the
-stages' normalisation), 7.12 (the finish), 7.16 (the symmetric finish) and 7.25 (a
-refused consensus judged again once finished).
+stages' normalisation), 7.12 (the finish), 7.16 (the symmetric finish), 7.25 (a
+refused consensus judged again once finished) and 7.27 (the consensus's partner).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any, NamedTuple
@@ -108,15 +111,17 @@ POLISH_BETA_FACTORS = (1.0, 0.5)
 #: moves by at most 0.015.
 POLISH_FINER_MAX_E_RATIO = 0.8
 #: Subjects at this layer or deeper (two links or more from the root) are also registered
-#: from the root directly, for a consensus with their chain (see `_consensus`). At layer 2
-#: the chain is that direct registration. Ground truth (bench/RESULTS.md 0.0000000, 63
-#: runs; tree / plain CPD before -> after): 永 skeletons 0.79 -> 0.74, edges 0.60 -> 0.58,
-#: Chui fish 0.26 -> 0.25, Chinese 0.44 -> 0.33, generated 0.46 -> 0.40, MPEG-7 0.75 ->
-#: 0.73, evenly sampled outlines 0.71 -> 0.68, other characters 0.78 -> 0.76; random
-#: subsets of outlines 1.12 -> 1.15. Up to five more CPD per subject.
+#: from a partner, for a consensus with their chain (see `_consensus`; the root directly
+#: until bench/RESULTS.md 7.27, see `CONSENSUS_PARTNER_MIN_POINTS`). At layer 2 the chain
+#: is the root's direct registration. Ground truth, with the root as the partner
+#: (bench/RESULTS.md 0.0000000, 63 runs; tree / plain CPD before -> after): 永 skeletons
+#: 0.79 -> 0.74, edges 0.60 -> 0.58, Chui fish 0.26 -> 0.25, Chinese 0.44 -> 0.33,
+#: generated 0.46 -> 0.40, MPEG-7 0.75 -> 0.73, evenly sampled outlines 0.71 -> 0.68, other
+#: characters 0.78 -> 0.76; random subsets of outlines 1.12 -> 1.15. Up to five more CPD
+#: per subject.
 POLISH_CONSENSUS_MIN_LAYER = 3
-#: The kernel width of the step that moves the chain's model halfway to the direct
-#: registration's, as a fraction of the tree's beta: at a quarter it reproduces the halfway
+#: The kernel width of the step that moves the chain's model halfway to the partner's
+#: registration, as a fraction of the tree's beta: at a quarter it reproduces the halfway
 #: points to 0.0004-0.006 of the subject's size (0.006-0.03 at the tree's own width, which
 #: cannot follow the two registrations' difference along a stroke) and the ground truth of
 #: the exact halfway start (bench/RESULTS.md 0.0000000).
@@ -144,6 +149,22 @@ CONSENSUS_MAX_E_RATIO = 1.1
 #: skeletons gain half as much; at 1.1 the edges lose (0.513) and outline-arc too (0.969).
 #: One more CPD for each subject whose consensus was refused after its halfway step.
 CONSENSUS_FINISHED_MAX_E_RATIO = 1.0
+#: The consensus's partner (see `consensus_partner`) is the member nearest the subject by
+#: D (the root when none is nearer) for subjects of at least this many points, and the
+#: root itself for sparser ones. A second chain of about the chain's own length errs about
+#: as much as the chain, and differently: halfway between the two, more of each error
+#: cancels than against one CPD from the root across the whole difference. But every link
+#: adds the field noise of a CPD fitted to a sample of the subject, which grows as the
+#: points get fewer (the field's degrees of freedom over the points: about 0.03 at 400
+#: points and 0.09 at 100 for the edges' kernel, bench/RESULTS.md 7.22). Ground truth
+#: (bench/RESULTS.md 7.27; tree / plain CPD, with the member as partner at every size
+#: against the root): 永 edges 0.509 -> 0.484 and skeletons 0.558 -> 0.543 (400 points;
+#: far halves above 0.6x on 5 of 24 runs -> 2), generated shapes (200) 0.404 -> 0.364,
+#: MPEG-7 (400) 0.584 -> 0.571, other glyphs (400) 0.658 -> 0.655; but outlines of 80-120
+#: points lose: random subsets 1.041 -> 1.064 (runs above 1.05x: 6 -> 8), outlines
+#: sampled anew on each shape 0.964 -> 0.970 (1 -> 2), the lmfree2d landmarks 0.859 ->
+#: 0.875 of plain CPD's landmark error. 150 lies between the two groups.
+CONSENSUS_PARTNER_MIN_POINTS = 150
 #: Subjects at this layer or deeper whose parent's polish moved it also register their
 #: edge again, from the parent's polished points (see `_edge_from_parent`): the tree's
 #: edges were made from each parent's chained registration, and a child inherits its
@@ -193,9 +214,11 @@ class _PolishTask:
     model_irregularity: float
     # the root model itself (its normalised coordinates), for the finish (see `_finish`)
     model: FloatArray
-    # the root's registration onto the subject directly (to run, or already run), for the
-    # consensus (layer >= POLISH_CONSENSUS_MIN_LAYER; see `_consensus`), else None
-    direct: _RegTask | _RegOutcome | None = None
+    # the consensus's partner registration (layer >= POLISH_CONSENSUS_MIN_LAYER; see
+    # `_consensus` and `consensus_partner`): the root model as warped onto the partner
+    # member, registered onto the subject as an edge (to run, or already run; the root's
+    # own: the direct registration), else None
+    partner: _RegTask | _RegOutcome | None = None
     # the parent's polished points (the parent's normalised coordinates) when its polish
     # moved it (layer >= POLISH_FROM_PARENT_MIN_LAYER), and the affine pre-alignment steps
     # the subject's edge started with; the edge is registered again from there
@@ -355,36 +378,64 @@ def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
                    correspondence=corr, probability=prob)
 
 
-def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[str, Any]]:
-    """The consensus of the chain's (polished) registration with the root's own.
+def consensus_partner(distance: FloatArray, results: dict[int, SubjectResult],
+                      members: Collection[int], subject: int, root: int, n_points: int) -> int:
+    """The member whose registration the consensus of `subject` pairs with its chain.
 
-    The root model is registered onto the subject directly (as a layer-2 edge would be,
-    pose handling included) and polished the same way; the model is moved halfway between
-    the two (by CPD's field through those points, :func:`~registration._cpd.
-    interpolating_field`) and polished from there.
+    `distance[m]` is D(m, subject) (NaN where the pair was not computed). The candidates
+    are the root and the tree's members (not its leaves) already polished when `subject`
+    is (nearer the root: fewer links on their path), other than its parent, whose
+    registration the subject's own chain and its edge from the polished parent already
+    carry. The nearest by D wins, the root on a tie; a subject of fewer than
+    :data:`CONSENSUS_PARTNER_MIN_POINTS` points (`n_points`) takes the root."""
+    best, best_d = root, float(distance[root])
+    own = results[subject]
+    if n_points < CONSENSUS_PARTNER_MIN_POINTS or own.path is None:
+        return root
+    for m in sorted(members):
+        r = results.get(m)
+        if (m in (root, subject, own.parent) or r is None or r.warped is None
+                or r.path is None or len(r.path) >= len(own.path)):
+            continue
+        d = float(distance[m])
+        if math.isfinite(d) and not d >= best_d:
+            best, best_d = m, d
+    return best
+
+
+def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[str, Any]]:
+    """The consensus of the chain's (polished) registration with its partner's.
+
+    The partner's registration (:func:`consensus_partner`: the root model as warped onto
+    a member, polished, carried onto the subject by one edge; or the root's own, a direct
+    registration) is run as the tree's edges are (pose handling included) and polished the
+    same way; the model is moved halfway between the two (by CPD's field through those
+    points, :func:`~registration._cpd.interpolating_field`) and polished from there.
     The two registrations err differently: the chain by its links' slides adding up, the
-    direct one by the large shape difference a single CPD bridges; halfway, part of each
-    cancels (measured, not assumed: bench/RESULTS.md 0.0000000). Kept when
+    partner's by its own links' and by the shape difference its last CPD bridges (the
+    whole of it for the root); halfway, part of each cancels (measured, not assumed:
+    bench/RESULTS.md 0.0000000, 7.27). Kept when
     the step and the stages do not fold, at least one stage passes its checks and the e
-    reached is at most :data:`CONSENSUS_MAX_E_RATIO` times the chain's: a direct
-    registration that went wrong (as on the large differences the tree exists for) leaves
-    a far worse e and is not kept.
+    reached is at most :data:`CONSENSUS_MAX_E_RATIO` times the chain's: a partner's
+    registration that went wrong (as a direct one does on the large differences the tree
+    exists for) leaves a far worse e and is not kept.
 
     Returns the halfway registration (the step and the stages from there, whatever
-    passed; None when there is no step: the direct registration or the step folds) and
+    passed; None when there is no step: the partner's registration or the step folds) and
     what was found, ``kept`` among it: a refused one is for :func:`_finished_apart` to
     judge again.
     """
-    assert task.direct is not None
-    direct = (task.direct if isinstance(task.direct, _RegOutcome)
-              else _register_task(task.direct))
-    info: dict[str, Any] = {"direct_error": direct.error, "pose": direct.pose, "kept": False}
-    if not direct.min_jacobian > 0:
-        info["reason"] = "the direct registration folds"
+    assert task.partner is not None
+    partner = (task.partner if isinstance(task.partner, _RegOutcome)
+               else _register_task(task.partner))
+    info: dict[str, Any] = {"partner": partner.member, "partner_error": partner.error,
+                            "pose": partner.pose, "kept": False}
+    if not partner.min_jacobian > 0:
+        info["reason"] = "the partner's registration folds"
         return None, info
-    other = _stages(direct.warped, direct.error, task.y, task.cpd, task.spacing2,
+    other = _stages(partner.warped, partner.error, task.y, task.cpd, task.spacing2,
                     task.model_irregularity, task.irregularity)
-    info["direct_polished_error"] = other.error
+    info["partner_polished_error"] = other.error
     moved = _polished_halfway(task, chain.warped, other.warped)
     if moved is None:
         info["reason"] = "the step halfway folds"
@@ -704,7 +755,7 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
             edge_info["kept"] = False
             edge_info["reason"] = "the chain's polish reached a lower e, and halfway failed"
     best, info, finish = chain, None, None
-    if task.direct is not None:
+    if task.partner is not None:
         halfway, info = _consensus(task, chain)
         if halfway is not None and info["kept"]:
             best = _extends(chain, halfway)
@@ -760,9 +811,11 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
         if out.consensus["kept"]:
             start = ("its edge from the parent as polished" if out.edge_steps
                      else "its chain")
-            reason = (f"{old.reason}; polished: the consensus of {start} and the root's "
-                      f"direct registration, {len(out.quality)} more CPD "
-                      f"(e {old.error:.3g} -> {out.error:.3g})")
+            m = out.consensus["partner"]
+            other = ("the root's direct registration" if m == coll.root
+                     else f"the registration from {coll.names[m]}")
+            reason = (f"{old.reason}; polished: the consensus of {start} and {other}, "
+                      f"{len(out.quality)} more CPD (e {old.error:.3g} -> {out.error:.3g})")
     if out.finish is not None:
         polish["finish"] = out.finish
         if out.finish["kept"]:
@@ -786,14 +839,16 @@ def _polish_subjects(
     executor: Executor | None,
     progress: ProgressCallback | None,
     min_layer: int = POLISH_MIN_LAYER,
-    direct: Callable[[int], _RegTask | _RegOutcome] | None = None,
+    partner: Callable[[int], _RegTask | _RegOutcome] | None = None,
 ) -> None:
     """Polish every attached subject at layer >= `min_layer` in place (see the module doc),
     a tree level at a time, parents first: a subject at layer >=
     :data:`POLISH_FROM_PARENT_MIN_LAYER` whose parent's polish moved it also registers
-    its edge again from there (`_edge_from_parent`, `_polish_task`). `direct(s)`: the
-    root's registration onto subject `s` (to run, or already run), for the consensus of
-    the subjects at layer >= :data:`POLISH_CONSENSUS_MIN_LAYER` (None: no consensus)."""
+    its edge again from there (`_edge_from_parent`, `_polish_task`). `partner(s)`: the
+    registration of subject `s` from its consensus partner (to run, or already run; see
+    :func:`consensus_partner`), for the consensus of the subjects at layer >=
+    :data:`POLISH_CONSENSUS_MIN_LAYER` (None: no consensus). It is called a level at a
+    time, once the levels before are polished."""
     todo = [
         s for s, r in sorted(results.items())
         if r.warped is not None and r.layer is not None and r.layer >= min_layer
@@ -812,7 +867,7 @@ def _polish_subjects(
         if progress is not None:
             progress("polish", 0, len(todo))
         for level in sorted(levels):
-            tasks = [_polish_subject_task(coll, results, built, moved, s, cpd, direct,
+            tasks = [_polish_subject_task(coll, results, built, moved, s, cpd, partner,
                                           model_irregularity)
                      for s in levels[level]]
             for _, out in ex.map_unordered(_polish_task, tasks):
@@ -834,7 +889,7 @@ def _polish_subject_task(
     moved: set[int],
     s: int,
     cpd: CPDOptions,
-    direct: Callable[[int], _RegTask | _RegOutcome] | None,
+    partner: Callable[[int], _RegTask | _RegOutcome] | None,
     model_irregularity: float,
 ) -> _PolishTask:
     r = results[s]
@@ -855,6 +910,6 @@ def _polish_subject_task(
         subject=s, start=coll.norms[s].apply(r.warped), error=r.error, y=coll.normed[s],
         cpd=cpd, spacing2=coll.spacing2[s], model_irregularity=model_irregularity,
         model=coll.normed[coll.root],
-        direct=direct(s) if direct is not None and r.layer >= POLISH_CONSENSUS_MIN_LAYER
+        partner=partner(s) if partner is not None and r.layer >= POLISH_CONSENSUS_MIN_LAYER
         else None,
         from_parent=from_parent, edge_affine=edge_affine)

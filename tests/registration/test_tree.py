@@ -16,10 +16,12 @@ from registration import (
     register_direct,
 )
 from registration._tree._polish import (
+    CONSENSUS_PARTNER_MIN_POINTS,
     FINISH_MAX_E_RATIO,
     POLISH_BETA_FACTORS,
     POLISH_CONSENSUS_MIN_LAYER,
     POLISH_FROM_PARENT_MIN_LAYER,
+    consensus_partner,
 )
 from registration.synthetic import chained_family, correspondence_error
 
@@ -432,6 +434,8 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
             assert len(s.transform.steps) == len(before.transform.steps) + p["steps"]
         consensus = p.get("consensus")
         assert (consensus is not None) == (s.layer >= POLISH_CONSENSUS_MIN_LAYER)
+        # 100 points a shape: the root's direct registration is the partner
+        assert consensus is None or consensus["partner"] == 0
         stages = len(POLISH_BETA_FACTORS)
         # the polish's stages, coarse to fine, each a CPD step of the chain; after an edge
         # registered again, halfway between its two polished registrations: the second's
@@ -441,8 +445,8 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
         if consensus is None or not consensus["kept"]:
             assert (0 if s.index in rebuilt else 1) <= p["steps"] - fin <= chain_steps
             continue
-        # the chain's stages kept, the step halfway to the direct registration, then the
-        # stages from there; kept only at no larger an e than the chain's
+        # the chain's stages kept, the step halfway to the partner's registration, then
+        # the stages from there; kept only at no larger an e than the chain's
         assert 2 <= p["steps"] - fin <= chain_steps + 1 + stages
         assert consensus["error"] == polished_e and "consensus" in s.reason
     assert any((s.quality or {}).get("polish", {}).get("consensus") for s in res.subjects), \
@@ -571,6 +575,58 @@ def test_interpolating_field_moves_each_point_onto_its_target():
     assert np.allclose(back.steps[0].apply(mid), moved, atol=1e-12)
 
 
+def test_the_consensus_partner_is_the_nearest_member_polished_before_the_subject():
+    """The partner of subject 5 (path 0-1-2-5): the root or a member nearer the root than
+    the subject, other than its parent, nearest by D; the root on a tie, and always for
+    sparse shapes."""
+    from types import SimpleNamespace
+
+    def sub(path, parent):
+        return SimpleNamespace(path=path, parent=parent, warped=np.zeros((3, 2)))
+
+    results = {1: sub([0, 1], 0), 2: sub([0, 1, 2], 1), 3: sub([0, 3], 0),
+               4: sub([0, 3, 7, 4], 7), 5: sub([0, 1, 2, 5], 2), 6: sub([0, 3, 6], 3),
+               7: sub([0, 3, 7], 3)}
+    members = {0, 1, 2, 3, 4, 7}  # 6 is a leaf: never a partner
+    n = CONSENSUS_PARTNER_MIN_POINTS
+    #          root  1    2 (parent)  3    4 (as deep)  5  6 (leaf)  7
+    d = np.array([0.5, 0.3, 0.01, 0.2, 0.02, 0.0, 0.03, 0.25])
+    assert consensus_partner(d, results, members, 5, 0, n) == 3
+    d[3] = np.nan  # the pair was not computed
+    assert consensus_partner(d, results, members, 5, 0, n) == 7
+    assert consensus_partner(d, results, members, 5, 0, n - 1) == 0  # sparse: the root
+    d[[1, 7]] = 0.5  # no member nearer than the root (a tie included)
+    assert consensus_partner(d, results, members, 5, 0, n) == 0
+
+
+def test_dense_shapes_pair_their_chain_with_the_nearest_member():
+    """With enough points a deep subject's consensus partner is the member nearest it
+    (polished before it, not its parent), whose registration is carried onto it by one
+    edge; the result says which, and the reported transform still maps the root model
+    onto the reported warped model."""
+    fam = chained_family(n_chains=2, chain_length=5, n_points=CONSENSUS_PARTNER_MIN_POINTS,
+                         step=0.3, seed=1)
+    res = build_dynamic_tree(fam.shapes, 0, names=fam.names, cpd=FAST_CPD,
+                             executor=SerialExecutor())
+    partners = {}
+    for s in res.subjects:
+        consensus = ((s.quality or {}).get("polish") or {}).get("consensus")
+        if consensus is None:
+            continue
+        m = consensus["partner"]
+        partners[s.index] = m
+        assert m != s.parent
+        if m != 0:
+            member = res.subject(m)
+            assert member.attached and not member.leaf and member.layer < s.layer
+            if consensus["kept"]:
+                assert f"the registration from {fam.names[m]}" in s.reason
+        elif consensus["kept"]:
+            assert "the root's direct registration" in s.reason
+        assert np.allclose(s.transform.apply(fam.shapes[0]), s.warped, atol=1e-8)
+    assert partners and any(m != 0 for m in partners.values()), partners
+
+
 def _consensus_task(family, subject):
     """A polish task for `subject` with the root's direct registration (as the tree makes
     it, the pose as given); the chain's start: the root's points where plain CPD puts them,
@@ -592,7 +648,7 @@ def _consensus_task(family, subject):
                                      error=registration_error(start, y), y=y, cpd=FAST_CPD,
                                      spacing2=mean_spacing2(y),
                                      model_irregularity=sampling_irregularity(q),
-                                     model=q, direct=direct)
+                                     model=q, partner=direct)
 
 
 @pytest.mark.parametrize("above", [False, True])
@@ -701,7 +757,7 @@ def test_a_refused_consensus_is_judged_again_once_finished(family, monkeypatch, 
         assert info["finished_error"] < info["chain_finished_error"]
 
 
-def test_a_folding_direct_registration_gives_no_consensus(family, monkeypatch):
+def test_a_folding_partner_registration_gives_no_consensus(family, monkeypatch):
     from dataclasses import replace
 
     from registration._tree import _polish as polish_module
@@ -711,10 +767,11 @@ def test_a_folding_direct_registration_gives_no_consensus(family, monkeypatch):
                         lambda task: replace(real(task), min_jacobian=-0.1))
     task = _consensus_task(family, 3)
     out = polish_module._polish_task(task)
-    assert out.consensus == {"direct_error": pytest.approx(out.consensus["direct_error"]),
+    assert out.consensus == {"partner": 0,
+                             "partner_error": pytest.approx(out.consensus["partner_error"]),
                              "pose": "as given", "kept": False,
-                             "reason": "the direct registration folds"}
-    alone = polish_module._polish_task(replace(task, direct=None))
+                             "reason": "the partner's registration folds"}
+    alone = polish_module._polish_task(replace(task, partner=None))
     assert out.consensus is not None and alone.consensus is None
     assert out.steps == () or np.array_equal(out.warped, alone.warped)
 
@@ -808,7 +865,7 @@ def _finish_setting(family, subject=4):
 
     from registration._tree import _polish as polish_module
 
-    task = replace(_consensus_task(family, subject), direct=None)
+    task = replace(_consensus_task(family, subject), partner=None)
     best = polish_module._stages(task.start, task.error, task.y, task.cpd, task.spacing2,
                                  task.model_irregularity)
     return task, best
@@ -822,7 +879,7 @@ def test_the_polish_task_computes_the_subjects_irregularity_once(family):
     from registration._points import sampling_irregularity
     from registration._tree import _polish as polish_module
 
-    task = replace(_consensus_task(family, 4), direct=None)
+    task = replace(_consensus_task(family, 4), partner=None)
     assert task.irregularity == sampling_irregularity(task.y)
     assert "irregularity" in vars(task)  # cached on the instance
     args = (task.start, task.error, task.y, task.cpd, task.spacing2, task.model_irregularity)
