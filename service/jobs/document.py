@@ -51,6 +51,13 @@ def _with_shape_ids(raw: dict[str, Any], shape_ids: list[int], fallback: int) ->
             else a
             for a in attempts
         ]
+    quality = subject.get("quality")
+    polish = quality.get("polish") if isinstance(quality, dict) else None
+    consensus = polish.get("consensus") if isinstance(polish, dict) else None
+    if (isinstance(quality, dict) and isinstance(polish, dict)  # the consensus's partner
+            and isinstance(consensus, dict) and "partner" in consensus):
+        subject["quality"] = {**quality, "polish": {**polish, "consensus": {
+            **consensus, "partner_shape_id": _index_to_id(consensus["partner"], shape_ids)}}}
     transform = subject.get("transform")
     if isinstance(transform, dict) and isinstance(transform.get("path"), list):
         subject["transform"] = {
@@ -104,7 +111,8 @@ def to_api_document(
     Returns the result document (subjects without heavy arrays) and the full subjects.
     Every subject keeps the library's keys (``index`` and ``parent`` are positions in the
     job's input) and gains ``shape_id``, ``position``, ``parent_shape_id``,
-    ``path_shape_ids``, ``status`` and, in its transform, ``path_shape_ids``; with
+    ``path_shape_ids``, ``status``, in its transform ``path_shape_ids`` and, when its
+    polish took a consensus, ``partner_shape_id`` beside the consensus's ``partner``; with
     ``compare_direct``, the direct registration of a subject is under ``direct`` (full) and
     ``direct_error`` (light). The document gains ``tree``: its nodes by shape id.
     """

@@ -217,3 +217,27 @@ def test_a_result_without_similarity_says_so(
                                          .content))
     assert not any(n.endswith("similarity.json") for n in archive.namelist())
 
+
+
+def test_the_consensus_partner_speaks_shape_ids() -> None:
+    """A polished subject's consensus names its partner by position (the library's key)
+    and, in the service's document, by shape id beside it."""
+    from registration import CPDOptions, SerialExecutor, build_dynamic_tree
+    from registration._tree._polish import CONSENSUS_PARTNER_MIN_POINTS
+    from registration.synthetic import chained_family
+    from service.jobs.document import to_api_document
+
+    fam = chained_family(n_chains=2, chain_length=5, n_points=CONSENSUS_PARTNER_MIN_POINTS,
+                         step=0.3, seed=1)
+    res = build_dynamic_tree(fam.shapes, 0, cpd=CPDOptions(max_iter=60),
+                             executor=SerialExecutor())
+    ids = [100 + 7 * k for k in range(len(fam.shapes))]
+    light, full = to_api_document(1, res.to_dict(), ids)
+    partners = []
+    for subjects in (light["subjects"], full):
+        for s in subjects:
+            consensus = ((s.get("quality") or {}).get("polish") or {}).get("consensus")
+            if consensus is not None:
+                assert consensus["partner_shape_id"] == ids[consensus["partner"]]
+                partners.append(consensus["partner"])
+    assert partners and set(partners) - {0}, partners  # members as well as the root
