@@ -205,6 +205,7 @@ def build_dynamic_tree(
     if polish:
         if options["compare_direct"]:  # run once, for the comparison and the consensus
             known = run.direct_outcomes(sim)
+
         def partner(s: int) -> _RegTask | _RegOutcome:
             """Subject `s` registered from its consensus partner (run once polished)."""
             m = consensus_partner(sim.D[:, s], results, nodes, s, root, len(coll.normed[s]))
