@@ -388,19 +388,18 @@ def consensus_partner(distance: FloatArray, results: dict[int, SubjectResult],
     registration the subject's own chain and its edge from the polished parent already
     carry. The nearest by D wins, the root on a tie; a subject of fewer than
     :data:`CONSENSUS_PARTNER_MIN_POINTS` points (`n_points`) takes the root."""
-    best, best_d = root, float(distance[root])
     own = results[subject]
     if n_points < CONSENSUS_PARTNER_MIN_POINTS or own.path is None:
         return root
-    for m in sorted(members):
+    d = np.asarray(distance, dtype=np.float64)
+    nearer = np.flatnonzero(d < d[root])  # NaN (not computed) never compares less
+    for m in (int(i) for i in nearer[np.argsort(d[nearer], kind="stable")]):
         r = results.get(m)
-        if (m in (root, subject, own.parent) or r is None or r.warped is None
-                or r.path is None or len(r.path) >= len(own.path)):
-            continue
-        d = float(distance[m])
-        if math.isfinite(d) and not d >= best_d:
-            best, best_d = m, d
-    return best
+        if (m in members and m not in (root, subject, own.parent) and r is not None
+                and r.warped is not None and r.path is not None
+                and len(r.path) < len(own.path)):
+            return m
+    return root
 
 
 def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[str, Any]]:
