@@ -64,6 +64,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from registration import CollectionResult, build_dynamic_tree, register_direct
+from registration._points import normalise
 from registration.synthetic import chained_family, correspondence_error, deformation_chains
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -331,8 +332,7 @@ def error_along(warped: np.ndarray | None, truth: np.ndarray, subject: np.ndarra
     nb = y[idx] - y[idx].mean(axis=1, keepdims=True)
     _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
     along = np.einsum("ni,ni->n", warped[has] - t, vecs[:, :, 1])
-    scale = float(np.sqrt(((y - y.mean(axis=0)) ** 2).sum(axis=1).mean()))
-    return float(np.sqrt(np.mean(along * along))) / scale
+    return float(np.sqrt(np.mean(along * along))) / normalise(y)[1].scale  # as gt_error
 
 
 def pose_diagnosis(warped: np.ndarray, truth: np.ndarray) -> str:
