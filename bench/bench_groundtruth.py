@@ -38,6 +38,8 @@ Families (collections with exact ground truth):
 - ``glyph-other``: five other characters (書水心東龍) rendered from the Noto CJK fonts
   when this machine has them (sans regular, serif bold), their edge pixels chained as the
   永 glyphs' (root 0, the first seed only): glyph sets no default was tuned on.
+  ``--characters`` and ``--fonts`` run other ones (bench/RESULTS.md 7.28: twelve simpler
+  characters in the two other Noto fonts).
 
 "far" subjects are those more than half the family's chain length away from the root
 along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
@@ -45,7 +47,8 @@ a glyph chain for root 0. For the mid-chain root the distance is counted along t
 generation tree (same chain: |step - 3|; other chains: 3 + step).
 
     .venv/bin/python bench/bench_groundtruth.py [--quick] [--seeds 2] [--designs ID,...]
-        [--trials 3] [--json PATH]
+        [--trials 3] [--characters 書水心東龍] [--fonts sans-regular,serif-bold]
+        [--json PATH]
 """
 
 from __future__ import annotations
@@ -251,9 +254,16 @@ def outline_cases(kind: str, seeds: list[int],
 #: rendered from when this machine has them (Debian's fonts-noto-cjk, which .ci/run
 #: installs).
 OTHER_CHARACTERS = "書水心東龍"
+_NOTO = Path("/usr/share/fonts/opentype/noto")
 OTHER_FONTS = {
-    "sans-regular": Path("/usr/share/fonts/opentype/noto/NotoSansCJK-Regular.ttc"),
-    "serif-bold": Path("/usr/share/fonts/opentype/noto/NotoSerifCJK-Bold.ttc"),
+    "sans-regular": _NOTO / "NotoSansCJK-Regular.ttc",
+    "serif-bold": _NOTO / "NotoSerifCJK-Bold.ttc",
+}
+#: Every font ``--fonts`` can name (the two above are the family's default).
+CJK_FONTS = {
+    **OTHER_FONTS,
+    "sans-bold": _NOTO / "NotoSansCJK-Bold.ttc",
+    "serif-regular": _NOTO / "NotoSerifCJK-Regular.ttc",
 }
 
 
@@ -269,13 +279,14 @@ def _glyph_edges(char: str, font: Path) -> np.ndarray:
     return points_from_image(img, mode="edges")
 
 
-def other_glyph_cases(seeds: list[int]) -> list[Case]:
-    """``glyph-other``: the characters of :data:`OTHER_CHARACTERS` in the fonts of
-    :data:`OTHER_FONTS` found here, their edges chained as the 永 glyphs' (root 0):
-    glyph sets no default was tuned on."""
+def other_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
+                      fonts: dict[str, Path] | None = None) -> list[Case]:
+    """``glyph-other``: the `characters` (default :data:`OTHER_CHARACTERS`) in the `fonts`
+    (default :data:`OTHER_FONTS`) found here, their edges chained as the 永 glyphs' (root
+    0): glyph sets no default was tuned on."""
     cases = []
-    for char in OTHER_CHARACTERS:
-        for font_name, font in OTHER_FONTS.items():
+    for char in characters:
+        for font_name, font in (OTHER_FONTS if fonts is None else fonts).items():
             if not font.exists():
                 continue
             dense = _glyph_edges(char, font)
@@ -663,8 +674,18 @@ def main() -> None:
                     "as method 'variant' and print it beside the default tree")
     ap.add_argument("--data", type=Path, default=None,
                     help=f"the shared data directory (default {DATA})")
+    ap.add_argument("--characters", default=OTHER_CHARACTERS,
+                    help=f"the glyph-other family's characters (default {OTHER_CHARACTERS})")
+    ap.add_argument("--fonts", default=",".join(OTHER_FONTS),
+                    help="the glyph-other family's fonts, comma-separated, of "
+                    f"{', '.join(CJK_FONTS)} (default {','.join(OTHER_FONTS)})")
     ap.add_argument("--json", type=Path, default=None, help="dump every per-subject number")
     args = ap.parse_args()
+    fonts = [f.strip() for f in args.fonts.split(",") if f.strip()]
+    unknown = [f for f in fonts if f not in CJK_FONTS]
+    if unknown or not fonts or not args.characters:
+        ap.error(f"--fonts takes names of {', '.join(CJK_FONTS)} and --characters at least "
+                 f"one character; got --fonts {args.fonts!r} --characters {args.characters!r}")
     seeds = list(range(1 if args.quick else args.seeds))
     trials = list(range(1 if args.quick else args.trials))
     mid_root = not args.quick
@@ -702,10 +723,11 @@ def main() -> None:
             elif DATA.is_dir() and kind in ("mpeg7", "outline"):
                 print(f"NOTE: no {kind} shapes under {DATA}: skipping that family")
     if not args.quick or (args.only and "glyph-other" in args.only):
-        others = other_glyph_cases(seeds[:1])
+        others = other_glyph_cases(seeds[:1], args.characters,
+                                   {f: CJK_FONTS[f] for f in fonts})
         if not others:
-            print("NOTE: none of the CJK fonts of OTHER_FONTS is installed: skipping the "
-                  "glyph-other family")
+            print(f"NOTE: none of the CJK fonts {', '.join(fonts)} is installed: skipping "
+                  "the glyph-other family")
         cases += others
     if args.only:
         cases = [c for c in cases if c.kind in args.only]
