@@ -537,12 +537,18 @@ def summary(cases: list[Case], reports: list[dict[str, Any]],
                                      st["tree/plain"] <= 0.85, f2(st["tree/plain"]).strip()))
         if kind != "ALL":
             worst_t_all, worst_d_all = max(worst_t_all, worst_t), max(worst_d_all, worst_d)
-    far_runs = [(c.label, c.root, r["far"]["tree/plain"]) for c, r in zip(cases, reports,
-                strict=True) if c.kind.startswith("yong") and r["far"]["n"]]
-    far_over = [x for x in far_runs if not x[2] <= 0.6]
-    if far_runs:
-        verdicts.append(("every 永 run: tree* <= 0.6x plain on its far half", not far_over,
-                         f"{len(far_runs) - len(far_over)} of {len(far_runs)} runs"))
+    # the glyph chains' target holds run by run: the 永 sets it was set on, and the glyph
+    # sets no rule was measured on (glyph-other; bench/RESULTS.md 7.28)
+    far_over: list[tuple[str, int, float]] = []
+    for name, is_kind in (("永", lambda k: k.startswith("yong")),
+                          ("other-glyph", lambda k: k == "glyph-other")):
+        far_runs = [(c.label, c.root, r["far"]["tree/plain"]) for c, r in
+                    zip(cases, reports, strict=True) if is_kind(c.kind) and r["far"]["n"]]
+        over = [x for x in far_runs if not x[2] <= 0.6]
+        far_over += over
+        if far_runs:
+            verdicts.append((f"every {name} run: tree* <= 0.6x plain on its far half",
+                             not over, f"{len(far_runs) - len(over)} of {len(far_runs)} runs"))
     verdicts.append(("every run: tree* <= 1.05x plain", worst_t_all <= 1.05,
                      f"worst {worst_t_all:.2f}"))
     verdicts.append(("every run: direct <= 1.05x plain", worst_d_all <= 1.05,
