@@ -86,6 +86,9 @@ def _subject_from_outcome(
     chain = parent.chain.extended(out.steps, coll.norms[s], s)
     layer = parent.layer + 1
     confidence = min(parent.confidence, out.quality.confidence)
+    # the dynamic tree's edges: whether the edge was made symmetric, and why not
+    symmetric = ({"symmetric_edge": out.symmetric, "symmetric_edge_reason": out.symmetric_reason}
+                 if out.symmetric or out.symmetric_reason else {})
     res = SubjectResult(
         index=s,
         name=coll.names[s],
@@ -101,7 +104,7 @@ def _subject_from_outcome(
         confidence=confidence,
         leaf=leaf,
         quality={**out.quality.to_dict(), "pose": out.pose, "pose_angle": out.pose_angle,
-                 "pose_errors": dict(out.pose_errors)},
+                 "pose_errors": dict(out.pose_errors), **symmetric},
     )
     return res, _Node(q=out.warped, chain=chain, layer=layer, confidence=confidence,
                       joined=joined)

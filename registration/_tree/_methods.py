@@ -14,6 +14,7 @@ from .._executor import Executor
 from .._pose import PoseSpec
 from .._result import Attempt, CollectionResult, SubjectResult
 from .._similarity import ProgressCallback, Similarity
+from . import _tasks
 from ._collection import (
     _Collection,
     _ensure_frontier,
@@ -64,6 +65,14 @@ def build_dynamic_tree(
     **options: Unpack[TreeOptions],
 ) -> CollectionResult:
     """Register the root model to every shape through a dynamic tree (Du et al. 2016).
+
+    Each edge of the tree is CPD's registration of the member's warped model onto the
+    subject, made symmetric when both shapes have at least 150 points: moved halfway to
+    where the subject, registered back onto that model, puts its points (CPD's slides
+    along the outline fall differently the two ways round, so part of each cancels; the
+    subject's ``quality["symmetric_edge"]`` says whether it was, and
+    ``quality["symmetric_edge_reason"]`` why not). Direct CPD and the static tree keep the
+    paper's one-way CPD.
 
     Parameters
     ----------
@@ -151,7 +160,8 @@ def build_dynamic_tree(
                 )[:max_candidates]
                 for _, m in cands:
                     tried.add((m, s))
-                    tasks.append(run.task(sim, m, s, nodes[m].layer + 1, nodes[m].q))
+                    tasks.append(run.task(sim, m, s, nodes[m].layer + 1, nodes[m].q,
+                                          _tasks.SYMMETRIC_LINKS))
             if tasks or not bridge():
                 break
         if not tasks:
@@ -210,11 +220,15 @@ def build_dynamic_tree(
             """Subject `s` registered from its consensus partner (run once polished)."""
             m = consensus_partner(sim.D[:, s], results, nodes, s, root, len(coll.normed[s]))
             if m == root:
-                return known[s] if known is not None else run.task(sim, root, s, 2,
-                                                                   coll.normed[root])
+                # the partner's registration is an edge of the tree's own kind: direct
+                # CPD's (compare_direct) serves only when the edges are one-way too
+                if known is not None and not _tasks.SYMMETRIC_LINKS:
+                    return known[s]
+                return run.task(sim, root, s, 2, coll.normed[root], _tasks.SYMMETRIC_LINKS)
             r = results[m]
             assert r.warped is not None and r.layer is not None
-            return run.task(sim, m, s, r.layer + 1, coll.norms[m].apply(r.warped))
+            return run.task(sim, m, s, r.layer + 1, coll.norms[m].apply(r.warped),
+                            _tasks.SYMMETRIC_LINKS)
 
         _polish_subjects(coll, results, cpd, executor, progress, partner=partner)
     return run.finish(
@@ -363,13 +377,14 @@ class _Run:
                                   self.progress)
 
     def task(self, sim: Similarity, member: int, subject: int, layer: int,
-             q: np.ndarray) -> _RegTask:
-        """The registration of the model as warped onto `member` (`q`) to `subject`."""
+             q: np.ndarray, symmetric: bool = False) -> _RegTask:
+        """The registration of the model as warped onto `member` (`q`) to `subject`
+        (made symmetric when `symmetric`: the dynamic tree's edges)."""
         return _RegTask(
             subject=subject, member=member, layer=layer,
             similarity=float(sim.D[member, subject]), q=q, y=self.coll.normed[subject],
             starts=_starts(sim, member, subject), cpd=self.cpd, prealign=self.prealign,
-            pose=self.pose, spacing2=self.coll.spacing2[subject],
+            pose=self.pose, spacing2=self.coll.spacing2[subject], symmetric=symmetric,
         )
 
     def direct_outcomes(self, sim: Similarity) -> dict[int, _RegOutcome]:

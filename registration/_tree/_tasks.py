@@ -11,11 +11,13 @@ from typing import Any, ParamSpec, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from .._cpd import CPDOptions, cpd_nonrigid
+from .._cpd import CPDOptions, cpd_nonrigid, interpolating_field
+from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._icp import affine_icp
-from .._pointmap import PointTransform
+from .._inverse import invert_points
+from .._pointmap import PointTransform, composed_with_jacobian
 from .._pose import PoseSpec, angle_between, rotation_angle
 from .._quality import RegistrationQuality, measure_quality
 from .._similarity import ProgressCallback, Similarity
@@ -37,6 +39,29 @@ T = TypeVar("T")
 POSE_DISTINCT_DEG = 20.0
 POSE_D_RATIO = 0.6
 POSE_MARGIN = 0.5
+
+#: The dynamic tree's edges are symmetric (see `_symmetric_link`): CPD's registration of
+#: the member's model onto the subject is moved halfway to where the subject registered
+#: back onto the model puts its points. One CPD's slide along a stroke runs partly the
+#: other way when the roles are swapped, so halfway part of it cancels, and a chain of
+#: such edges gathers less of it (bench/RESULTS.md 7.28). Baselines (direct CPD, the
+#: static tree) keep the paper's one-way edges.
+SYMMETRIC_LINKS = True
+#: A model point's preimage under the backward registration counts as found to this
+#: accuracy (normalised coordinates: the shapes' RMS radius is 1).
+SYMMETRIC_LINK_INVERSE_TOL = 1e-6
+#: At least this share of the model's points must have a preimage for the edge to be
+#: made symmetric (a stroke's tip the subject lacks has none).
+SYMMETRIC_LINK_MIN_REACHED = 0.9
+#: Ridge added to the kernel matrices of the fields fitted through points (kernel 1 at
+#: distance 0).
+SYMMETRIC_LINK_RIDGE = 1e-3
+#: Shapes of fewer points keep one-way edges: at 100 points the backward registration's
+#: own sampling noise is as large as the slide it would cancel (the Chui & Rangarajan
+#: series, 98-105 points: 0.42 -> 0.50 and 0.25 -> 0.29 of plain CPD with symmetric
+#: edges; 200-400 point families gained; bench/RESULTS.md 7.28), as for the polish's
+#: consensus partner (`_polish.CONSENSUS_PARTNER_MIN_POINTS`).
+SYMMETRIC_LINK_MIN_POINTS = 150
 
 
 @dataclass(frozen=True)
@@ -62,6 +87,7 @@ class _RegTask:
     prealign: bool
     pose: PoseSpec
     spacing2: float  # the subject's squared point spacing h^2
+    symmetric: bool = False  # make the edge symmetric (`_symmetric_link`): the dynamic tree's
 
 
 @dataclass(frozen=True)
@@ -80,6 +106,63 @@ class _RegOutcome:
     pose_angle: float  # rotation of the pre-alignment, degrees (0 without one)
     pose_errors: dict[str, float]  # e reached from every start tried
     quality: RegistrationQuality
+    # the registration was made symmetric (`_symmetric_link`); why not, when it was asked
+    # for and not made
+    symmetric: bool = False
+    symmetric_reason: str = ""
+
+
+@dataclass(frozen=True)
+class _Then:
+    """`first`, then `second`: the map whose Jacobians the quality checks read for a
+    symmetric edge (CPD's warp, then the step halfway to the backward registration)."""
+
+    first: PointTransform
+    second: PointTransform
+
+    def apply(self, points: Any) -> FloatArray:
+        return self.second.apply(self.first.apply(points))
+
+    def apply_with_jacobian(self, points: Any) -> tuple[FloatArray, FloatArray]:
+        out = composed_with_jacobian((self.first, self.second), points)
+        if out is None:
+            raise TypeError("both steps must give their Jacobians")
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"type": "composed", "steps": [self.first.to_dict(), self.second.to_dict()]}
+
+
+def _symmetric_link(q: FloatArray, y: FloatArray, warped: FloatArray, o: CPDOptions
+                    ) -> tuple[PointTransform, FloatArray] | str:
+    """The registration `warped` (CPD's of the model `q` onto the subject `y`) moved
+    halfway to where the subject registered back onto the model puts the model's points:
+    the step and the points it moves `warped` to, or why there is none.
+
+    The backward registration is CPD with the edge's options and the roles swapped,
+    started from the inverse of the forward one (CPD's field through `warped` back onto
+    `q` moves the subject into the model's frame); its field is inverted at every model
+    point (:func:`~registration._inverse.invert_points`, to
+    :data:`SYMMETRIC_LINK_INVERSE_TOL`, seeded at `warped`). The step is CPD's field (the
+    edge's kernel width) through the points with a preimage onto halfway; the rest move
+    with their neighbours. As the polish's symmetric finish does for the whole chain
+    (`_polish._halfway_back`), here for each edge: on the glyph chains of
+    bench/bench_groundtruth.py, edges along the true generation path err 0.88-0.95x as
+    much one generation step from the root and further (bench/RESULTS.md 7.28)."""
+    back = interpolating_field(warped, q, o.beta, SYMMETRIC_LINK_RIDGE)
+    res = cpd_nonrigid(y, q, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter, tol=o.tol,
+                       dtype=o.dtype, init_warped=back.apply(y))
+    z, residual = invert_points(res.transform, q, seeds=warped)
+    reached = np.isfinite(z).all(axis=1) & (residual <= SYMMETRIC_LINK_INVERSE_TOL)
+    if not reached.mean() >= SYMMETRIC_LINK_MIN_REACHED:
+        return (f"the backward registration has no inverse at more than "
+                f"{1 - SYMMETRIC_LINK_MIN_REACHED:.0%} of the model's points")
+    targets = 0.5 * (warped[reached] + z[reached])
+    step = interpolating_field(warped[reached], targets, o.beta, SYMMETRIC_LINK_RIDGE)
+    moved, jac = step.apply_with_jacobian(warped)
+    if not float(np.linalg.det(jac).min()) > 0:
+        return "the step halfway folds"
+    return step, np.asarray(moved, dtype=np.float64)
 
 
 def _register_from(task: _RegTask, start: _Start | None) -> _RegOutcome:
@@ -98,8 +181,27 @@ def _register_from(task: _RegTask, start: _Start | None) -> _RegOutcome:
                        dtype=o.dtype)
     steps.append(res.transform)
     warped = np.asarray(res.warped, dtype=np.float64)
+    warp: PointTransform = res.transform
+    symmetric, why_not = False, ""
+    if task.symmetric and min(len(q), len(task.y)) < SYMMETRIC_LINK_MIN_POINTS:
+        why_not = f"fewer than {SYMMETRIC_LINK_MIN_POINTS} points"
+    elif task.symmetric:
+        found = _symmetric_link(q, task.y, warped, o)
+        if isinstance(found, str):
+            why_not = found
+        else:
+            step, warped = found
+            steps.append(step)
+            warp = _Then(res.transform, step)
+            symmetric = True
     e = registration_error(warped, task.y)
-    quality = measure_quality(q, warped, task.y, res.transform, e, task.spacing2)
+    quality = measure_quality(q, warped, task.y, warp, e, task.spacing2)
+    correspondence, probability = res.correspondence, res.probability
+    if symmetric:
+        # each moved point's most probable subject point, at the variance the polish
+        # starts from (as its symmetric finish reads them)
+        correspondence, probability = _posterior_max(
+            warped, task.y, max(0.5 * e, task.spacing2), o.w)
     label = "plain" if start is None else start.label
     return _RegOutcome(
         subject=task.subject,
@@ -109,13 +211,15 @@ def _register_from(task: _RegTask, start: _Start | None) -> _RegOutcome:
         warped=warped,
         error=e,
         min_jacobian=quality.min_jacobian,
-        correspondence=np.asarray(res.correspondence, dtype=np.intp),
-        probability=np.asarray(res.probability, dtype=np.float64),
+        correspondence=np.asarray(correspondence, dtype=np.intp),
+        probability=np.asarray(probability, dtype=np.float64),
         steps=tuple(steps),
         pose=label,
         pose_angle=angle,
         pose_errors={label: e},
         quality=quality,
+        symmetric=symmetric,
+        symmetric_reason=why_not,
     )
 
 

@@ -117,6 +117,11 @@ class Quality(_Open):
     pose: str | None = None
     pose_angle: float | None = None
     pose_errors: dict[str, float | None] | None = None
+    symmetric_edge: bool | None = Field(
+        default=None, description="The dynamic tree's edge was made symmetric: CPD's "
+        "registration moved halfway to the subject's registered back onto the member.")
+    symmetric_edge_reason: str | None = Field(
+        default=None, description="Why the edge was not made symmetric (empty when it was).")
 
 
 class NormalizationDoc(_Open):
