@@ -67,7 +67,8 @@ def build_dynamic_tree(
     """Register the root model to every shape through a dynamic tree (Du et al. 2016).
 
     Each edge of the tree is CPD's registration of the member's warped model onto the
-    subject, made symmetric when both shapes have at least 150 points: moved halfway to
+    subject, made symmetric when both shapes have at least 150 points and the tree is
+    decided at the stored resolution (no shape above `working_points`): moved halfway to
     where the subject, registered back onto that model, puts its points (CPD's slides
     along the outline fall differently the two ways round, so part of each cancels; the
     subject's ``quality["symmetric_edge"]`` says whether it was, and
@@ -161,7 +162,7 @@ def build_dynamic_tree(
                 for _, m in cands:
                     tried.add((m, s))
                     tasks.append(run.task(sim, m, s, nodes[m].layer + 1, nodes[m].q,
-                                          _tasks.SYMMETRIC_LINKS))
+                                          run.symmetric_edges))
             if tasks or not bridge():
                 break
         if not tasks:
@@ -206,11 +207,12 @@ def build_dynamic_tree(
     # that has a child, leaves included, so every chain stays the one it was built on
     if waiting:
         _attach_leaves(coll, sim, nodes, results, waiting, rejected, tried, allowed, cpd,
-                       prealign, spec, max_candidates, executor, progress)
+                       prealign, spec, max_candidates, executor, progress,
+                       run.symmetric_edges)
     if refine:
         _refine_parents(coll, sim, sim_rule, nodes, results, tried, tau_err, floors,
                         error_threshold is not None, fold_check, cpd, prealign, spec, executor,
-                        progress)
+                        progress, run.symmetric_edges)
     known: dict[int, _RegOutcome] | None = None
     if polish:
         if options["compare_direct"]:  # run once, for the comparison and the consensus
@@ -222,13 +224,13 @@ def build_dynamic_tree(
             if m == root:
                 # the partner's registration is an edge of the tree's own kind: direct
                 # CPD's (compare_direct) serves only when the edges are one-way too
-                if known is not None and not _tasks.SYMMETRIC_LINKS:
+                if known is not None and not run.symmetric_edges:
                     return known[s]
-                return run.task(sim, root, s, 2, coll.normed[root], _tasks.SYMMETRIC_LINKS)
+                return run.task(sim, root, s, 2, coll.normed[root], run.symmetric_edges)
             r = results[m]
             assert r.warped is not None and r.layer is not None
             return run.task(sim, m, s, r.layer + 1, coll.norms[m].apply(r.warped),
-                            _tasks.SYMMETRIC_LINKS)
+                            run.symmetric_edges)
 
         _polish_subjects(coll, results, cpd, executor, progress, partner=partner)
     return run.finish(
@@ -368,6 +370,15 @@ class _Run:
                    working_points=working_points, cpd=cpd if cpd is not None else CPDOptions(),
                    prealign=options["prealign"], pose=spec, executor=options["executor"],
                    progress=options["progress"])
+
+    @property
+    def symmetric_edges(self) -> bool:
+        """Whether the dynamic tree's edges are made symmetric: when the collection is
+        registered at its stored resolution (no coarse stage). At the stored resolution
+        every edge of a coarse tree is registered again by a short one-way CPD, which keeps
+        little of the gain (1200-point 永 chains: edges 0.0296 -> 0.0292, skeletons 0.0413
+        -> 0.0411) for 1.4x the HTTP job's time (bench/RESULTS.md 7.29)."""
+        return _tasks.SYMMETRIC_LINKS and self.coll is self.full
 
     def tree_start(self, options: TreeOptions) -> _TreeStart:
         """What a tree method starts from (ValueError on an invalid threshold)."""

@@ -12,7 +12,6 @@ from .._executor import Executor
 from .._pose import PoseSpec
 from .._result import Attempt, SubjectResult
 from .._similarity import ProgressCallback, Similarity
-from . import _tasks
 from ._collection import _Collection, _Node, _subject_from_outcome
 from ._rules import REFINE_TIE, _error_limit, _rejection, _SimilarityRule
 from ._tasks import CPDOptions, _RegOutcome, _RegTask, _run_tasks, _starts
@@ -34,6 +33,7 @@ def _refine_parents(
     pose: PoseSpec,
     executor: Executor | None,
     progress: ProgressCallback | None,
+    symmetric: bool = False,
 ) -> None:
     """Move childless subjects to a later, more similar member when that registers better.
 
@@ -63,7 +63,7 @@ def _refine_parents(
         tasks.append(_RegTask(
             subject=s, member=m, layer=nodes[m].layer + 1, similarity=d, q=nodes[m].q,
             y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd, prealign=prealign,
-            pose=pose, spacing2=coll.spacing2[s], symmetric=_tasks.SYMMETRIC_LINKS,
+            pose=pose, spacing2=coll.spacing2[s], symmetric=symmetric,
         ))
     moved: set[int] = set()
     for out in sorted(_run_tasks(tasks, executor, progress, "refine"), key=lambda o: o.subject):
@@ -114,6 +114,7 @@ def _attach_leaves(
     max_candidates: int,
     executor: Executor | None,
     progress: ProgressCallback | None,
+    symmetric: bool = False,
 ) -> None:
     """Give every subject the tree could not take its best registration, as a leaf.
 
@@ -145,7 +146,7 @@ def _attach_leaves(
                 subject=s, member=m, layer=nodes[m].layer + 1, similarity=float(sim.D[m, s]),
                 q=nodes[m].q, y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
                 prealign=prealign, pose=pose, spacing2=coll.spacing2[s],
-                symmetric=_tasks.SYMMETRIC_LINKS,
+                symmetric=symmetric,
             ))
     for out in _run_tasks(tasks, executor, progress, "leaves"):
         rejected.setdefault(out.subject, []).append(out)

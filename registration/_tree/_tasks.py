@@ -44,7 +44,8 @@ POSE_MARGIN = 0.5
 #: the member's model onto the subject is moved halfway to where the subject registered
 #: back onto the model puts its points. One CPD's slide along a stroke runs partly the
 #: other way when the roles are swapped, so halfway part of it cancels, and a chain of
-#: such edges gathers less of it (bench/RESULTS.md 7.28). Baselines (direct CPD, the
+#: such edges gathers less of it (bench/RESULTS.md 7.29). Only where the tree is decided
+#: at the stored resolution (`_methods._Run.symmetric_edges`); baselines (direct CPD, the
 #: static tree) keep the paper's one-way edges.
 SYMMETRIC_LINKS = True
 #: A model point's preimage under the backward registration counts as found to this
@@ -59,7 +60,7 @@ SYMMETRIC_LINK_RIDGE = 1e-3
 #: Shapes of fewer points keep one-way edges: at 100 points the backward registration's
 #: own sampling noise is as large as the slide it would cancel (the Chui & Rangarajan
 #: series, 98-105 points: 0.42 -> 0.50 and 0.25 -> 0.29 of plain CPD with symmetric
-#: edges; 200-400 point families gained; bench/RESULTS.md 7.28), as for the polish's
+#: edges; 200-400 point families gained; bench/RESULTS.md 7.29), as for the polish's
 #: consensus partner (`_polish.CONSENSUS_PARTNER_MIN_POINTS`).
 SYMMETRIC_LINK_MIN_POINTS = 150
 
@@ -148,7 +149,7 @@ def _symmetric_link(q: FloatArray, y: FloatArray, warped: FloatArray, o: CPDOpti
     with their neighbours. As the polish's symmetric finish does for the whole chain
     (`_polish._halfway_back`), here for each edge: on the glyph chains of
     bench/bench_groundtruth.py, edges along the true generation path err 0.88-0.95x as
-    much one generation step from the root and further (bench/RESULTS.md 7.28)."""
+    much one generation step from the root and further (bench/RESULTS.md 7.29)."""
     back = interpolating_field(warped, q, o.beta, SYMMETRIC_LINK_RIDGE)
     res = cpd_nonrigid(y, q, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter, tol=o.tol,
                        dtype=o.dtype, init_warped=back.apply(y))

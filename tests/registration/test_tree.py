@@ -1082,7 +1082,7 @@ def test_the_symmetric_finish_lowers_the_ground_truth_error_of_chained_shapes(se
     edges with the symmetric finish puts the root's points nearer their true images than
     without it (pooled over the subjects: 0.0951 against 0.1007 at seed 0, 0.0974 against
     0.1015 at seed 1). With symmetric edges (the default) most of the finish's gain is
-    already in the chain (bench/RESULTS.md 7.28)."""
+    already in the chain (bench/RESULTS.md 7.29)."""
     from registration._tree import _polish as polish_module
     from registration._tree import _tasks as tasks_module
 
@@ -1203,3 +1203,14 @@ def test_an_edge_is_left_one_way_when_the_backward_registration_cannot_be_invert
     lost = task(True)
     assert not lost.symmetric and "no inverse at more than 10%" in lost.symmetric_reason
     np.testing.assert_allclose(lost.warped, one_way.warped)
+
+
+def test_a_coarse_to_fine_trees_edges_stay_one_way():
+    """Decided on subsampled shapes, the dynamic tree's edges stay CPD's one-way
+    registrations: at the stored resolution each is registered again one-way."""
+    fam = chained_family(n_chains=2, chain_length=3, n_points=220, step=0.3, seed=1)
+    res = build_dynamic_tree(fam.shapes, 0, cpd=FAST_CPD, polish=False, working_points=180,
+                             executor=SerialExecutor())
+    assert all(s.attached for s in res.subjects)
+    for s in res.subjects:
+        assert s.quality is not None and "symmetric_edge" not in s.quality
