@@ -995,16 +995,17 @@ def test_the_symmetric_finish_moves_halfway_to_the_subject_registered_back(famil
 
 def test_a_symmetric_finish_without_an_inverse_is_not_kept(family, monkeypatch):
     from registration._tree import _polish as polish_module
+    from registration._tree import _symmetric as symmetric_module
 
     task, best = _finish_setting(family)
-    monkeypatch.setattr(polish_module, "invert_points",
+    monkeypatch.setattr(symmetric_module, "invert_points",
                         lambda transform, points, **kw: (np.asarray(points),
                                                           np.full(len(points), 1e-3)))
     out, info = polish_module._symmetric(task, best)
     assert out is best
     assert info == {"kept": False, "error_before": best.error,
                     "reason": "the backward registration has no inverse at more than 10% "
-                              "of the root points", "without_inverse": len(task.model)}
+                              "of the model's points", "without_inverse": len(task.model)}
 
 
 def test_root_points_without_an_inverse_move_with_their_neighbours(family, monkeypatch):
@@ -1014,9 +1015,10 @@ def test_root_points_without_an_inverse_move_with_their_neighbours(family, monke
     what those few points fit, and the record says how many they were. Below nine in
     ten of the root's points the step is not taken."""
     from registration._tree import _polish as polish_module
+    from registration._tree import _symmetric as symmetric_module
 
     task, best = _finish_setting(family)
-    real = polish_module.invert_points
+    real = symmetric_module.invert_points
     n = len(task.model)
     # a run of neighbouring points along the outline, as a stroke's tip would be
     lost = np.arange(n // 3, n // 3 + max(1, n // 20))
@@ -1029,11 +1031,11 @@ def test_root_points_without_an_inverse_move_with_their_neighbours(family, monke
 
     everywhere = polish_module._halfway_back(task.model, task.y, best.warped, best.error,
                                              task.spacing2, task.cpd)
-    assert isinstance(everywhere, polish_module._Halfway) and everywhere.without_inverse == 0
-    monkeypatch.setattr(polish_module, "invert_points", losing)
+    assert isinstance(everywhere, symmetric_module.Halfway) and everywhere.without_inverse == 0
+    monkeypatch.setattr(symmetric_module, "invert_points", losing)
     found = polish_module._halfway_back(task.model, task.y, best.warped, best.error,
                                         task.spacing2, task.cpd)
-    assert isinstance(found, polish_module._Halfway) and found.without_inverse == len(lost)
+    assert isinstance(found, symmetric_module.Halfway) and found.without_inverse == len(lost)
     assert np.isfinite(found.moved).all()
     size = np.sqrt(np.mean(np.sum(task.model ** 2, axis=1)))
     others = np.setdiff1d(np.arange(n), lost)
@@ -1053,7 +1055,7 @@ def test_root_points_without_an_inverse_move_with_their_neighbours(family, monke
         asked.append((transform, len(points)))
         return real(transform, points, **kw)
 
-    monkeypatch.setattr(polish_module, "invert_points", counting)
+    monkeypatch.setattr(symmetric_module, "invert_points", counting)
     part = polish_module._halfway_back(task.model, task.y, best.warped, best.error,
                                        task.spacing2, task.cpd, control)
     assert not isinstance(part, str)
@@ -1065,7 +1067,7 @@ def test_root_points_without_an_inverse_move_with_their_neighbours(family, monke
                                     control)
     assert full is not None
     np.testing.assert_allclose(part.moved, full[1], atol=1e-9 * size)
-    monkeypatch.setattr(polish_module, "invert_points", losing)
+    monkeypatch.setattr(symmetric_module, "invert_points", losing)
     # more than a tenth without: no step
     many = np.arange(0, n, 5)
     lost = np.union1d(lost, many)
@@ -1110,23 +1112,29 @@ def test_a_finish_whose_field_folds_is_not_kept(family, monkeypatch):
                     "reason": "its field from the root folds"}
 
 
-@pytest.mark.parametrize("seed", [0, 2])
-def test_symmetric_edges_lower_the_ground_truth_error_of_chained_shapes(seed, monkeypatch):
+def test_symmetric_edges_lower_the_ground_truth_error_of_chained_shapes(monkeypatch):
     """Measured, not assumed: on chained families of 200 points (ground truth known) the
     dynamic tree whose edges are symmetric puts the root's points nearer their true images
-    than the same tree of one-way edges (pooled over the subjects: 0.0800 against 0.0862
-    at seed 0, 0.1024 against 0.1097 at seed 2)."""
+    than the same tree of one-way edges, pooled over the subjects of four families: 0.890x
+    with the compiled passes' AVX-512 clone, 0.866x with numpy's (one family alone is not
+    enough: which parent a one-way tree takes turns on rounding, and seed 0's one-way tree
+    errs 0.0813 with the one, 0.0859 with the other, where the symmetric tree errs 0.081
+    with both)."""
     from registration._tree import _tasks as tasks_module
 
-    fam = chained_family(n_chains=2, chain_length=5, n_points=200, step=0.3, seed=seed)
+    families = [chained_family(n_chains=2, chain_length=5, n_points=200, step=0.3, seed=seed)
+                for seed in range(4)]
 
     def gt() -> float:
-        res = build_dynamic_tree(fam.shapes, 0, executor=SerialExecutor())
-        return float(np.mean([_gt_error(fam, s) for s in res.subjects if s.attached]))
+        errors = []
+        for fam in families:
+            res = build_dynamic_tree(fam.shapes, 0, executor=SerialExecutor())
+            errors += [_gt_error(fam, s) for s in res.subjects if s.attached]
+        return float(np.mean(errors))
 
     symmetric = gt()
     monkeypatch.setattr(tasks_module, "SYMMETRIC_LINKS", False)
-    assert symmetric < 0.97 * gt()
+    assert symmetric < 0.95 * gt()
 
 
 def test_the_dynamic_trees_edges_are_symmetric_and_the_baselines_one_way(family):
@@ -1175,6 +1183,7 @@ def test_an_edge_is_left_one_way_when_the_backward_registration_cannot_be_invert
     the edge stays CPD's one-way registration, and why is recorded."""
     from registration._points import mean_spacing2, normalise
     from registration._pose import PoseSpec
+    from registration._tree import _symmetric as symmetric_module
     from registration._tree import _tasks as tasks_module
 
     fam = chained_family(n_chains=1, chain_length=2, n_points=200, step=0.2, seed=3)
@@ -1192,14 +1201,14 @@ def test_an_edge_is_left_one_way_when_the_backward_registration_cannot_be_invert
     assert not one_way.symmetric and one_way.symmetric_reason == ""
     assert symmetric.symmetric and len(symmetric.steps) == len(one_way.steps) + 1
     assert symmetric.min_jacobian > 0
-    real = tasks_module.invert_points
+    real = symmetric_module.invert_points
 
     def lose_a_fifth(transform, points, **kw):
         z, residual = real(transform, points, **kw)
         z[::5] = np.nan
         return z, residual
 
-    monkeypatch.setattr(tasks_module, "invert_points", lose_a_fifth)
+    monkeypatch.setattr(symmetric_module, "invert_points", lose_a_fifth)
     lost = task(True)
     assert not lost.symmetric and "no inverse at more than 10%" in lost.symmetric_reason
     np.testing.assert_allclose(lost.warped, one_way.warped)
