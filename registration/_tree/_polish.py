@@ -61,7 +61,7 @@ import math
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, replace
 from functools import cached_property
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -70,7 +70,6 @@ from .._cpd import CPDOptions, CPDResult, cpd_nonrigid, interpolating_field
 from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor, owned_executor
-from .._inverse import invert_points
 from .._pointmap import PointTransform, jacobian_determinants
 from .._points import sampling_irregularity
 from .._quality import RegistrationQuality, measure_quality
@@ -79,6 +78,7 @@ from .._similarity import ProgressCallback
 from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
 from ._rules import MIN_CONFIDENCE
+from ._symmetric import Halfway, NoHalfway, halfway_back
 from ._tasks import _register_task, _RegOutcome, _RegTask
 
 FloatArray = NDArray[np.float64]
@@ -185,23 +185,6 @@ FINISH_LMBDA_FACTOR = 2.0
 #: the consensus (:data:`CONSENSUS_MAX_E_RATIO`), it undoes part of a slide the subject's
 #: own sampling let the chain settle into, at an e that may be a little higher.
 FINISH_MAX_E_RATIO = 1.1
-#: The symmetric finish (see `_symmetric`) takes the root model's points halfway to where
-#: the subject registered back onto the root puts them: a root point's preimage under that
-#: backward field counts as found to this accuracy (normalised coordinates: the shapes'
-#: RMS radius is 1).
-SYMMETRIC_INVERSE_TOL = 1e-6
-#: The symmetric finish moves halfway the root points the backward field has an inverse
-#: at, and the others with CPD's field through those (see `_halfway_back`), when they are
-#: at least this fraction of the root's points. Across real glyph designs the backward
-#: field cannot reach the tips of strokes the subject lacks or has shorter (the root's
-#: point has no preimage near the subject's outline); on the 73 永 edge glyphs 0.8 % of
-#: the root's points in the median inversion and at most 4.5 % (144 inversions), where
-#: asking for every point rejected the symmetric finish for 39 of 72 subjects (65 of 72 at
-#: the stored resolution). Nine in ten keeps a backward registration that has lost more of
-#: the root from leading the step.
-SYMMETRIC_MIN_REACHED = 0.9
-
-
 @dataclass(frozen=True)
 class _PolishTask:
     subject: int
@@ -242,24 +225,6 @@ class _Stages:
     quality: tuple[RegistrationQuality, ...]  # of each stage kept
     correspondence: IntArray
     probability: FloatArray
-
-
-class _Halfway(NamedTuple):
-    """The symmetric finish's step (:func:`_halfway_back`), the points it moves the model
-    to, and how many of the points it was to be fitted through the backward field had no
-    inverse at (moved by the step's field through the others)."""
-
-    step: PointTransform
-    moved: FloatArray
-    without_inverse: int
-
-
-class _NoHalfway(NamedTuple):
-    """Why :func:`_halfway_back` has no step, and how many of the points it was to be
-    fitted through the backward field had no inverse at."""
-
-    reason: str
-    without_inverse: int
 
 
 @dataclass(frozen=True)
@@ -643,48 +608,30 @@ def _finished(task: _PolishTask, best: _Stages, step: PointTransform, moved: Flo
 def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: float,
                   spacing2: float, o: CPDOptions, control: IntArray | None = None,
                   subject_control: IntArray | None = None, max_iter: int | None = None
-                  ) -> _Halfway | _NoHalfway:
+                  ) -> Halfway | NoHalfway:
     """The registration `warped` (the root `model`'s points on the subject `y`) moved
-    halfway to where the subject registered back onto the root puts the model's points:
-    the step (:func:`_step_onto`), the points it moves `warped` to and how many had no
-    inverse, or why there is no step.
+    halfway to where the subject registered back onto the root puts the model's points
+    (:func:`~registration._tree._symmetric.halfway_back`, the step at
+    :data:`CONSENSUS_KERNEL_FACTOR` of the tree's beta, as :func:`_step_onto`'s).
 
     The backward registration is the finish's CPD (:func:`_cpd_from_root`) with the roles
-    swapped, the subject onto the root, started from the inverse of `warped` (CPD's field
-    through `warped` back onto the model, at the tree's beta, moves the subject into the
-    root's frame) from a variance of half `error` (at least `spacing2`); its field is
-    then inverted (:func:`~registration._inverse.invert_points`, to
-    :data:`SYMMETRIC_INVERSE_TOL`) at every model point the step is fitted through (the
-    `control` points; every point without them: at the stored resolution, 500 preimages
-    instead of 1200-2200). The step is CPD's field through the points it succeeds at, onto
-    halfway; the points without an inverse (a stroke's tip the subject lacks: nothing of
-    the subject is registered onto it) move by that field with their neighbours. At least
-    :data:`SYMMETRIC_MIN_REACHED` of the points must have one. `control`: the model
-    indices the fields through the model's points are fitted with; `subject_control`: the
-    subject indices the backward CPD's field is fitted with (None: every point);
-    `max_iter`: the backward CPD's EM iterations at most (None: the tree's)."""
-    # the model points the fields through the model's points are fitted with, and so the
-    # only ones whose preimage the step needs
-    at = np.arange(len(model)) if control is None else np.asarray(control, dtype=np.intp)
-    back = interpolating_field(warped[at], model[at], o.beta, CONSENSUS_RIDGE)
-    res = cpd_nonrigid(y, model, beta=FINISH_BETA_FACTOR * o.beta,
-                       lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w,
-                       max_iter=o.max_iter if max_iter is None else min(o.max_iter, max_iter),
-                       tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * error, spacing2),
-                       init_warped=back.apply(y), accelerate=True, control=subject_control)
-    z, residual = invert_points(res.transform, model[at], seeds=warped[at])
-    reached = np.isfinite(z).all(axis=1) & (residual <= SYMMETRIC_INVERSE_TOL)
-    without = int(np.count_nonzero(~reached))
-    if not reached.mean() >= SYMMETRIC_MIN_REACHED:
-        return _NoHalfway(f"the backward registration has no inverse at more than "
-                          f"{1 - SYMMETRIC_MIN_REACHED:.0%} of the root points", without)
-    through = at[reached]  # and of those, through the points it reaches
-    targets = warped.copy()
-    targets[through] = 0.5 * (warped[through] + z[reached])
-    found = _step_onto(warped, targets, o, through)
-    if found is None:
-        return _NoHalfway("the step halfway folds", without)
-    return _Halfway(*found, without_inverse=without)
+    swapped, the subject onto the root, from a variance of half `error` (at least
+    `spacing2`). `control`: the model indices the fields through the model's points are
+    fitted with, and so the only ones inverted (every point without them: at the stored
+    resolution, 500 preimages instead of 1200-2200); `subject_control`: the subject
+    indices the backward CPD's field is fitted with (None: every point); `max_iter`: the
+    backward CPD's EM iterations at most (None: the tree's)."""
+    def backward(start: FloatArray) -> PointTransform:
+        return cpd_nonrigid(y, model, beta=FINISH_BETA_FACTOR * o.beta,
+                            lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w,
+                            max_iter=o.max_iter if max_iter is None else min(o.max_iter,
+                                                                            max_iter),
+                            tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * error, spacing2),
+                            init_warped=start, accelerate=True,
+                            control=subject_control).transform
+
+    return halfway_back(model, y, warped, o.beta, backward, CONSENSUS_KERNEL_FACTOR * o.beta,
+                        control)
 
 
 def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
@@ -692,27 +639,24 @@ def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any
     left them and where the subject registered back onto the root puts them
     (:func:`_halfway_back`).
 
-    CPD is not symmetric: the model's points are the mixture's centroids, pulled onto the
-    subject's points, so a registration slides the model along the subject's outline
-    wherever the two samplings let the centroids settle at a lower e; the other way round
-    the subject's points are the centroids, and the slides fall elsewhere. Halfway between
-    the two, part of each slide cancels. Both registrations start from the polished one,
-    in its basin: halfway between a forward and a backward CPD started from the two shapes'
-    own poses loses on large differences, where the backward one alone can go wrong
-    (bench/RESULTS.md 7.15). The subject's transform extends its chain by CPD's field
-    through the polished points to the halfway ones (:func:`_step_onto`), and the
-    correspondences are each moved point's most probable subject point at the variance
-    the polish starts from (half the e reached, at least the subject's h^2). Kept when the
-    inverse is found at :data:`SYMMETRIC_MIN_REACHED` of the root points at least (how
-    many lacked one: ``without_inverse``), the step does not fold, its confidence is at
-    least :data:`MIN_CONFIDENCE` and its e is at most :data:`FINISH_MAX_E_RATIO` times the
-    polished e (the finish's rule); else `best` is returned as it is. Ground truth:
-    bench/RESULTS.md 7.16."""
+    CPD is not symmetric, so halfway between the two registrations part of each one's
+    slide along the outline cancels (see `registration._tree._symmetric`). Both
+    registrations start from the polished one, in its basin: halfway between a forward and
+    a backward CPD started from the two shapes' own poses loses on large differences,
+    where the backward one alone can go wrong (bench/RESULTS.md 7.15). The subject's
+    transform extends its chain by CPD's field through the polished points to the halfway
+    ones, and the correspondences are each moved point's most probable subject point at
+    the variance the polish starts from (half the e reached, at least the subject's h^2).
+    Kept when the inverse is found at :data:`~registration._tree._symmetric.MIN_REACHED`
+    of the root points at least (how many lacked one: ``without_inverse``), the step does
+    not fold, its confidence is at least :data:`MIN_CONFIDENCE` and its e is at most
+    :data:`FINISH_MAX_E_RATIO` times the polished e (the finish's rule); else `best` is
+    returned as it is. Ground truth: bench/RESULTS.md 7.16."""
     o = task.cpd
     info: dict[str, Any] = {"kept": False, "error_before": best.error}
     found = _halfway_back(task.model, task.y, best.warped, best.error, task.spacing2, o)
     info["without_inverse"] = found.without_inverse
-    if isinstance(found, _NoHalfway):
+    if isinstance(found, NoHalfway):
         info["reason"] = found.reason
         return best, info
     step, moved = found.step, found.moved

@@ -55,9 +55,9 @@ from ._polish import (
     FINISH_MAX_E_RATIO,
     _cpd_from_root,
     _halfway_back,
-    _NoHalfway,
     _step_onto,
 )
+from ._symmetric import NoHalfway
 from ._tasks import _map_tasks
 
 FloatArray = NDArray[np.float64]
@@ -333,7 +333,7 @@ def _stored_symmetric(model: FloatArray, warped: FloatArray, error: float, y: Fl
     fitted with as many of the subject's points as the model's `control` points (its
     farthest-point subsample), the fields through the model's points with those (so the
     backward field is inverted at those 500 root points alone). Kept, as the finish, when
-    the inverse is found (at :data:`~registration._tree._polish.SYMMETRIC_MIN_REACHED` of
+    the inverse is found (at :data:`~registration._tree._symmetric.MIN_REACHED` of
     those points at least), the step does not fold and e is at most
     :data:`~registration._tree._polish.FINISH_MAX_E_RATIO` times `error`; without it the
     stored forward finish slides the points back (on six 1200-point 永 edge chains the
@@ -345,7 +345,7 @@ def _stored_symmetric(model: FloatArray, warped: FloatArray, error: float, y: Fl
     found = _halfway_back(model, y, warped, error, spacing2, o, control, subject_control,
                           STORED_SYMMETRIC_MAX_ITER)
     info["without_inverse"] = found.without_inverse
-    if isinstance(found, _NoHalfway):
+    if isinstance(found, NoHalfway):
         info["reason"] = found.reason
         return _StoredFinish(info)
     step, moved = found.step, found.moved

@@ -11,17 +11,17 @@ from typing import Any, ParamSpec, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from .._cpd import CPDOptions, cpd_nonrigid, interpolating_field
+from .._cpd import CPDOptions, cpd_nonrigid
 from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._icp import affine_icp
-from .._inverse import invert_points
 from .._pointmap import PointTransform, composed_with_jacobian
 from .._pose import PoseSpec, angle_between, rotation_angle
 from .._quality import RegistrationQuality, measure_quality
 from .._similarity import ProgressCallback, Similarity
 from .._transform import AffineTransform
+from ._symmetric import NoHalfway, halfway_back
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -48,15 +48,6 @@ POSE_MARGIN = 0.5
 #: at the stored resolution (`_methods._Run.symmetric_edges`); baselines (direct CPD, the
 #: static tree) keep the paper's one-way edges.
 SYMMETRIC_LINKS = True
-#: A model point's preimage under the backward registration counts as found to this
-#: accuracy (normalised coordinates: the shapes' RMS radius is 1).
-SYMMETRIC_LINK_INVERSE_TOL = 1e-6
-#: At least this share of the model's points must have a preimage for the edge to be
-#: made symmetric (a stroke's tip the subject lacks has none).
-SYMMETRIC_LINK_MIN_REACHED = 0.9
-#: Ridge added to the kernel matrices of the fields fitted through points (kernel 1 at
-#: distance 0).
-SYMMETRIC_LINK_RIDGE = 1e-3
 #: Shapes of fewer points keep one-way edges: at 100 points the backward registration's
 #: own sampling noise is as large as the slide it would cancel (the Chui & Rangarajan
 #: series, 98-105 points: 0.42 -> 0.50 and 0.25 -> 0.29 of plain CPD with symmetric
@@ -137,33 +128,24 @@ class _Then:
 def _symmetric_link(q: FloatArray, y: FloatArray, warped: FloatArray, o: CPDOptions
                     ) -> tuple[PointTransform, FloatArray] | str:
     """The registration `warped` (CPD's of the model `q` onto the subject `y`) moved
-    halfway to where the subject registered back onto the model puts the model's points:
-    the step and the points it moves `warped` to, or why there is none.
+    halfway to where the subject registered back onto the model puts the model's points
+    (:func:`~registration._tree._symmetric.halfway_back`): the step and the points it
+    moves `warped` to, or why there is none.
 
-    The backward registration is CPD with the edge's options and the roles swapped,
-    started from the inverse of the forward one (CPD's field through `warped` back onto
-    `q` moves the subject into the model's frame); its field is inverted at every model
-    point (:func:`~registration._inverse.invert_points`, to
-    :data:`SYMMETRIC_LINK_INVERSE_TOL`, seeded at `warped`). The step is CPD's field (the
-    edge's kernel width) through the points with a preimage onto halfway; the rest move
-    with their neighbours. As the polish's symmetric finish does for the whole chain
-    (`_polish._halfway_back`), here for each edge: on the glyph chains of
-    bench/bench_groundtruth.py, edges along the true generation path err 0.88-0.95x as
-    much one generation step from the root and further (bench/RESULTS.md 7.29)."""
-    back = interpolating_field(warped, q, o.beta, SYMMETRIC_LINK_RIDGE)
-    res = cpd_nonrigid(y, q, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter, tol=o.tol,
-                       dtype=o.dtype, init_warped=back.apply(y))
-    z, residual = invert_points(res.transform, q, seeds=warped)
-    reached = np.isfinite(z).all(axis=1) & (residual <= SYMMETRIC_LINK_INVERSE_TOL)
-    if not reached.mean() >= SYMMETRIC_LINK_MIN_REACHED:
-        return (f"the backward registration has no inverse at more than "
-                f"{1 - SYMMETRIC_LINK_MIN_REACHED:.0%} of the model's points")
-    targets = 0.5 * (warped[reached] + z[reached])
-    step = interpolating_field(warped[reached], targets, o.beta, SYMMETRIC_LINK_RIDGE)
-    moved, jac = step.apply_with_jacobian(warped)
-    if not float(np.linalg.det(jac).min()) > 0:
-        return "the step halfway folds"
-    return step, np.asarray(moved, dtype=np.float64)
+    The backward registration is CPD with the edge's options and the roles swapped, and
+    the step is CPD's field at the edge's kernel width. As the polish's symmetric finish
+    does for the whole chain (`_polish._symmetric`), here for each edge: on the glyph
+    chains of bench/bench_groundtruth.py, edges along the true generation path err
+    0.88-0.95x as much one generation step from the root and further (bench/RESULTS.md
+    7.29)."""
+    def backward(start: FloatArray) -> PointTransform:
+        return cpd_nonrigid(y, q, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter,
+                            tol=o.tol, dtype=o.dtype, init_warped=start).transform
+
+    found = halfway_back(q, y, warped, o.beta, backward, o.beta)
+    if isinstance(found, NoHalfway):
+        return found.reason
+    return found.step, found.moved
 
 
 def _register_from(task: _RegTask, start: _Start | None) -> _RegOutcome:
