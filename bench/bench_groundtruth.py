@@ -40,6 +40,13 @@ Families (collections with exact ground truth):
   永 glyphs' (root 0, the first seed only): glyph sets no default was tuned on.
   ``--characters`` and ``--fonts`` run other ones (bench/RESULTS.md 7.28: twelve simpler
   characters in the two other Noto fonts).
+- ``dense-edge`` / ``dense-skel``: the same characters rendered twice as large, their edge
+  and skeleton pixels (3000-6000) chained at 1200 points a shape: above the default
+  working resolution, so the tree is decided on 400-point subsamples and registered again
+  at the stored resolution (the path of full-size uploads; bench/RESULTS.md 7.30). The 永
+  skeletons have only 490-801 pixels: at 400 points two shapes share half or more of
+  their points, and at 1200 every shape is all of them, which no real pair of instances
+  does.
 
 "far" subjects are those more than half the family's chain length away from the root
 along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
@@ -267,16 +274,27 @@ CJK_FONTS = {
 }
 
 
-def _glyph_edges(char: str, font: Path) -> np.ndarray:
-    """The Canny edge points of `char` rendered at 256 px (the library's image route, as
-    the 永 set's edges were made)."""
+#: Points a shape of the ``dense-edge`` / ``dense-skel`` families: above the library's
+#: default working resolution (400), so the tree is decided on subsamples and registered
+#: again at the stored resolution, as for full-size uploads.
+DENSE_POINTS = 1200
+#: The dense families' characters are rendered this many times larger than glyph-other's
+#: (512 px: 5000-6000 edge pixels and 3000-3300 skeleton pixels for 書), so that 1200 points
+#: are a sample of each deformed glyph and no two shapes share most of their points.
+DENSE_SCALE = 2
+
+
+def _glyph_points(char: str, font: Path, mode: str = "edges", scale: int = 1) -> np.ndarray:
+    """The edge (Canny) or skeleton pixels of `char` rendered at 256 x `scale` px (the
+    library's image route, as the 永 set's points were made)."""
     from PIL import Image, ImageDraw, ImageFont
 
     from registration.images import points_from_image
 
-    img = Image.new("L", (300, 300), 255)
-    ImageDraw.Draw(img).text((22, 0), char, font=ImageFont.truetype(str(font), 256), fill=0)
-    return points_from_image(img, mode="edges")
+    img = Image.new("L", (300 * scale, 300 * scale), 255)
+    ImageDraw.Draw(img).text((22 * scale, 0), char,
+                             font=ImageFont.truetype(str(font), 256 * scale), fill=0)
+    return points_from_image(img, mode=mode)
 
 
 def other_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
@@ -289,7 +307,7 @@ def other_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
         for font_name, font in (OTHER_FONTS if fonts is None else fonts).items():
             if not font.exists():
                 continue
-            dense = _glyph_edges(char, font)
+            dense = _glyph_points(char, font)
             for seed in seeds:
                 fam = deformation_chains(dense, seed=seed)
                 cases.append(Case(
@@ -298,6 +316,30 @@ def other_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
                     truth=fam.root_images(0), depth=fam.depth, distance=fam.depth,
                     far_from=max(fam.depth) // 2 + 1,
                 ))
+    return cases
+
+
+def dense_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
+                      fonts: dict[str, Path] | None = None) -> list[Case]:
+    """``dense-edge`` / ``dense-skel``: glyph-other's characters rendered at
+    :data:`DENSE_SCALE` times the size, their edge and skeleton pixels chained as the 永
+    glyphs' at :data:`DENSE_POINTS` points a shape (root 0): the library's coarse-to-fine
+    path, which every other family (at most 400 points a shape) leaves out."""
+    cases = []
+    for char in characters:
+        for font_name, font in (OTHER_FONTS if fonts is None else fonts).items():
+            if not font.exists():
+                continue
+            for mode, kind in (("edges", "dense-edge"), ("skeleton", "dense-skel")):
+                dense = _glyph_points(char, font, mode, DENSE_SCALE)
+                for seed in seeds:
+                    fam = deformation_chains(dense, n_points=DENSE_POINTS, seed=seed)
+                    cases.append(Case(
+                        kind=kind, label=f"{kind} {char} {font_name} seed {seed}",
+                        seed=seed, shapes=fam.shapes, names=fam.names, root=0,
+                        truth=fam.root_images(0), depth=fam.depth, distance=fam.depth,
+                        far_from=max(fam.depth) // 2 + 1,
+                    ))
     return cases
 
 
@@ -541,7 +583,8 @@ def summary(cases: list[Case], reports: list[dict[str, Any]],
     # sets no rule was measured on (glyph-other; bench/RESULTS.md 7.28)
     far_over: list[tuple[str, int, float]] = []
     for name, is_kind in (("永", lambda k: k.startswith("yong")),
-                          ("other-glyph", lambda k: k == "glyph-other")):
+                          ("other-glyph", lambda k: k == "glyph-other"),
+                          ("dense-glyph", lambda k: k.startswith("dense"))):
         far_runs = [(c.label, c.root, r["far"]["tree/plain"]) for c, r in
                     zip(cases, reports, strict=True) if is_kind(c.kind) and r["far"]["n"]]
         over = [x for x in far_runs if not x[2] <= 0.6]
@@ -674,16 +717,18 @@ def main() -> None:
                     help="Chui & Rangarajan trials per series (default 3)")
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
-                    "generated mpeg7 outline outline-random outline-arc glyph-other)")
+                    "generated mpeg7 outline outline-random outline-arc glyph-other dense-edge "
+                    "dense-skel)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
     ap.add_argument("--data", type=Path, default=None,
                     help=f"the shared data directory (default {DATA})")
     ap.add_argument("--characters", default=OTHER_CHARACTERS,
-                    help=f"the glyph-other family's characters (default {OTHER_CHARACTERS})")
+                    help="the glyph-other and dense families' characters (default "
+                    f"{OTHER_CHARACTERS})")
     ap.add_argument("--fonts", default=",".join(OTHER_FONTS),
-                    help="the glyph-other family's fonts, comma-separated, of "
+                    help="the glyph-other and dense families' fonts, comma-separated, of "
                     f"{', '.join(CJK_FONTS)} (default {','.join(OTHER_FONTS)})")
     ap.add_argument("--json", type=Path, default=None, help="dump every per-subject number")
     args = ap.parse_args()
@@ -735,6 +780,9 @@ def main() -> None:
             print(f"NOTE: none of the CJK fonts {', '.join(fonts)} is installed: skipping "
                   "the glyph-other family")
         cases += others
+    if not args.quick or (args.only and {"dense-edge", "dense-skel"} & set(args.only)):
+        cases += dense_glyph_cases(seeds[:1], args.characters,
+                                   {f: CJK_FONTS[f] for f in fonts})
     if args.only:
         cases = [c for c in cases if c.kind in args.only]
     print(f"{len(cases)} runs x 3 methods, default options (the library picks its executor); "
