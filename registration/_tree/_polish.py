@@ -78,7 +78,7 @@ from .._similarity import ProgressCallback
 from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
 from ._rules import MIN_CONFIDENCE
-from ._symmetric import Halfway, NoHalfway, halfway_back
+from ._symmetric import RIDGE, Halfway, NoHalfway, halfway_back
 from ._tasks import _register_task, _RegOutcome, _RegTask
 
 FloatArray = NDArray[np.float64]
@@ -126,8 +126,10 @@ POLISH_CONSENSUS_MIN_LAYER = 3
 #: cannot follow the two registrations' difference along a stroke) and the ground truth of
 #: the exact halfway start (bench/RESULTS.md 0.0000000).
 CONSENSUS_KERNEL_FACTOR = 0.25
-#: Ridge added to the kernel matrix of that step (its kernel is 1 at distance 0).
-CONSENSUS_RIDGE = 1e-3
+#: Ridge added to the kernel matrix of that step (its kernel is 1 at distance 0): the one
+#: the symmetric step's fields take (`_symmetric.RIDGE`), since the finish's steps are
+#: fitted the same way.
+CONSENSUS_RIDGE = RIDGE
 #: The consensus is kept when its e is at most this multiple of the polished chain's. A
 #: chain's composed field has more freedom than one CPD's and slides along the subject's
 #: own sampling to a lower e (see the module doc), so the consensus, which undoes part of
