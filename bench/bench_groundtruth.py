@@ -140,6 +140,12 @@ def glyph_cases(kind: str, designs: list[str], seeds: list[int], mid_root: bool)
     cases = []
     for design in designs:
         dense = np.loadtxt(GLYPHS / "points" / f"{design}_{kind}.txt")
+        n = len(deformation_chains(dense, n_chains=1, chain_length=1).shapes[0])
+        if n > 0.5 * len(dense):
+            # a sample of most of the file's points: two shapes share most of theirs, which
+            # favours every method (bench/RESULTS.md 7.30; dense-edge / dense-skel do not)
+            print(f"NOTE: yong-{kind} {design}: {n} of its {len(dense)} points a shape, so "
+                  f"two shapes share {n / len(dense):.0%} of their points on average")
         for seed in seeds:
             fam = deformation_chains(dense, seed=seed)
             roots = [0]
