@@ -62,6 +62,7 @@ from registration._points import mean_spacing2 as _spacing2
 from registration._points import normalise, sampling_irregularity
 from registration._quality import measure_quality
 from registration._tree._rules import MIN_CONFIDENCE
+from registration._tree._symmetric import RIDGE
 
 CACHE = Path(__file__).resolve().parent / "out" / "polish_cache"
 CPD = CPDOptions()
@@ -166,7 +167,7 @@ def _library(start: Array, y: Array, h2: float, other: Array | None, opts: list[
                 pm.POLISH_BETA_FACTORS = factors
         weight = next((float(o[1:]) for o in opts if o.startswith("w")), 0.5)
         step = interpolating_field(chain.warped, chain.warped + weight * (polished - chain.warped),
-                                   pm.CONSENSUS_KERNEL_FACTOR * CPD.beta, pm.CONSENSUS_RIDGE)
+                                   pm.CONSENSUS_KERNEL_FACTOR * CPD.beta, RIDGE)
         half, jac = step.apply_with_jacobian(chain.warped)
         if not float(np.linalg.det(jac).min()) > 0:
             return chain.warped

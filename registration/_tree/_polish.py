@@ -66,7 +66,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._cpd import CPDOptions, CPDResult, cpd_nonrigid, interpolating_field
+from .._cpd import CPDOptions, CPDResult, cpd_nonrigid
 from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor, owned_executor
@@ -78,7 +78,7 @@ from .._similarity import ProgressCallback
 from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
 from ._rules import MIN_CONFIDENCE
-from ._symmetric import RIDGE, Halfway, NoHalfway, halfway_back
+from ._symmetric import Halfway, NoHalfway, fitted_step, halfway_back
 from ._tasks import _register_task, _RegOutcome, _RegTask
 
 FloatArray = NDArray[np.float64]
@@ -126,10 +126,6 @@ POLISH_CONSENSUS_MIN_LAYER = 3
 #: cannot follow the two registrations' difference along a stroke) and the ground truth of
 #: the exact halfway start (bench/RESULTS.md 0.0000000).
 CONSENSUS_KERNEL_FACTOR = 0.25
-#: Ridge added to the kernel matrix of that step (its kernel is 1 at distance 0): the one
-#: the symmetric step's fields take (`_symmetric.RIDGE`), since the finish's steps are
-#: fitted the same way.
-CONSENSUS_RIDGE = RIDGE
 #: The consensus is kept when its e is at most this multiple of the polished chain's. A
 #: chain's composed field has more freedom than one CPD's and slides along the subject's
 #: own sampling to a lower e (see the module doc), so the consensus, which undoes part of
@@ -489,17 +485,12 @@ def _edge_from_parent(task: _PolishTask
 def _step_onto(points: FloatArray, targets: FloatArray, o: CPDOptions,
                through: IntArray | None = None
                ) -> tuple[PointTransform, FloatArray] | None:
-    """CPD's field through `points` onto `targets` (:func:`~registration._cpd.
-    interpolating_field`, at :data:`CONSENSUS_KERNEL_FACTOR` of the tree's beta; fitted
-    through the `through` points alone when given) and where it puts every one of
-    `points`; None when it folds at any of them."""
-    fit = slice(None) if through is None else through
-    step = interpolating_field(points[fit], targets[fit], CONSENSUS_KERNEL_FACTOR * o.beta,
-                               CONSENSUS_RIDGE)
-    moved, jac = step.apply_with_jacobian(points)
-    if not float(np.linalg.det(jac).min()) > 0:
-        return None
-    return step, moved
+    """CPD's field through `points` onto `targets` (:func:`~registration._tree._symmetric.
+    fitted_step`, at :data:`CONSENSUS_KERNEL_FACTOR` of the tree's beta; fitted through the
+    `through` points alone when given) and where it puts every one of `points`; None when
+    it folds at any of them."""
+    return fitted_step(points, targets if through is None else targets[through],
+                       CONSENSUS_KERNEL_FACTOR * o.beta, through)
 
 
 def _polished_halfway(task: _PolishTask, points: FloatArray, other: FloatArray

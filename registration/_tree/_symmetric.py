@@ -60,6 +60,19 @@ class NoHalfway(NamedTuple):
     without_inverse: int
 
 
+def fitted_step(points: FloatArray, targets: FloatArray, beta: float,
+                through: IntArray | None = None) -> tuple[PointTransform, FloatArray] | None:
+    """CPD's field of kernel width `beta` (ridge :data:`RIDGE`) fitted through `points`
+    (the `through` ones alone, when given) onto `targets` (one per point fitted), and where
+    it puts every one of `points`; None when it folds at any of them."""
+    fit = points if through is None else points[through]
+    step = interpolating_field(fit, targets, beta, RIDGE)
+    moved, jac = step.apply_with_jacobian(points)
+    if not float(np.linalg.det(jac).min()) > 0:
+        return None
+    return step, np.asarray(moved, dtype=np.float64)
+
+
 def halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, beta: float,
                  backward: Callable[[FloatArray], PointTransform], step_beta: float,
                  control: IntArray | None = None) -> Halfway | NoHalfway:
@@ -89,9 +102,7 @@ def halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, beta: flo
         return NoHalfway(f"the backward registration has no inverse at more than "
                          f"{1 - MIN_REACHED:.0%} of the model's points", without)
     through = at[reached]
-    targets = 0.5 * (warped[through] + z[reached])
-    step = interpolating_field(warped[through], targets, step_beta, RIDGE)
-    moved, jac = step.apply_with_jacobian(warped)
-    if not float(np.linalg.det(jac).min()) > 0:
+    found = fitted_step(warped, 0.5 * (warped[through] + z[reached]), step_beta, through)
+    if found is None:
         return NoHalfway("the step halfway folds", without)
-    return Halfway(step, np.asarray(moved, dtype=np.float64), without)
+    return Halfway(*found, without)
