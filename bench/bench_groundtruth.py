@@ -140,14 +140,15 @@ def glyph_cases(kind: str, designs: list[str], seeds: list[int], mid_root: bool)
     cases = []
     for design in designs:
         dense = np.loadtxt(GLYPHS / "points" / f"{design}_{kind}.txt")
-        n = len(deformation_chains(dense, n_chains=1, chain_length=1).shapes[0])
-        if n > 0.5 * len(dense):
-            # a sample of most of the file's points: two shapes share most of theirs, which
-            # favours every method (bench/RESULTS.md 7.30; dense-edge / dense-skel do not)
-            print(f"NOTE: yong-{kind} {design}: {n} of its {len(dense)} points a shape, so "
-                  f"two shapes share {n / len(dense):.0%} of their points on average")
         for seed in seeds:
             fam = deformation_chains(dense, seed=seed)
+            n = len(fam.shapes[0])
+            if seed == seeds[0] and n > 0.5 * len(dense):
+                # a sample of most of the file's points: two shapes share most of theirs,
+                # which favours every method (bench/RESULTS.md 7.30; dense-edge /
+                # dense-skel do not)
+                print(f"NOTE: yong-{kind} {design}: {n} of its {len(dense)} points a shape, "
+                      f"so two shapes share {n / len(dense):.0%} of their points on average")
             roots = [0]
             if mid_root:
                 roots.append(next(k for k in range(len(fam.shapes))
@@ -303,26 +304,38 @@ def _glyph_points(char: str, font: Path, mode: str = "edges", scale: int = 1) ->
     return points_from_image(img, mode=mode)
 
 
-def other_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
-                      fonts: dict[str, Path] | None = None) -> list[Case]:
-    """``glyph-other``: the `characters` (default :data:`OTHER_CHARACTERS`) in the `fonts`
-    (default :data:`OTHER_FONTS`) found here, their edges chained as the 永 glyphs' (root
-    0): glyph sets no default was tuned on."""
+def _rendered_glyph_cases(seeds: list[int], characters: str, fonts: dict[str, Path] | None,
+                          families: tuple[tuple[str, str, int, int | None], ...]
+                          ) -> list[Case]:
+    """The `characters` in the `fonts` (default :data:`OTHER_FONTS`) found here, chained as
+    the 永 glyphs' (root 0), once per family of `families`: (kind, image mode, render scale,
+    points a shape; None: :func:`~registration.synthetic.deformation_chains`' default)."""
     cases = []
     for char in characters:
         for font_name, font in (OTHER_FONTS if fonts is None else fonts).items():
             if not font.exists():
                 continue
-            dense = _glyph_points(char, font)
-            for seed in seeds:
-                fam = deformation_chains(dense, seed=seed)
-                cases.append(Case(
-                    kind="glyph-other", label=f"glyph-other {char} {font_name} seed {seed}",
-                    seed=seed, shapes=fam.shapes, names=fam.names, root=0,
-                    truth=fam.root_images(0), depth=fam.depth, distance=fam.depth,
-                    far_from=max(fam.depth) // 2 + 1,
-                ))
+            for kind, mode, scale, n_points in families:
+                dense = _glyph_points(char, font, mode, scale)
+                points = {} if n_points is None else {"n_points": n_points}
+                for seed in seeds:
+                    fam = deformation_chains(dense, seed=seed, **points)
+                    cases.append(Case(
+                        kind=kind, label=f"{kind} {char} {font_name} seed {seed}",
+                        seed=seed, shapes=fam.shapes, names=fam.names, root=0,
+                        truth=fam.root_images(0), depth=fam.depth, distance=fam.depth,
+                        far_from=max(fam.depth) // 2 + 1,
+                    ))
     return cases
+
+
+def other_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
+                      fonts: dict[str, Path] | None = None) -> list[Case]:
+    """``glyph-other``: the `characters` (default :data:`OTHER_CHARACTERS`) in the `fonts`
+    (default :data:`OTHER_FONTS`) found here, their edges chained as the 永 glyphs' (root
+    0): glyph sets no default was tuned on."""
+    return _rendered_glyph_cases(seeds, characters, fonts,
+                                 (("glyph-other", "edges", 1, None),))
 
 
 def dense_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
@@ -331,22 +344,9 @@ def dense_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
     :data:`DENSE_SCALE` times the size, their edge and skeleton pixels chained as the 永
     glyphs' at :data:`DENSE_POINTS` points a shape (root 0): the library's coarse-to-fine
     path, which every other family (at most 400 points a shape) leaves out."""
-    cases = []
-    for char in characters:
-        for font_name, font in (OTHER_FONTS if fonts is None else fonts).items():
-            if not font.exists():
-                continue
-            for mode, kind in (("edges", "dense-edge"), ("skeleton", "dense-skel")):
-                dense = _glyph_points(char, font, mode, DENSE_SCALE)
-                for seed in seeds:
-                    fam = deformation_chains(dense, n_points=DENSE_POINTS, seed=seed)
-                    cases.append(Case(
-                        kind=kind, label=f"{kind} {char} {font_name} seed {seed}",
-                        seed=seed, shapes=fam.shapes, names=fam.names, root=0,
-                        truth=fam.root_images(0), depth=fam.depth, distance=fam.depth,
-                        far_from=max(fam.depth) // 2 + 1,
-                    ))
-    return cases
+    return _rendered_glyph_cases(seeds, characters, fonts,
+                                 (("dense-edge", "edges", DENSE_SCALE, DENSE_POINTS),
+                                  ("dense-skel", "skeleton", DENSE_SCALE, DENSE_POINTS)))
 
 
 def generated_cases(seeds: list[int]) -> list[Case]:
