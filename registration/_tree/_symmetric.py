@@ -1,6 +1,7 @@
 """Halfway to the registration back: the step the dynamic tree's symmetric edges
 (`_tasks._symmetric_link`) and the polish's symmetric finish (`_polish._symmetric`, and
-again at the stored resolution) share.
+again at the stored resolution) share, and the fold-checked field through points
+(:func:`fitted_step`) it and the polish's other steps (`_polish._step_onto`) are fitted with.
 
 CPD is not symmetric: the model's points are the mixture's centroids, pulled onto the
 subject's points, so a registration slides the model along the subject's outline wherever
