@@ -119,14 +119,12 @@ class SubjectResult:
         ``reason``). When the decisions were taken at a working resolution
         (``working_points``), also ``working_error`` (the e decided on),
         ``stored_min_jacobian`` (the fold check at the stored resolution) and, for the
-        dynamic tree's subjects, ``stored_finish`` and ``stored_symmetric``: the finish
-        from the root model and the symmetric finish run again on the stored points
-        (``kept``, ``reason``, ``error_before``, ``error`` once a step was found; the
-        symmetric finish, at either resolution, also ``without_inverse``: of the root
-        points its step is fitted through, every point or at the stored resolution the
-        500 control points, how many the subject's registration back onto the root has
-        no inverse at, also when that ruled the step out; those points move with their
-        neighbours).
+        dynamic tree's subjects, ``stored_polish``: the polish run again on the stored
+        points (as ``polish``, without the consensus; present when it kept a step). The
+        symmetric finish records ``without_inverse``: of the root points its step is
+        fitted through (every point, or at the stored resolution the 500 control points),
+        how many the subject's registration back onto the root has no inverse at, also
+        when that ruled the step out; those points move with their neighbours.
     """
 
     index: int

@@ -7,11 +7,11 @@ similarity stages (``similarity``, ``similarity layer 3``, ...), registrations f
 others. A tree job runs, in order: ``similarity``; the tree's layers (``similarity layer
 N``, ``layer N`` for N = 2, 3, ...); ``similarity leaves``, ``leaves``; ``refine``; when it
 compares, ``similarity direct``, ``direct`` (a static tree: after the tree's stages, as it
-has no polish); ``polish``; and when it decides at a
-working resolution below its shapes' (coarse to fine), ``full resolution`` and ``direct
-full resolution``, which count subjects. Stages with nothing to do are not reported. A
-``grouping`` job runs ``fields`` (instances), ``alignment`` (alignments to the median field)
-and ``pairs`` (pairs aligned to each other).
+has no polish); ``polish``; and when it decides at a working resolution below its shapes'
+(coarse to fine), ``full resolution``, ``polish full resolution`` (the dynamic tree's) and
+``direct full resolution``, which count subjects. Stages with nothing to do are not
+reported. A ``grouping`` job runs ``fields`` (instances), ``alignment`` (alignments to the
+median field) and ``pairs`` (pairs aligned to each other).
 
 The overall percentage places the stage within the whole run with the share of time each
 phase took in measured runs (:data:`PHASE_WEIGHTS`, bench/bench_progress.py, bench/RESULTS.md
@@ -66,8 +66,13 @@ PHASE_WEIGHTS = {
     "polish": 0.54,
     # the tree's stored-resolution stage about doubled with its finish (session 21,
     # bench/RESULTS.md 8.4: 3.8-4.0 -> 6.7-7.8 s of the 73 glyphs' job over HTTP; 0.040),
-    # then grew 1.65x with the symmetric finish (session 23, 7.16: 6.3-7.7 -> 11.6 s)
-    "full resolution": 0.066,
+    # then grew 1.65x with the symmetric finish (session 23, 7.16: 6.3-7.7 -> 11.6 s;
+    # 0.066); without either (they moved into the polish below; session 36, 7.31) the
+    # stage took 1.25-1.26 s of that job where it had taken 4.0-4.2 s: 0.066 x 0.31
+    "full resolution": 0.020,
+    # the polish again at the stored resolution (session 36, bench/RESULTS.md 7.31):
+    # 11.2-11.4 s of the same job, 2.75x what the stage above took before: 0.066 x 2.75
+    "polish full resolution": 0.18,
     "direct full resolution": 0.011,
 }
 #: A grouping job's phases, as shares of its run: the mean wall-clock shares of nine runs
@@ -120,6 +125,7 @@ _PHASE_OF_STAGE = {
     "similarity direct": "direct",
     "direct": "direct",
     "full resolution": "full resolution",
+    "polish full resolution": "polish full resolution",
     "direct full resolution": "direct full resolution",
 }
 
@@ -201,7 +207,11 @@ def phase_weights(
         elif compare_direct:
             phases.append("direct")
         if coarse_to_fine:
-            phases += ["full resolution"] + (["direct full resolution"] if compare_direct else [])
+            phases += ["full resolution"]
+            if method == "dynamic_tree":
+                phases.append("polish full resolution")
+            if compare_direct:
+                phases.append("direct full resolution")
     ratio = DEFAULT_FINE_RATIO
     if max_points and working_points:
         ratio = max(1.0, max_points / working_points)

@@ -441,7 +441,7 @@ class _Run:
     ) -> CollectionResult:
         """The method's result (with direct CPD's when ``compare_direct``: from
         `direct_outcomes` when they were already run), at the stored resolution (its
-        subjects finished there when `finish`: see :func:`._resolution._stored_finish`)."""
+        subjects polished there when `finish`: see :func:`._resolution._polish_stored`)."""
         direct = self.direct(sim, compare_direct, direct_outcomes)
         result = _collection_result(
             method, self.coll, sim, subjects, direct, rule,
@@ -450,7 +450,7 @@ class _Run:
         )
         return at_stored_resolution(result, self.full, self.coll, self.cpd,
                                     self.working_points, self.executor, self.progress,
-                                    finish=finish)
+                                    polish=finish)
 
 
 @takes_options(MethodOptions, ignored=dict.fromkeys(

@@ -71,7 +71,7 @@ from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._pointmap import PointTransform, jacobian_determinants
-from .._points import sampling_irregularity
+from .._points import farthest_point_indices, sampling_irregularity
 from .._quality import RegistrationQuality, measure_quality
 from .._result import SubjectResult
 from .._similarity import ProgressCallback
@@ -205,6 +205,10 @@ class _PolishTask:
     # the subject's edge started with; the edge is registered again from there
     from_parent: FloatArray | None = None
     edge_affine: tuple[PointTransform, ...] = ()
+    # the model (root) indices every CPD's field through the model's points is fitted
+    # with, and the subject indices the backward CPD's is (None: every point)
+    control: IntArray | None = None
+    subject_control: IntArray | None = None
 
     @cached_property
     def irregularity(self) -> float:
@@ -291,7 +295,7 @@ def _model_frame(cur: FloatArray, y: FloatArray, model_irregularity: float,
 
 def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
             spacing2: float, model_irregularity: float,
-            irregularity: float | None = None) -> _Stages:
+            irregularity: float | None = None, control: IntArray | None = None) -> _Stages:
     """The polish's CPD stages (:data:`POLISH_BETA_FACTORS`) from `start`, each kept only
     when it passes the checks (see the module doc).
 
@@ -321,7 +325,7 @@ def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
         sigma2 = max(0.5 * e_cur, spacing2)
         res = cpd_nonrigid(cur, y, beta=factor * o.beta, lmbda=o.lmbda, w=o.w,
                            max_iter=o.max_iter, tol=o.tol, dtype=o.dtype, sigma2=sigma2,
-                           accelerate=True,
+                           accelerate=True, control=control,
                            model_frame=_model_frame(cur, y, model_irregularity, irregularity))
         warped = np.asarray(res.warped, dtype=np.float64)
         e = registration_error(warped, y)
@@ -396,7 +400,7 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
         info["reason"] = "the partner's registration folds"
         return None, info
     other = _stages(partner.warped, partner.error, task.y, task.cpd, task.spacing2,
-                    task.model_irregularity, task.irregularity)
+                    task.model_irregularity, task.irregularity, task.control)
     info["partner_polished_error"] = other.error
     moved = _polished_halfway(task, chain.warped, other.warped)
     if moved is None:
@@ -460,7 +464,7 @@ def _edge_from_parent(task: _PolishTask
         q = step.apply(q)
     o = task.cpd
     res = cpd_nonrigid(q, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter,
-                       tol=o.tol, dtype=o.dtype)
+                       tol=o.tol, dtype=o.dtype, control=task.control)
     warped = np.asarray(res.warped, dtype=np.float64)
     e = registration_error(warped, task.y)
     quality = measure_quality(q, warped, task.y, res.transform, e, task.spacing2)
@@ -497,12 +501,12 @@ def _polished_halfway(task: _PolishTask, points: FloatArray, other: FloatArray
                       ) -> tuple[PointTransform, _Stages] | None:
     """`points` moved halfway to `other` (:func:`_step_onto`) and the polish's stages from
     there: the step and the stages, or None when the step folds."""
-    moved = _step_onto(points, 0.5 * (points + other), task.cpd)
+    moved = _step_onto(points, 0.5 * (points + other), task.cpd, task.control)
     if moved is None:
         return None
     step, start = moved
     return step, _stages(start, registration_error(start, task.y), task.y, task.cpd,
-                         task.spacing2, task.model_irregularity, task.irregularity)
+                         task.spacing2, task.model_irregularity, task.irregularity, task.control)
 
 
 def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
@@ -559,11 +563,12 @@ def _finish(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
     o = task.cpd
     info: dict[str, Any] = {"kept": False, "error_before": best.error}
     res = _cpd_from_root(task.model, task.y, best.warped,
-                         max(0.5 * best.error, task.spacing2), o)
+                         max(0.5 * best.error, task.spacing2), o, task.control)
     if res is None:
         info["reason"] = "its field from the root folds"
         return best, info
-    found = _step_onto(best.warped, np.asarray(res.warped, dtype=np.float64), o)
+    found = _step_onto(best.warped, np.asarray(res.warped, dtype=np.float64), o,
+                       task.control)
     if found is None:
         info["reason"] = "the step to it folds"
         return best, info
@@ -647,7 +652,8 @@ def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any
     returned as it is. Ground truth: bench/RESULTS.md 7.16."""
     o = task.cpd
     info: dict[str, Any] = {"kept": False, "error_before": best.error}
-    found = _halfway_back(task.model, task.y, best.warped, best.error, task.spacing2, o)
+    found = _halfway_back(task.model, task.y, best.warped, best.error, task.spacing2, o,
+                          task.control, task.subject_control)
     info["without_inverse"] = found.without_inverse
     if isinstance(found, NoHalfway):
         info["reason"] = found.reason
@@ -655,6 +661,15 @@ def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any
     step, moved = found.step, found.moved
     return _finished(task, best, step, moved, info,
                      lambda e: _posterior_max(moved, task.y, max(0.5 * e, task.spacing2), o.w))
+
+
+def affine_lead(steps: tuple[PointTransform, ...]) -> int:
+    """How many of an edge's `steps` are its affine pre-alignment: the affine steps it
+    starts with, its last step (the edge's CPD) never counted."""
+    lead = 0
+    while lead < len(steps) - 1 and isinstance(steps[lead], AffineTransform):
+        lead += 1
+    return lead
 
 
 def _extends(chain: _Stages, more: _Stages) -> _Stages:
@@ -666,14 +681,14 @@ def _extends(chain: _Stages, more: _Stages) -> _Stages:
 
 def _polish_task(task: _PolishTask) -> _PolishOutcome:
     chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2,
-                    task.model_irregularity, task.irregularity)
+                    task.model_irregularity, task.irregularity, task.control)
     edge, edge_q, edge_info = None, None, None
     if task.from_parent is not None:
         edge, edge_q, edge_info = _edge_from_parent(task)
     if edge is not None and edge_info is not None:
         # the edge from the polished parent, polished (or alone, when no stage passes)
         other = _stages(edge.warped, edge.error, task.y, task.cpd, task.spacing2,
-                        task.model_irregularity, task.irregularity)
+                        task.model_irregularity, task.irregularity, task.control)
         if not other.steps:
             other = replace(edge, steps=(), quality=())
         # the two polished registrations of the edge err differently: halfway, polished
@@ -708,9 +723,13 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
 
 
 def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
-              parent: SubjectResult | None = None) -> SubjectResult:
+              parent: SubjectResult | None = None, record: str = "polish") -> SubjectResult:
     """`old` with the polished registration in place of the chained one; `parent`: the
-    parent as polished, when the subject's edge was registered again from it."""
+    parent as polished, when the subject's edge was registered again from it. `record`:
+    the key of ``quality`` that records it; any other than ``"polish"`` is the polish at
+    the stored resolution (:func:`registration._tree._resolution._polish_stored`), which
+    keeps `old`'s confidence, the one the decisions were taken with."""
+    label = "polished" if record == "polish" else "polished again at the stored resolution"
     assert old.transform is not None and old.confidence is not None
     assert out.steps or out.edge_steps
     if out.edge_steps:
@@ -732,7 +751,7 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
         "error_before": old.error, "steps": len(out.steps), **quality[-1].to_dict(),
         "confidence": min(q.confidence for q in quality),
         "min_jacobian": min(q.min_jacobian for q in quality)}
-    reason = (f"{old.reason}; polished: {len(out.quality)} more CPD from the chained model "
+    reason = (f"{old.reason}; {label}: {len(out.quality)} more CPD from the chained model "
               f"(e {old.error:.3g} -> {out.error:.3g})")
     if out.from_parent is not None:
         polish["from_parent"] = out.from_parent
@@ -740,7 +759,7 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
         how = ("halfway between its chain's registration and its edge's registered again "
                "from the parent as polished" if (out.from_parent or {}).get("halfway")
                else "its edge registered again from the parent as polished")
-        reason = (f"{old.reason}; polished: {how}, {len(out.quality)} more CPD "
+        reason = (f"{old.reason}; {label}: {how}, {len(out.quality)} more CPD "
                   f"(e {old.error:.3g} -> {out.error:.3g})")
     if out.consensus is not None:
         polish["consensus"] = out.consensus
@@ -750,7 +769,7 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
             m = out.consensus["partner"]
             other = ("the root's direct registration" if m == coll.root
                      else f"the registration from {coll.names[m]}")
-            reason = (f"{old.reason}; polished: the consensus of {start} and {other}, "
+            reason = (f"{old.reason}; {label}: the consensus of {start} and {other}, "
                       f"{len(out.quality)} more CPD (e {old.error:.3g} -> {out.error:.3g})")
     if out.finish is not None:
         polish["finish"] = out.finish
@@ -760,10 +779,12 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
         polish["symmetric"] = out.symmetric
         if out.symmetric["kept"]:
             reason += "; moved halfway to the subject's registration back onto the root"
+    if record != "polish":
+        confidence = old.confidence
     return replace(
         old, error=out.error, warped=coll.norms[out.subject].invert(out.warped),
         correspondence=out.correspondence, probability=out.probability, transform=chain,
-        confidence=confidence, quality={**(old.quality or {}), "polish": polish},
+        confidence=confidence, quality={**(old.quality or {}), record: polish},
         reason=reason,
     )
 
@@ -776,6 +797,10 @@ def _polish_subjects(
     progress: ProgressCallback | None,
     min_layer: int = POLISH_MIN_LAYER,
     partner: Callable[[int], _RegTask | _RegOutcome] | None = None,
+    stage: str = "polish",
+    record: str = "polish",
+    control: IntArray | None = None,
+    edge_affines: dict[int, tuple[PointTransform, ...]] | None = None,
 ) -> None:
     """Polish every attached subject at layer >= `min_layer` in place (see the module doc),
     a tree level at a time, parents first: a subject at layer >=
@@ -801,21 +826,21 @@ def _polish_subjects(
     done = 0
     with owned_executor(executor, 8 * len(todo)) as ex:
         if progress is not None:
-            progress("polish", 0, len(todo))
+            progress(stage, 0, len(todo))
         for level in sorted(levels):
             tasks = [_polish_subject_task(coll, results, built, moved, s, cpd, partner,
-                                          model_irregularity)
+                                          model_irregularity, control, edge_affines)
                      for s in levels[level]]
             for _, out in ex.map_unordered(_polish_task, tasks):
                 if out.steps or out.edge_steps:
                     old = results[out.subject]
                     parent = (results[old.parent] if out.edge_steps and old.parent is not None
                               else None)
-                    results[out.subject] = _polished(coll, old, out, parent)
+                    results[out.subject] = _polished(coll, old, out, parent, record)
                     moved.add(out.subject)
                 done += 1
                 if progress is not None:
-                    progress("polish", done, len(todo))
+                    progress(stage, done, len(todo))
 
 
 def _polish_subject_task(
@@ -827,6 +852,8 @@ def _polish_subject_task(
     cpd: CPDOptions,
     partner: Callable[[int], _RegTask | _RegOutcome] | None,
     model_irregularity: float,
+    control: IntArray | None = None,
+    edge_affines: dict[int, tuple[PointTransform, ...]] | None = None,
 ) -> _PolishTask:
     r = results[s]
     assert r.warped is not None and r.layer is not None and r.error is not None
@@ -837,15 +864,19 @@ def _polish_subject_task(
         parent = results[p]
         assert parent.warped is not None
         from_parent = coll.norms[p].apply(parent.warped)
-        edge = built[s].steps[len(built[p].steps):]  # the edge as the tree made it
-        lead = 0
-        while lead < len(edge) - 1 and isinstance(edge[lead], AffineTransform):
-            lead += 1
-        edge_affine = tuple(edge[:lead])
+        if edge_affines is not None:
+            edge_affine = edge_affines[s]
+        else:
+            edge = built[s].steps[len(built[p].steps):]  # the edge as the tree made it
+            edge_affine = tuple(edge[:affine_lead(edge)])
+    y = coll.normed[s]
+    subject_control = (None if control is None or len(y) <= len(control)
+                       else farthest_point_indices(y, len(control)))
     return _PolishTask(
         subject=s, start=coll.norms[s].apply(r.warped), error=r.error, y=coll.normed[s],
         cpd=cpd, spacing2=coll.spacing2[s], model_irregularity=model_irregularity,
         model=coll.normed[coll.root],
         partner=partner(s) if partner is not None and r.layer >= POLISH_CONSENSUS_MIN_LAYER
         else None,
-        from_parent=from_parent, edge_affine=edge_affine)
+        from_parent=from_parent, edge_affine=edge_affine, control=control,
+        subject_control=subject_control)

@@ -16,11 +16,12 @@ result's warped points, correspondences, transforms and e are then those of the 
 shapes; the attempts, thresholds, similarity, confidence and quality checks keep the
 working resolution's figures the decisions were taken on (``quality`` adds
 ``working_error``, the e decided on, and ``stored_min_jacobian``, the fold check of the
-edge's warp on the stored points). The dynamic tree's subjects are then finished at the
-stored resolution as the polish finished them at the working one (:func:`_stored_finish`
-and :func:`_stored_symmetric`, in the same task as the subject's CPD;
-``quality["stored_finish"]`` and ``quality["stored_symmetric"]``); their children start
-from the registration before those. The confidence is the one the decisions were taken
+edge's warp on the stored points). The dynamic tree's subjects are then polished again on
+the stored points, as the polish did at the working resolution but for the consensus
+(:func:`_polish_stored`, ``quality["stored_polish"]``): its stages from where the stored
+CPD left the model, the edge registered again from the parent as polished there, the finish
+from the root model and the symmetric finish; their children's stored CPDs start from the
+registrations before it. The confidence is the one the decisions were taken
 with (the quality checks measure any shape at most :data:`registration._quality.
 QUALITY_POINTS` points dense, the density their model was fitted at: before that, the 73
 永 edge glyphs measured at their stored 1167-2244 points scored correct registrations near
@@ -34,35 +35,30 @@ nothing here runs and the methods behave exactly as without a coarse stage.
 from __future__ import annotations
 
 import numbers
-from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .._cpd import CPDOptions, NonrigidTransform, cpd_nonrigid
-from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor
 from .._pointmap import PointTransform, composed_with_jacobian
 from .._points import farthest_point_indices, mean_spacing2
 from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
-from .._transform import AffineTransform, ChainTransform
+from .._transform import ChainTransform
 from ._collection import _Collection
-from ._polish import (
-    FINISH_MAX_E_RATIO,
-    _cpd_from_root,
-    _halfway_back,
-    _step_onto,
-)
-from ._symmetric import NoHalfway
+from ._polish import _polish_subjects, affine_lead
 from ._tasks import _map_tasks
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
+#: The progress stage of the polish at the stored resolution (see :func:`_polish_stored`);
+#: it counts subjects, as ``full resolution``.
+POLISH_STAGE = "polish full resolution"
 #: Points per shape the tree's decisions are taken at (None or 0: the stored resolution).
 #: At 400 points the 73 永 edge glyphs (1167-2244 points) build their tree in a fraction
 #: of the full-resolution time with e and correspondences close to a full-resolution run
@@ -91,13 +87,6 @@ FINE_SIGMA2_FACTOR = 3.0
 #: half 0.998x, every design within 2 %; 1000 and 700 points the same) in 0.63x the
 #: stage's CPU time. Never fewer than the working resolution's points.
 FINE_CONTROL_POINTS = 500
-#: EM iterations of the symmetric finish's backward CPD at the stored resolution (at most;
-#: see `_stored_symmetric`). Started from the finished registration, it took 70 on
-#: average (120 at the 90th percentile) on 40 of the 永 edge glyphs at full resolution;
-#: stopped at 20, as the stored CPD, six 1200-point 永 edge chains gave the same ground
-#: truth (0.0272 against 0.0271) and the 73 glyphs' stored-resolution stage over HTTP took
-#: 11.6 s instead of 13.4-14.0 (bench/RESULTS.md 7.16).
-STORED_SYMMETRIC_MAX_ITER = 20
 
 
 def check_working_points(value: Any) -> int | None:
@@ -138,31 +127,9 @@ class _FineTask:
     y: FloatArray  # the stored subject, normalised
     cpd: CPDOptions
     control: IntArray | None  # the model points the CPD is fitted with (None: all)
-    # the stored root model (normalised), when the subject is finished at the stored
-    # resolution after its CPD (see `_stored_finish`); None: not finished
-    model: FloatArray | None = None
-    spacing2: float = 0.0  # the stored subject's h^2 (the collection's), for the finish
     # whether the outcome's correspondences are read (not for an edge run only for the
     # subject's children to start from); each is a pass over every stored pair
     correspondences: bool = True
-
-
-@dataclass(frozen=True)
-class _StoredFinish:
-    """What the finish at the stored resolution found (see :func:`_stored_finish`): its
-    record, and when kept the step that extends the subject's chain and where it puts the
-    model."""
-
-    info: dict[str, Any]
-    step: PointTransform | None = None
-    warped: FloatArray | None = None
-    error: float | None = None
-    # when kept: the correspondences and their probabilities, read from `posterior` (in
-    # the task, only for the last finish kept: see `_last_kept`)
-    correspondence: IntArray | None = None
-    probability: FloatArray | None = None
-    posterior: Callable[[], tuple[NDArray[Any], NDArray[Any]]] | None = field(
-        default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -170,13 +137,11 @@ class _FineOutcome:
     subject: int
     warped: FloatArray
     error: float
-    # None when a stored finish kept supplies them or none is read (`correspondences`)
+    # None when none is read (`correspondences`)
     correspondence: IntArray | None
     probability: FloatArray | None
     step: NonrigidTransform
     min_jacobian: float  # of the edge's non-rigid warp (coarse then fine) on the stored model
-    finish: _StoredFinish | None = None  # when the task asked for it
-    symmetric: _StoredFinish | None = None  # the symmetric finish, with the finish
 
 
 def warm_start_sigma2(start: FloatArray, subject: FloatArray) -> float:
@@ -200,9 +165,7 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
     steps and the fine one, on the stored points as the edge's affine pre-alignment
     leaves them.
     """
-    lead = 0
-    while lead < len(task.steps) - 1 and isinstance(task.steps[lead], AffineTransform):
-        lead += 1
+    lead = affine_lead(task.steps)
     pre = task.q
     for step in task.steps[:lead]:
         pre = step.apply(pre)
@@ -220,137 +183,14 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
     # (one kernel product per step; taking the whole composition again cost twice that)
     jac = res.transform.apply_with_jacobian(start)[1] @ jac
     det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
-    error = registration_error(warped, task.y)
-    finish = symmetric = None
-    if task.model is not None:
-        finish = _stored_finish(task.model, warped, error, task.y, task.spacing2, o,
-                                task.control)
-        at, e_at = warped, error
-        if finish.warped is not None and finish.error is not None:  # the finish was kept
-            at, e_at = finish.warped, finish.error
-        symmetric = _stored_symmetric(task.model, at, e_at, task.y, task.spacing2, o,
-                                      task.control)
-        finish, symmetric = _last_kept(finish, symmetric)
-    kept = any(f is not None and f.step is not None for f in (finish, symmetric))
-    own = task.correspondences and not kept
-    return _FineOutcome(subject=task.subject, warped=warped, error=error,
+    own = task.correspondences
+    return _FineOutcome(subject=task.subject, warped=warped,
+                        error=registration_error(warped, task.y),
                         correspondence=np.asarray(res.correspondence, dtype=np.intp)
                         if own else None,
                         probability=np.asarray(res.probability, dtype=np.float64)
                         if own else None,
-                        step=res.transform, min_jacobian=float(det.min()), finish=finish,
-                        symmetric=symmetric)
-
-
-def _last_kept(finish: _StoredFinish, symmetric: _StoredFinish
-               ) -> tuple[_StoredFinish, _StoredFinish]:
-    """The two stored finishes with the correspondences of the last one kept read (the
-    subject's), the other's dropped unread: the outcome goes to another process."""
-    last = symmetric if symmetric.step is not None else finish
-    out = []
-    for fin in (finish, symmetric):
-        if fin is last and fin.posterior is not None:
-            corr, prob = fin.posterior()
-            fin = replace(fin, correspondence=np.asarray(corr, dtype=np.intp),
-                          probability=np.asarray(prob, dtype=np.float64), posterior=None)
-        elif fin.posterior is not None:
-            fin = replace(fin, posterior=None)
-        out.append(fin)
-    return out[0], out[1]
-
-
-def _stored_finish(model: FloatArray, warped: FloatArray, error: float, y: FloatArray,
-                   spacing2: float, o: CPDOptions, control: IntArray | None
-                   ) -> _StoredFinish:
-    """The polish's finish (:func:`registration._tree._polish._finish`: its CPD,
-    :func:`~registration._tree._polish._cpd_from_root`, and its step,
-    :func:`~registration._tree._polish._step_onto`) again at the
-    stored resolution: one CPD of the stored root model itself onto the stored subject,
-    started where the subject's stored-resolution CPD left it (``init_warped``) from a
-    variance of half its e (at least `spacing2`, the subject's h^2, as the polish's), its
-    kernel :data:`~registration._tree._polish.FINISH_BETA_FACTOR` of the tree's beta, its
-    regulariser :data:`~registration._tree._polish.FINISH_LMBDA_FACTOR` times the tree's
-    lambda, fitted with the `control` points as the stage's CPD.
-
-    The short CPD before it is penalised from the parent's warped model, so it keeps the
-    slides the working resolution settled into; the finish's field is penalised from the
-    root, and at the stored resolution the subject's own sampling noise, which sets how
-    close to the truth CPD can settle, is smaller than at the working resolution (on six
-    1200-point 永 edge chains the tree's ground-truth error went 0.0337 -> 0.0289, against
-    0.0250 for a tree run entirely at 1200 points: bench/RESULTS.md 8.4).
-
-    The subject's chain gains CPD's field through the control points (all points without
-    them) from where the stored CPD left them to where the finish puts them
-    (:func:`~registration._cpd.interpolating_field` at the consensus's width, as the
-    polish's finish); the step's image of every stored point is what is reported, so the
-    chain still maps the root onto it. Kept when neither the finish's field from the root
-    nor the step folds at any stored point and the e reached is at most
-    :data:`~registration._tree._polish.FINISH_MAX_E_RATIO` times the stored CPD's (the
-    polish's rule; its confidence check is not repeated: the quality model is the working
-    resolution's)."""
-    info: dict[str, Any] = {"kept": False, "error_before": error}
-    res = _cpd_from_root(model, y, warped, max(0.5 * error, spacing2, 1e-12), o, control)
-    if res is None:
-        info["reason"] = "its field from the root folds"
-        return _StoredFinish(info)
-    found = _step_onto(warped, np.asarray(res.warped, dtype=np.float64), o, control)
-    if found is None:
-        info["reason"] = "the step to it folds"
-        return _StoredFinish(info)
-    step, moved = found
-    return _stored_ruled(info, step, moved, y, error, "the stored CPD's",
-                         lambda e: (res.correspondence, res.probability))
-
-
-def _stored_ruled(info: dict[str, Any], step: PointTransform, moved: FloatArray,
-                  y: FloatArray, error: float, whose: str,
-                  correspondence: Callable[[float], tuple[NDArray[Any], NDArray[Any]]]
-                  ) -> _StoredFinish:
-    """The stored finishes' rule: `step` (to `moved`) kept when its e is at most
-    :data:`~registration._tree._polish.FINISH_MAX_E_RATIO` times `error` (`whose`: whose e
-    that is, for the reason; `correspondence(e)`: the correspondences and their
-    probabilities then). `info` records the e and the reason."""
-    e = registration_error(moved, y)
-    info["error"] = e
-    if not e <= FINISH_MAX_E_RATIO * error:
-        info["reason"] = f"e above {FINISH_MAX_E_RATIO:g}x {whose}"
-        return _StoredFinish(info)
-    info["kept"] = True
-    info["reason"] = f"e at most {FINISH_MAX_E_RATIO:g}x {whose}"
-    return _StoredFinish(info, step=step, warped=moved, error=e,
-                         posterior=lambda: correspondence(e))
-
-
-def _stored_symmetric(model: FloatArray, warped: FloatArray, error: float, y: FloatArray,
-                      spacing2: float, o: CPDOptions, control: IntArray | None
-                      ) -> _StoredFinish:
-    """The polish's symmetric finish (:func:`registration._tree._polish._symmetric`) again
-    at the stored resolution, after :func:`_stored_finish`: the stored subject registered
-    back onto the stored root model from `warped` (where the finish left it; the stored
-    CPD's points when the finish was not kept), and `warped` moved halfway to where the
-    inverse of that backward field puts the model's points
-    (:func:`~registration._tree._polish._halfway_back`). The backward CPD's field is
-    fitted with as many of the subject's points as the model's `control` points (its
-    farthest-point subsample), the fields through the model's points with those (so the
-    backward field is inverted at those 500 root points alone). Kept, as the finish, when
-    the inverse is found (at :data:`~registration._tree._symmetric.MIN_REACHED` of
-    those points at least), the step does not fold and e is at most
-    :data:`~registration._tree._polish.FINISH_MAX_E_RATIO` times `error`; without it the
-    stored forward finish slides the points back (on six 1200-point 永 edge chains the
-    working resolution's symmetric finish alone left the ground truth at 1.00x;
-    bench/RESULTS.md 7.16)."""
-    info: dict[str, Any] = {"kept": False, "error_before": error}
-    subject_control = (None if control is None or len(y) <= len(control)
-                       else farthest_point_indices(y, len(control)))
-    found = _halfway_back(model, y, warped, error, spacing2, o, control, subject_control,
-                          STORED_SYMMETRIC_MAX_ITER)
-    info["without_inverse"] = found.without_inverse
-    if isinstance(found, NoHalfway):
-        info["reason"] = found.reason
-        return _StoredFinish(info)
-    step, moved = found.step, found.moved
-    return _stored_ruled(info, step, moved, y, error, "the finished e",
-                         lambda e: _posterior_max(moved, y, max(0.5 * e, spacing2), o.w))
+                        step=res.transform, min_jacobian=float(det.min()))
 
 
 @dataclass
@@ -400,8 +240,7 @@ def _refined_subjects(
     executor: Executor | None,
     progress: ProgressCallback | None,
     stage: str,
-    finish_model: FloatArray | None = None,
-) -> list[SubjectResult]:
+) -> tuple[list[SubjectResult], dict[int, tuple[PointTransform, ...]]]:
     """`subjects` (decided at the working resolution) with every registration redone at
     the stored resolution, a layer at a time from the root: one short CPD per subject,
     started from its parent's stored-resolution result as its children were built on, moved
@@ -440,6 +279,9 @@ def _refined_subjects(
     total, done = len(pending), 0
     fine_outcome: dict[int, _FineOutcome] = {}
     final_chain: dict[int, ChainTransform] = {}
+    # each subject's edge's affine pre-alignment (the polish at the stored resolution
+    # registers the edge again from the parent as polished there, after the same steps)
+    affines: dict[int, tuple[PointTransform, ...]] = {}
     for depth in sorted(by_depth):
         group = by_depth[depth]
         tasks, kinds, edges, steps, starts = [], [], {}, {}, {}
@@ -455,10 +297,10 @@ def _refined_subjects(
                 edges[s.index] = _edge_steps(built, coarse_chain[s.parent])
                 starts[s.index] = fine[s.parent]
             steps[s.index] = (*edges[s.index], *s.transform.steps[len(built.steps):])
+            affines[s.index] = edges[s.index][:affine_lead(edges[s.index])]
             tasks.append(_FineTask(subject=s.index, q=starts[s.index].q,
                                    steps=steps[s.index], y=full.normed[s.index], cpd=cpd,
-                                   control=control, model=finish_model,
-                                   spacing2=full.spacing2[s.index]))
+                                   control=control))
             kinds.append("final")
             if built is not s.transform and s.index in needs_built:
                 tasks.append(_FineTask(subject=s.index, q=starts[s.index].q,
@@ -487,27 +329,10 @@ def _refined_subjects(
                      "stored_min_jacobian": res.min_jacobian}
         s.error = res.error
         s.warped = full.norms[index].invert(res.warped)
-        s.correspondence = res.correspondence  # None: a stored finish kept has them
+        s.correspondence = res.correspondence
         s.probability = res.probability
         s.transform = final_chain[index]
-        for key, fin, said in (("stored_finish", res.finish, "finished again"),
-                               ("stored_symmetric", res.symmetric, "made symmetric again")):
-            if fin is None:
-                continue
-            s.quality[key] = fin.info
-            if fin.step is None:
-                continue
-            assert fin.warped is not None and fin.error is not None
-            s.error = fin.error
-            s.warped = full.norms[index].invert(fin.warped)
-            s.correspondence = fin.correspondence  # None: the symmetric one kept has them
-            s.probability = fin.probability
-            chain = s.transform
-            s.transform = ChainTransform(source=chain.source, target=chain.target,
-                                         steps=(*chain.steps, fin.step), path=chain.path)
-            s.reason = f"{s.reason}; {said} at the stored resolution"
-        assert s.correspondence is not None and s.probability is not None
-    return [out[s.index] for s in subjects]
+    return [out[s.index] for s in subjects], affines
 
 
 def _counting(progress: ProgressCallback | None, stage: str, offset: int,
@@ -531,11 +356,11 @@ def at_stored_resolution(
     working_points: int | None,
     executor: Executor | None,
     progress: ProgressCallback | None,
-    finish: bool = False,
+    polish: bool = False,
 ) -> CollectionResult:
     """`result`, decided on `coarse`, with its registrations at the stored resolution;
-    `finish`: each of its subjects (not direct CPD's) is also finished there
-    (:func:`_stored_finish`; the dynamic tree with its polish).
+    `polish`: its subjects (not direct CPD's) are then polished there
+    (:func:`_polish_stored`; the dynamic tree with its polish).
 
     Unchanged (but for ``options["working_points"]``) when `coarse` is `full`.
     """
@@ -547,10 +372,42 @@ def at_stored_resolution(
     root_points = full.normed[full.root]
     control = (farthest_point_indices(root_points, n_control)
                if len(root_points) > n_control else None)
-    result.subjects = _refined_subjects(full, result.subjects, cpd, control, executor,
-                                        progress, "full resolution",
-                                        root_points if finish else None)
+    result.subjects, affines = _refined_subjects(full, result.subjects, cpd, control,
+                                                 executor, progress, "full resolution")
+    if polish:
+        result.subjects = _polish_stored(full, result.subjects, cpd, control, affines,
+                                         executor, progress)
     if result.direct is not None:
         result.direct = _refined_subjects(full, result.direct, cpd, control, executor,
-                                          progress, "direct full resolution")
+                                          progress, "direct full resolution")[0]
     return result
+
+
+def _polish_stored(full: _Collection, subjects: list[SubjectResult], cpd: CPDOptions,
+                   control: IntArray | None,
+                   affines: dict[int, tuple[PointTransform, ...]],
+                   executor: Executor | None, progress: ProgressCallback | None
+                   ) -> list[SubjectResult]:
+    """`subjects`, registered at the stored resolution, polished there as the polish
+    polished them at the working one (:func:`~registration._tree._polish._polish_subjects`:
+    the stages from where the stored CPD left the model, the edge registered again from
+    the parent as polished there (after `affines`, its affine pre-alignment), the finish
+    from the root model and the symmetric finish; no consensus), every field through the
+    model's points fitted with the `control` points (the backward CPD's with as many of
+    the subject's). Recorded in ``quality["stored_polish"]``; the confidence stays the
+    one the decisions were taken with.
+
+    The stored CPD only replays each coarse edge; what the coarse polish could not fit
+    (its stages' finer kernel on 400 points, slides the coarse sampling allowed) is left
+    to this stage. Until session 36 it ran the finish and the symmetric finish alone
+    there. Ground truth, tree / plain CPD, all subjects (bench/RESULTS.md 7.31):
+    glyphs rendered at 512 px and chained at 1200 points, edges 0.459 -> 0.439 and
+    skeletons 0.581 -> 0.479 (far halves at most 0.6x on 9 of 10 skeleton runs, 7
+    before); at 1200 points a shape, MPEG-7 0.496 -> 0.389, evenly sampled outlines 0.963
+    -> 0.718, random subsets 0.891 -> 0.763. The whole polish run after those finishes
+    instead of in their place: 0.444 and 0.514, in more time. The 73 full-size 永 glyphs'
+    HTTP job: 13.5 -> 20.8 s, e at layer >= 3 0.0041 -> 0.0031."""
+    results = {s.index: s for s in subjects}
+    _polish_subjects(full, results, cpd, executor, progress, stage=POLISH_STAGE,
+                     record="stored_polish", control=control, edge_affines=affines)
+    return [results[s.index] for s in subjects]

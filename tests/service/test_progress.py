@@ -101,7 +101,11 @@ def test_coarse_to_fine_jobs_keep_a_share_for_the_full_resolution(
     compare = compare_direct and method != "direct"
     stages = [s for s in STAGES if ("direct" not in s[0] or compare)
               and (method != "direct" or "direct" in s[0])]  # fmt: skip
-    stages += [("full resolution", 15)] + ([("direct full resolution", 15)] if compare else [])
+    stages += [("full resolution", 15)]
+    if method == "dynamic_tree":
+        stages.append(("polish full resolution", 15))
+    if compare:
+        stages.append(("direct full resolution", 15))
     fractions = _fractions(method, stages, compare_direct=compare_direct, coarse_to_fine=True,
                            max_points=1500)  # fmt: skip
     assert all(f is not None for f in fractions)

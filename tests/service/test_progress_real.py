@@ -48,6 +48,7 @@ def _check_totals(events: list[tuple[str, int, int]], doc: dict[str, Any]) -> No
     attached = sum(1 for s in doc["subjects"] if s["attached"])
     direct = sum(1 for s in doc.get("direct") or [] if s.get("attached", True))
     expected = {"direct": subjects, "full resolution": attached,
+                "polish full resolution": attached,
                 "direct full resolution": direct}  # fmt: skip
     seen: dict[str, list[int]] = {}
     for stage, done, total in events:
@@ -86,6 +87,8 @@ def test_progress_events_of_a_real_job(monkeypatch: pytest.MonkeyPatch, method: 
     stages = list(dict.fromkeys(s for s, _, _ in events))
     assert ("polish" in stages) == (method == "dynamic_tree") and "direct" in stages
     assert ("full resolution" in stages) == (working is not None)
+    assert ("polish full resolution" in stages) == (
+        working is not None and method == "dynamic_tree")
 
     now = [0.0]
     monkeypatch.setattr("service.progress.time.monotonic", lambda: now[0])
