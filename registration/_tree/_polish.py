@@ -48,6 +48,9 @@ where the polish left it (`_finish`): every registration before it penalised its
 from its own start, the finish's from the root. Then the finish is made symmetric
 (`_symmetric`): the subject is registered back onto the root from there, and the model's
 points move halfway to where the inverse of that backward field puts them.
+A tree decided at a working resolution (:mod:`._resolution`) is polished once more on
+the stored points, without the consensus, its fields fitted through the stored stage's
+control points (``quality["stored_polish"]``; 7.31).
 Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine), 0.0000
 (layer 2, skipping) and 0.0000000 (the consensus); 7.4 (accelerated EM), 7.5 (the
 consensus's e rule), 7.7 (edges from polished parents, the halfway step), 7.11 (the
@@ -605,8 +608,7 @@ def _finished(task: _PolishTask, best: _Stages, step: PointTransform, moved: Flo
 
 def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: float,
                   spacing2: float, o: CPDOptions, control: IntArray | None = None,
-                  subject_control: IntArray | None = None, max_iter: int | None = None
-                  ) -> Halfway | NoHalfway:
+                  subject_control: IntArray | None = None) -> Halfway | NoHalfway:
     """The registration `warped` (the root `model`'s points on the subject `y`) moved
     halfway to where the subject registered back onto the root puts the model's points
     (:func:`~registration._tree._symmetric.halfway_back`, the step at
@@ -617,13 +619,14 @@ def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: f
     `spacing2`). `control`: the model indices the fields through the model's points are
     fitted with, and so the only ones inverted (every point without them: at the stored
     resolution, 500 preimages instead of 1200-2200); `subject_control`: the subject
-    indices the backward CPD's field is fitted with (None: every point); `max_iter`: the
-    backward CPD's EM iterations at most (None: the tree's)."""
+    indices the backward CPD's field is fitted with (None: every point). The stored
+    resolution's backward CPD runs the tree's EM iterations too: stopped at 20 it saved
+    0.5 s of the 73 glyphs' 20 s job and lost on the dense skeletons (bench/RESULTS.md
+    7.31)."""
     def backward(start: FloatArray) -> PointTransform:
         return cpd_nonrigid(y, model, beta=FINISH_BETA_FACTOR * o.beta,
                             lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w,
-                            max_iter=o.max_iter if max_iter is None else min(o.max_iter,
-                                                                            max_iter),
+                            max_iter=o.max_iter,
                             tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * error, spacing2),
                             init_warped=start, accelerate=True,
                             control=subject_control).transform
@@ -809,7 +812,16 @@ def _polish_subjects(
     registration of subject `s` from its consensus partner (to run, or already run; see
     :func:`consensus_partner`), for the consensus of the subjects at layer >=
     :data:`POLISH_CONSENSUS_MIN_LAYER` (None: no consensus). It is called a level at a
-    time, once the levels before are polished."""
+    time, once the levels before are polished.
+
+    `stage`: the progress stage reported (counting subjects); `record`: the ``quality``
+    key the polish is recorded under (see :func:`_polished`); `control`: the root indices
+    every CPD's field through the model's points is fitted with (the backward CPD's with
+    as many farthest points of the subject; None: every point); `edge_affines`: each
+    subject's edge's affine pre-alignment, for its edge registered again from the
+    polished parent (None: read off the chains in `results`, which must then be the tree's
+    as built). The polish at the stored resolution passes all four
+    (:func:`registration._tree._resolution._polish_stored`)."""
     todo = [
         s for s, r in sorted(results.items())
         if r.warped is not None and r.layer is not None and r.layer >= min_layer
