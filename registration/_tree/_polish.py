@@ -752,6 +752,9 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
     confidence = min([confidence, *(q.confidence for q in out.quality)])
     polish = {
         "error_before": old.error, "steps": len(out.steps), **quality[-1].to_dict(),
+        # the e reached (the checks' own "error" is measured on at most QUALITY_POINTS
+        # points of each shape: at the stored resolution, on subsamples)
+        "error": out.error,
         "confidence": min(q.confidence for q in quality),
         "min_jacobian": min(q.min_jacobian for q in quality)}
     reason = (f"{old.reason}; {label}: {len(out.quality)} more CPD from the chained model "

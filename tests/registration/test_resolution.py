@@ -144,6 +144,7 @@ def test_the_tree_is_polished_again_at_the_stored_resolution(runs, family):
         info = _stored_polish(s)
         assert "polished again at the stored resolution" in s.reason
         assert info["error_before"] > 0 and info["steps"] >= 1
+        assert info["error"] == s.error  # the e reached on the stored points
         assert "finish" in info and "symmetric" in info  # tried, kept or not
         assert "consensus" not in info  # no partner at the stored resolution
         if _polished_again_from_parent(s):
@@ -345,3 +346,17 @@ def test_children_of_a_polished_subject_start_from_its_registration_as_built(
     attached = sum(1 for s in res.subjects if s.attached)
     assert counts[-1] == (attached, attached)
     assert [d for d, _ in counts] == sorted(d for d, _ in counts)
+
+
+def test_the_stored_polish_records_the_e_of_the_stored_points(monkeypatch, family):
+    """The quality checks measure shapes above ``QUALITY_POINTS`` on subsamples; the
+    stored polish's record still gives the e the subject's registration reached."""
+    from registration import _quality
+
+    monkeypatch.setattr(_quality, "QUALITY_POINTS", 100)  # below the family's 240 points
+    res = build_dynamic_tree(family.shapes, 0, working_points=WORKING, cpd=FAST_CPD,
+                             executor=SerialExecutor())
+    polished = [s for s in res.subjects if _stored_polish(s)]
+    assert polished
+    for s in polished:
+        assert _stored_polish(s)["error"] == s.error
