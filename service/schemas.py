@@ -311,8 +311,9 @@ class JobCreate(BaseModel):
         default=DEFAULT_WORKING_POINTS,
         description="Decide the tree (similarity, candidates, acceptance) with every shape "
         "subsampled to at most this many points, then register each edge once at the stored "
-        "resolution, warm-started from that decision: the result (warped points, "
-        "correspondences, transforms, e) is at the stored resolution. Shapes with at most this "
+        "resolution, warm-started from that decision (a dynamic tree then polishes its "
+        "subjects again there): the result (warped points, correspondences, transforms, e) "
+        "is at the stored resolution. Shapes with at most this "
         "many points are used as they are. null or 0: decide at the stored resolution "
         "(slower on large shapes). At least 20 otherwise.",
     )

@@ -57,7 +57,8 @@ DEFAULT_METHOD: Method = "dynamic_tree"
 DEFAULT_COMPARE_DIRECT = False
 #: Points per shape a job decides its tree at (similarity, candidates, acceptance); every
 #: edge is then registered once at the stored resolution, warm-started from that decision,
-#: and the result is at the stored resolution. None or 0: decide at the stored resolution.
+#: the dynamic tree's subjects are polished again there, and the result is at the stored
+#: resolution. None or 0: decide at the stored resolution.
 #: The library's default (``registration._tree._resolution.DEFAULT_WORKING_POINTS``; a
 #: test checks that they agree).
 DEFAULT_WORKING_POINTS: int | None = 400
