@@ -189,9 +189,9 @@ def part_control(points: int, designs: list[int]) -> dict[str, Any]:
     stage = _resolution.at_stored_resolution
     captured: dict[str, Any] = {}
 
-    def capture(result: CollectionResult, *args: Any) -> CollectionResult:
+    def capture(result: CollectionResult, *args: Any, **kwargs: Any) -> CollectionResult:
         captured["args"] = (copy.deepcopy(result), *args[:4])
-        return stage(result, *args)
+        return stage(result, *args, **kwargs)
 
     settings = {"every point": 10**9, "control": _resolution.FINE_CONTROL_POINTS}
     default = _resolution.FINE_CONTROL_POINTS
