@@ -40,7 +40,8 @@ grouped as ``service/progress.py`` weighs them: similarity (the first all-pairs 
 layers (``layer N`` and ``similarity layer N``), leaves (``similarity leaves``, ``leaves``;
 ``service/progress.py`` counts them with the layers, and the line "layers + leaves" shows
 their sum as a share of the decisions, similarity to direct), refine, polish, direct
-(``similarity direct``, ``direct``), full resolution and direct full resolution. Printed:
+(``similarity direct``, ``direct``), full resolution, polish full resolution and direct
+full resolution. Printed:
 seconds and share of each group, the shares of the groups without direct CPD (a job that
 does not compare), and the share ``service/progress.py`` gives each
 (:func:`service.progress.phase_weights`, from the largest shape's points). ``--serial``
@@ -85,7 +86,7 @@ MPEG7_CLASSES = ["fish", "lmfish", "flatfish", "horse", "bird", "bat", "camel", 
 
 WORKING_POINTS = 400  # the default working resolution
 GROUPS = ["similarity", "layers", "leaves", "refine", "polish", "direct", "full resolution",
-          "direct full resolution"]
+          "polish full resolution", "direct full resolution"]
 _LAYER = re.compile(r"(similarity )?layer \d+")
 
 

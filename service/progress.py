@@ -67,12 +67,15 @@ PHASE_WEIGHTS = {
     # the tree's stored-resolution stage about doubled with its finish (session 21,
     # bench/RESULTS.md 8.4: 3.8-4.0 -> 6.7-7.8 s of the 73 glyphs' job over HTTP; 0.040),
     # then grew 1.65x with the symmetric finish (session 23, 7.16: 6.3-7.7 -> 11.6 s;
-    # 0.066); without either (they moved into the polish below; session 36, 7.31) the
-    # stage took 1.25-1.26 s of that job where it had taken 4.0-4.2 s: 0.066 x 0.31
-    "full resolution": 0.020,
+    # 0.066); without either (they moved into the polish below) bench_progress.py gives
+    # 0.0143 (chains800) and 0.0074 (yong40), the 73 glyphs' HTTP job 0.012 (session 36,
+    # bench/RESULTS.md 7.31)
+    "full resolution": 0.011,
     # the polish again at the stored resolution (session 36, bench/RESULTS.md 7.31):
-    # 11.2-11.4 s of the same job, 2.75x what the stage above took before: 0.066 x 2.75
-    "polish full resolution": 0.18,
+    # bench_progress.py 0.146 (chains800, ratio 2) and 0.076 (yong40, ratio 5.6; its CPDs
+    # fit 500 control points, so it grows more slowly than FINE_EXPONENT says), the HTTP
+    # job 0.106; the mean of the two sets
+    "polish full resolution": 0.11,
     "direct full resolution": 0.011,
 }
 #: A grouping job's phases, as shares of its run: the mean wall-clock shares of nine runs
