@@ -321,6 +321,13 @@ def test_children_of_a_polished_subject_start_from_its_registration_as_built(
                         and any(c.parent == s.index for c in res.subjects)]
     assert polished_parents, "no polished subject with children: pick another family"
     kinds = set()
+    # the stored polish's edges from the parent as polished there: each child's chain
+    # extends its parent's whole chain (this family has 3 at seed 0)
+    again = [c for c in res.subjects if _polished_again_from_parent(c)]
+    assert bool(again) == (from_parent_min_layer == 3)
+    for c in again:
+        parent = res.subject(c.parent).transform
+        assert c.transform.shared_steps(parent) == len(parent.steps)
     for p in polished_parents:
         if _polished_again_from_parent(p):
             continue  # its chain before the stored polish is not in the result
