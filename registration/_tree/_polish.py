@@ -49,8 +49,9 @@ from its own start, the finish's from the root. Then the finish is made symmetri
 (`_symmetric`): the subject is registered back onto the root from there, and the model's
 points move halfway to where the inverse of that backward field puts them.
 A tree decided at a working resolution (:mod:`._resolution`) is polished once more on
-the stored points, without the consensus, its fields fitted through the stored stage's
-control points (``quality["stored_polish"]``; 7.31).
+the stored points, without the consensus, every subject's edge registered again there,
+its fields fitted through the stored stage's control points (``quality["stored_polish"]``;
+7.31).
 Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine), 0.0000
 (layer 2, skipping) and 0.0000000 (the consensus); 7.4 (accelerated EM), 7.5 (the
 consensus's e rule), 7.7 (edges from polished parents, the halfway step), 7.11 (the
@@ -208,6 +209,9 @@ class _PolishTask:
     # the subject's edge started with; the edge is registered again from there
     from_parent: FloatArray | None = None
     edge_affine: tuple[PointTransform, ...] = ()
+    # whether that edge goes on only at no larger an e than the chain's (else the halfway's
+    # own rule decides: the stored resolution's polish, see `_polish_subjects`)
+    edge_within_chain_e: bool = True
     # the model (root) indices every CPD's field through the model's points is fitted
     # with, and the subject indices the backward CPD's is (None: every point)
     control: IntArray | None = None
@@ -459,8 +463,9 @@ def _edge_from_parent(task: _PolishTask
     The same CPD as the tree's edges (not accelerated; after the edge's own affine
     pre-alignment, if it had one), from the parent's registration as polished instead of
     as chained. Kept when it does not fold, its confidence is at least
-    :data:`MIN_CONFIDENCE` and its e is no larger than the chain's; `_polish_task` then
-    polishes it beside the chain and takes the two halfway."""
+    :data:`MIN_CONFIDENCE` and its e is no larger than the chain's (that last rule not at
+    the stored resolution: ``task.edge_within_chain_e``); `_polish_task` then polishes it
+    beside the chain and takes the two halfway."""
     assert task.from_parent is not None
     q = task.from_parent
     for step in task.edge_affine:
@@ -476,11 +481,12 @@ def _edge_from_parent(task: _PolishTask
         info["reason"] = "it folds"
     elif not quality.confidence >= MIN_CONFIDENCE:
         info["reason"] = f"confidence below {MIN_CONFIDENCE:g}"
-    elif not e <= task.error:
+    elif task.edge_within_chain_e and not e <= task.error:
         info["reason"] = "e above the chain's"
     else:
         info["kept"] = True
-        info["reason"] = "e no larger than the chain's"
+        info["reason"] = ("e no larger than the chain's" if task.edge_within_chain_e
+                          else "it does not fold and its confidence passes")
         return _Stages(warped=warped, error=e, steps=(*task.edge_affine, res.transform),
                        quality=(quality,),
                        correspondence=np.asarray(res.correspondence, dtype=np.intp),
@@ -736,12 +742,16 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
     assert old.transform is not None and old.confidence is not None
     assert out.steps or out.edge_steps
     if out.edge_steps:
-        assert parent is not None and parent.transform is not None
-        assert parent.confidence is not None and out.edge_quality is not None
-        # the parent's polished chain, the edge from it, then the subject's own polish
-        chain = replace(old.transform, steps=(*parent.transform.steps, *out.edge_steps,
-                                              *out.steps))
-        confidence = min(parent.confidence, out.edge_quality.confidence)
+        assert out.edge_quality is not None
+        # the parent's polished chain (none: the root's own points), the edge from it,
+        # then the subject's own polish
+        before: tuple[PointTransform, ...] = ()
+        confidence = out.edge_quality.confidence
+        if parent is not None:
+            assert parent.transform is not None and parent.confidence is not None
+            before = parent.transform.steps
+            confidence = min(parent.confidence, confidence)
+        chain = replace(old.transform, steps=(*before, *out.edge_steps, *out.steps))
     else:
         chain = replace(old.transform, steps=(*old.transform.steps, *out.steps))
         confidence = old.confidence
@@ -821,9 +831,12 @@ def _polish_subjects(
     key the polish is recorded under (see :func:`_polished`); `control`: the root indices
     every CPD's field through the model's points is fitted with (the backward CPD's with
     as many farthest points of the subject; None: every point); `edge_affines`: each
-    subject's edge's affine pre-alignment, for its edge registered again from the
-    polished parent (None: read off the chains in `results`, which must then be the tree's
-    as built). The polish at the stored resolution passes all four
+    subject's edge's affine pre-alignment, given at the stored resolution, where every
+    subject registers its edge again (from the root's own points at layer 2, else from
+    the parent as polished there, moved or not) whatever that edge's e (None: the
+    working resolution's rule above, the affine steps read off the chains in `results`,
+    which must then be the tree's as built). The polish at the stored resolution passes
+    all four
     (:func:`registration._tree._resolution._polish_stored`)."""
     todo = [
         s for s, r in sorted(results.items())
@@ -849,8 +862,8 @@ def _polish_subjects(
             for _, out in ex.map_unordered(_polish_task, tasks):
                 if out.steps or out.edge_steps:
                     old = results[out.subject]
-                    parent = (results[old.parent] if out.edge_steps and old.parent is not None
-                              else None)
+                    parent = (results[old.parent] if out.edge_steps
+                              and old.parent not in (None, coll.root) else None)
                     results[out.subject] = _polished(coll, old, out, parent, record)
                     moved.add(out.subject)
                 done += 1
@@ -875,15 +888,21 @@ def _polish_subject_task(
     from_parent: FloatArray | None = None
     edge_affine: tuple[PointTransform, ...] = ()
     p = r.parent
-    if r.layer >= POLISH_FROM_PARENT_MIN_LAYER and p is not None and p in moved:
+    if edge_affines is not None and p is not None:
+        # the stored resolution: every edge again, from the root's own points at layer 2
+        if p == coll.root:
+            from_parent = coll.normed[p]
+        else:
+            parent = results[p]
+            assert parent.warped is not None
+            from_parent = coll.norms[p].apply(parent.warped)
+        edge_affine = edge_affines[s]
+    elif r.layer >= POLISH_FROM_PARENT_MIN_LAYER and p is not None and p in moved:
         parent = results[p]
         assert parent.warped is not None
         from_parent = coll.norms[p].apply(parent.warped)
-        if edge_affines is not None:
-            edge_affine = edge_affines[s]
-        else:
-            edge = built[s].steps[len(built[p].steps):]  # the edge as the tree made it
-            edge_affine = tuple(edge[:affine_lead(edge)])
+        edge = built[s].steps[len(built[p].steps):]  # the edge as the tree made it
+        edge_affine = tuple(edge[:affine_lead(edge)])
     y = coll.normed[s]
     subject_control = (None if control is None or len(y) <= len(control)
                        else farthest_point_indices(y, len(control)))
@@ -893,5 +912,6 @@ def _polish_subject_task(
         model=coll.normed[coll.root],
         partner=partner(s) if partner is not None and r.layer >= POLISH_CONSENSUS_MIN_LAYER
         else None,
-        from_parent=from_parent, edge_affine=edge_affine, control=control,
+        from_parent=from_parent, edge_affine=edge_affine,
+        edge_within_chain_e=edge_affines is None, control=control,
         subject_control=subject_control)

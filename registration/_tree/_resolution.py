@@ -19,8 +19,9 @@ working resolution's figures the decisions were taken on (``quality`` adds
 edge's warp on the stored points). The dynamic tree's subjects are then polished again on
 the stored points, as the polish did at the working resolution but for the consensus
 (:func:`_polish_stored`, ``quality["stored_polish"]``): its stages from where the stored
-CPD left the model, the edge registered again from the parent as polished there, the finish
-from the root model and the symmetric finish; their children's stored CPDs start from the
+CPD left the model, every edge registered again from the parent as polished there (from
+the root's own points at layer 2) and the two taken halfway, the finish from the root
+model and the symmetric finish; their children's stored CPDs start from the
 registrations before it. The confidence is the one the decisions were taken
 with (the quality checks measure any shape at most :data:`registration._quality.
 QUALITY_POINTS` points dense, the density their model was fitted at: before that, the 73
@@ -397,6 +398,15 @@ def _polish_stored(full: _Collection, subjects: list[SubjectResult], cpd: CPDOpt
     the subject's). Recorded in ``quality["stored_polish"]``; the confidence stays the
     one the decisions were taken with.
 
+    Unlike the working resolution's polish, every subject registers its edge again (at
+    layer 2 from the root's own points, deeper from the parent as polished here, whether
+    or not the parent's polish moved it) and goes on to the halfway registration whatever
+    that edge's e (kept there at up to ``CONSENSUS_MAX_E_RATIO`` times the lower e of the
+    two, as always): the stored CPD only refines the coarse edge where it lies, and a full
+    CPD at the stored points can leave a slide the coarse one settled into; halfway, the
+    two err differently (bench/RESULTS.md 7.31: the full CPD alone in place of the
+    stored one breaks glyphs, halfway it gains on every class at 1200 points).
+
     The stored CPD only replays each coarse edge; what the coarse polish could not fit
     (its stages' finer kernel on 400 points, slides the coarse sampling allowed) is left
     to this stage. Until session 36 it ran the finish and the symmetric finish alone
@@ -405,8 +415,12 @@ def _polish_stored(full: _Collection, subjects: list[SubjectResult], cpd: CPDOpt
     skeletons 0.581 -> 0.479 (far halves at most 0.6x on 9 of 10 skeleton runs, 7
     before); at 1200 points a shape, MPEG-7 0.496 -> 0.389, evenly sampled outlines 0.963
     -> 0.718, random subsets 0.891 -> 0.763. The whole polish run after those finishes
-    instead of in their place: 0.444 and 0.514, in more time. The 73 full-size 永 glyphs'
-    HTTP job: 13.5 -> 20.8 s, e at layer >= 3 0.0041 -> 0.0031."""
+    instead of in their place: 0.444 and 0.514, in more time. Every edge again, taken
+    halfway: edges 0.419, skeletons 0.432 (every far half at most 0.6x), MPEG-7 0.287,
+    outlines 0.543 and 0.604, in 1.2-1.3x the tree's time; the test suite's 240-point
+    family decided at 60 points lost (0.0563 -> 0.0632). The 73 full-size 永 glyphs'
+    HTTP job: 13.5 s with the stored finishes, 20.8 s with this polish, 22.8 s with every
+    edge again; e at layer >= 3 0.0041 -> 0.0031 -> 0.0026."""
     results = {s.index: s for s in subjects}
     _polish_subjects(full, results, cpd, executor, progress, stage=POLISH_STAGE,
                      record="stored_polish", control=control, edge_affines=affines)
