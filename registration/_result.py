@@ -120,7 +120,8 @@ class SubjectResult:
         (``working_points``), also ``working_error`` (the e decided on),
         ``stored_min_jacobian`` (the fold check at the stored resolution) and, for the
         dynamic tree's subjects, ``stored_polish``: the polish run again on the stored
-        points (as ``polish``, without the consensus; present when it kept a step). The
+        points (as ``polish``, without the consensus, every subject's edge registered
+        again there and taken halfway: ``from_parent``; present when it kept a step). The
         symmetric finish records ``without_inverse``: of the root points its step is
         fitted through (every point, or at the stored resolution the 500 control points),
         how many the subject's registration back onto the root has no inverse at, also
