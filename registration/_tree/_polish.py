@@ -187,6 +187,26 @@ FINISH_LMBDA_FACTOR = 2.0
 #: the consensus (:data:`CONSENSUS_MAX_E_RATIO`), it undoes part of a slide the subject's
 #: own sampling let the chain settle into, at an e that may be a little higher.
 FINISH_MAX_E_RATIO = 1.1
+#: The progress stage of the polish at the stored resolution (see :class:`AtStored`); it
+#: counts subjects, as ``full resolution``.
+STORED_STAGE = "polish full resolution"
+
+
+@dataclass(frozen=True)
+class AtStored:
+    """The polish at the stored resolution (:func:`registration._tree._resolution.
+    _polish_stored`): `control`, the root indices every CPD's field through the model's
+    points is fitted with (the backward CPD's with as many farthest points of the
+    subject; None: every point); `edge_affines`, each subject's edge's affine
+    pre-alignment. There every subject registers its edge again (from the root's own
+    points at layer 2, else from the parent as polished there, moved or not) whatever
+    that edge's e; the polish is recorded in ``quality["stored_polish"]``, reported as
+    :data:`STORED_STAGE`, and the subject keeps the confidence the decisions were taken
+    with."""
+
+    control: IntArray | None
+    edge_affines: dict[int, tuple[PointTransform, ...]]
+
 @dataclass(frozen=True)
 class _PolishTask:
     subject: int
@@ -732,13 +752,13 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
 
 
 def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
-              parent: SubjectResult | None = None, record: str = "polish") -> SubjectResult:
+              parent: SubjectResult | None = None, stored: bool = False) -> SubjectResult:
     """`old` with the polished registration in place of the chained one; `parent`: the
-    parent as polished, when the subject's edge was registered again from it. `record`:
-    the key of ``quality`` that records it; any other than ``"polish"`` is the polish at
-    the stored resolution (:func:`registration._tree._resolution._polish_stored`), which
-    keeps `old`'s confidence, the one the decisions were taken with."""
-    label = "polished" if record == "polish" else "polished again at the stored resolution"
+    parent as polished, when the subject's edge was registered again from it (None: the
+    root's own points). `stored`: the polish at the stored resolution (:class:`AtStored`),
+    recorded in ``quality["stored_polish"]``, which keeps `old`'s confidence."""
+    record = "stored_polish" if stored else "polish"
+    label = "polished again at the stored resolution" if stored else "polished"
     assert old.transform is not None and old.confidence is not None
     assert out.steps or out.edge_steps
     if out.edge_steps:
@@ -795,7 +815,7 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
         polish["symmetric"] = out.symmetric
         if out.symmetric["kept"]:
             reason += "; moved halfway to the subject's registration back onto the root"
-    if record != "polish":
+    if stored:
         confidence = old.confidence
     return replace(
         old, error=out.error, warped=coll.norms[out.subject].invert(out.warped),
@@ -813,10 +833,7 @@ def _polish_subjects(
     progress: ProgressCallback | None,
     min_layer: int = POLISH_MIN_LAYER,
     partner: Callable[[int], _RegTask | _RegOutcome] | None = None,
-    stage: str = "polish",
-    record: str = "polish",
-    control: IntArray | None = None,
-    edge_affines: dict[int, tuple[PointTransform, ...]] | None = None,
+    stored: AtStored | None = None,
 ) -> None:
     """Polish every attached subject at layer >= `min_layer` in place (see the module doc),
     a tree level at a time, parents first: a subject at layer >=
@@ -827,17 +844,9 @@ def _polish_subjects(
     :data:`POLISH_CONSENSUS_MIN_LAYER` (None: no consensus). It is called a level at a
     time, once the levels before are polished.
 
-    `stage`: the progress stage reported (counting subjects); `record`: the ``quality``
-    key the polish is recorded under (see :func:`_polished`); `control`: the root indices
-    every CPD's field through the model's points is fitted with (the backward CPD's with
-    as many farthest points of the subject; None: every point); `edge_affines`: each
-    subject's edge's affine pre-alignment, given at the stored resolution, where every
-    subject registers its edge again (from the root's own points at layer 2, else from
-    the parent as polished there, moved or not) whatever that edge's e (None: the
-    working resolution's rule above, the affine steps read off the chains in `results`,
-    which must then be the tree's as built). The polish at the stored resolution passes
-    all four
-    (:func:`registration._tree._resolution._polish_stored`)."""
+    `stored`: the polish at the stored resolution (see :class:`AtStored`); None: the
+    working resolution's, the edges' affine steps read off the chains in `results`,
+    which must then be the tree's as built."""
     todo = [
         s for s, r in sorted(results.items())
         if r.warped is not None and r.layer is not None and r.layer >= min_layer
@@ -846,6 +855,7 @@ def _polish_subjects(
     if not todo:
         return
     built = {s: r.transform for s, r in results.items() if r.transform is not None}
+    stage = "polish" if stored is None else STORED_STAGE
     levels: dict[int, list[int]] = {}
     for s in todo:
         levels.setdefault(len(results[s].path), []).append(s)
@@ -857,14 +867,15 @@ def _polish_subjects(
             progress(stage, 0, len(todo))
         for level in sorted(levels):
             tasks = [_polish_subject_task(coll, results, built, moved, s, cpd, partner,
-                                          model_irregularity, control, edge_affines)
+                                          model_irregularity, stored)
                      for s in levels[level]]
             for _, out in ex.map_unordered(_polish_task, tasks):
                 if out.steps or out.edge_steps:
                     old = results[out.subject]
                     parent = (results[old.parent] if out.edge_steps
                               and old.parent not in (None, coll.root) else None)
-                    results[out.subject] = _polished(coll, old, out, parent, record)
+                    results[out.subject] = _polished(coll, old, out, parent,
+                                                     stored is not None)
                     moved.add(out.subject)
                 done += 1
                 if progress is not None:
@@ -880,23 +891,22 @@ def _polish_subject_task(
     cpd: CPDOptions,
     partner: Callable[[int], _RegTask | _RegOutcome] | None,
     model_irregularity: float,
-    control: IntArray | None = None,
-    edge_affines: dict[int, tuple[PointTransform, ...]] | None = None,
+    stored: AtStored | None = None,
 ) -> _PolishTask:
     r = results[s]
     assert r.warped is not None and r.layer is not None and r.error is not None
     from_parent: FloatArray | None = None
     edge_affine: tuple[PointTransform, ...] = ()
     p = r.parent
-    if edge_affines is not None and p is not None:
-        # the stored resolution: every edge again, from the root's own points at layer 2
+    if stored is not None and p is not None:
+        # every edge again, from the root's own points at layer 2
         if p == coll.root:
             from_parent = coll.normed[p]
         else:
             parent = results[p]
             assert parent.warped is not None
             from_parent = coll.norms[p].apply(parent.warped)
-        edge_affine = edge_affines[s]
+        edge_affine = stored.edge_affines[s]
     elif r.layer >= POLISH_FROM_PARENT_MIN_LAYER and p is not None and p in moved:
         parent = results[p]
         assert parent.warped is not None
@@ -904,6 +914,7 @@ def _polish_subject_task(
         edge = built[s].steps[len(built[p].steps):]  # the edge as the tree made it
         edge_affine = tuple(edge[:affine_lead(edge)])
     y = coll.normed[s]
+    control = None if stored is None else stored.control
     subject_control = (None if control is None or len(y) <= len(control)
                        else farthest_point_indices(y, len(control)))
     return _PolishTask(
@@ -913,5 +924,5 @@ def _polish_subject_task(
         partner=partner(s) if partner is not None and r.layer >= POLISH_CONSENSUS_MIN_LAYER
         else None,
         from_parent=from_parent, edge_affine=edge_affine,
-        edge_within_chain_e=edge_affines is None, control=control,
+        edge_within_chain_e=stored is None, control=control,
         subject_control=subject_control)

@@ -51,15 +51,12 @@ from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
 from .._transform import ChainTransform
 from ._collection import _Collection
-from ._polish import _polish_subjects, affine_lead
+from ._polish import AtStored, _polish_subjects, affine_lead
 from ._tasks import _map_tasks
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
-#: The progress stage of the polish at the stored resolution (see :func:`_polish_stored`);
-#: it counts subjects, as ``full resolution``.
-POLISH_STAGE = "polish full resolution"
 #: Points per shape the tree's decisions are taken at (None or 0: the stored resolution).
 #: At 400 points the 73 永 edge glyphs (1167-2244 points) build their tree in a fraction
 #: of the full-resolution time with e and correspondences close to a full-resolution run
@@ -422,6 +419,6 @@ def _polish_stored(full: _Collection, subjects: list[SubjectResult], cpd: CPDOpt
     HTTP job: 13.5 s with the stored finishes, 20.8 s with this polish, 22.8 s with every
     edge again; e at layer >= 3 0.0041 -> 0.0031 -> 0.0026."""
     results = {s.index: s for s in subjects}
-    _polish_subjects(full, results, cpd, executor, progress, stage=POLISH_STAGE,
-                     record="stored_polish", control=control, edge_affines=affines)
+    _polish_subjects(full, results, cpd, executor, progress,
+                     stored=AtStored(control=control, edge_affines=affines))
     return [results[s.index] for s in subjects]
