@@ -50,7 +50,8 @@ if TYPE_CHECKING:
 #: stored-resolution phases relative to the same sum for shapes as large as the working
 #: resolution; they grow as ``(max_points / working_points) ** 1.5``
 #: (:data:`FINE_EXPONENT`, :func:`phase_weights`): a CPD at the stored resolution costs
-#: between the points and their product, the decisions run at the working resolution.
+#: between the points and their product, the decisions run at the working resolution;
+#: the polish there as that ratio (:data:`STORED_POLISH_EXPONENT`).
 PHASE_WEIGHTS = {
     # measured again in session 14 (bench/RESULTS.md 5.5), after the E-step's speed-ups
     # and the polish's edges from polished parents (halfway between the edge's two
@@ -71,12 +72,12 @@ PHASE_WEIGHTS = {
     # 0.0143 (chains800) and 0.0074 (yong40), the 73 glyphs' HTTP job 0.012 (session 36,
     # bench/RESULTS.md 7.31)
     "full resolution": 0.011,
-    # the polish again at the stored resolution (session 36, bench/RESULTS.md 7.31):
-    # bench_progress.py 0.146 (chains800, ratio 2) and 0.076 (yong40, ratio 5.6; its CPDs
-    # fit 500 control points, so it grows more slowly than FINE_EXPONENT says), the HTTP
-    # job 0.106; the mean of the two sets, then 1.18x for every edge registered again
-    # there (the HTTP job's stage 11.2 -> 13.3 s)
-    "polish full resolution": 0.13,
+    # the polish again at the stored resolution (session 36, bench/RESULTS.md 7.31), at
+    # its own growth (STORED_POLISH_EXPONENT): bench_progress.py (session 37, 7.32) gives
+    # 0.46 of the decisions on chains800 (ratio 2) and 1.30 on yong40 (ratio 5.6), 0.23
+    # at ratio 1 on both when it grows linearly; 0.25 of these weights' decisions (their
+    # sum is 1.095). Session 36's weight under FINE_EXPONENT (0.13) put it at 0.37 and 1.72
+    "polish full resolution": 0.25,
     "direct full resolution": 0.011,
 }
 #: A grouping job's phases, as shares of its run: the mean wall-clock shares of nine runs
@@ -102,6 +103,11 @@ ROTATION_START_COST = 3 / 16
 #: 0.054 / 0.061 and direct 0.039 / 0.037 of the decisions at ratios 2 / 5.6, growth
 #: n^1.6; the weights are their means.
 FINE_EXPONENT = 1.5
+#: How the ``polish full resolution`` weight grows with the same ratio: every CPD of that
+#: polish fits the 500 control points of the root (``FINE_CONTROL_POINTS``) to the
+#: subject's points, so its E-step grows with the subject alone. Measured 1.01 between
+#: ratios 2 and 5.6 (bench/bench_progress.py, chains800 and yong40, bench/RESULTS.md 7.32).
+STORED_POLISH_EXPONENT = 1.0
 #: The ratio assumed for a job queued before ``max_points`` was recorded.
 DEFAULT_FINE_RATIO = 4.0
 #: Registrations the tree's layers run per subject, measured: 1.47 (demo), 2.38 (永 40),
@@ -219,9 +225,10 @@ def phase_weights(
     ratio = DEFAULT_FINE_RATIO
     if max_points and working_points:
         ratio = max(1.0, max_points / working_points)
-    scale = ratio**FINE_EXPONENT
-    raw = {p: PHASE_WEIGHTS[p] * (scale if p.endswith("full resolution") else 1.0)
-           for p in phases}
+    growth = {"full resolution": ratio**FINE_EXPONENT,
+              "direct full resolution": ratio**FINE_EXPONENT,
+              "polish full resolution": ratio**STORED_POLISH_EXPONENT}
+    raw = {p: PHASE_WEIGHTS[p] * growth.get(p, 1.0) for p in phases}
     total = sum(raw.values())
     return {p: w / total for p, w in raw.items()}
 

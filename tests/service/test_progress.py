@@ -11,7 +11,9 @@ import pytest
 
 from service.client import JobStatus
 from service.progress import (
+    FINE_EXPONENT,
     PHASE_WEIGHTS,
+    STORED_POLISH_EXPONENT,
     Progress,
     clock,
     left,
@@ -133,6 +135,16 @@ def test_phase_weights() -> None:
                           max_points=n, working_points=400)["full resolution"]
             for n in (500, 1500, 3000)]  # fmt: skip
     assert fine == sorted(fine) and fine[0] < fine[-1]
+    # against a decision's phase, the stored polish grows as the points (its CPDs fit the
+    # root's control points), the other stored-resolution phases faster
+    two, four = (phase_weights("dynamic_tree", compare_direct=True, coarse_to_fine=True,
+                               max_points=n, working_points=400) for n in (800, 1600))
+    for phase, growth in (("polish full resolution", 2.0 ** STORED_POLISH_EXPONENT),
+                          ("full resolution", 2.0 ** FINE_EXPONENT),
+                          ("direct full resolution", 2.0 ** FINE_EXPONENT)):
+        assert (four[phase] / four["polish"]) / (two[phase] / two["polish"]) == (
+            pytest.approx(growth))
+    assert STORED_POLISH_EXPONENT < FINE_EXPONENT
     assert stored_resolution_stage({"working_points": 400, "max_points": 1200})
     assert not stored_resolution_stage({"working_points": 400, "max_points": 150})
     assert not stored_resolution_stage({"working_points": None, "max_points": 1200})
