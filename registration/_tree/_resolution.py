@@ -399,25 +399,20 @@ def _polish_stored(full: _Collection, subjects: list[SubjectResult], cpd: CPDOpt
     layer 2 from the root's own points, deeper from the parent as polished here, whether
     or not the parent's polish moved it) and goes on to the halfway registration whatever
     that edge's e (kept there at up to ``CONSENSUS_MAX_E_RATIO`` times the lower e of the
-    two, as always): the stored CPD only refines the coarse edge where it lies, and a full
-    CPD at the stored points can leave a slide the coarse one settled into; halfway, the
-    two err differently (bench/RESULTS.md 7.31: the full CPD alone in place of the
-    stored one breaks glyphs, halfway it gains on every class at 1200 points).
+    two, as always): the stored CPD only refines the coarse edge where it lies, so what
+    the coarse stage could not fit (the stages' finer kernel on 400 points, a slide the
+    coarse sampling allowed) is left to this stage, and a full CPD at the stored points
+    can leave a slide of its own; halfway, the two err differently. Alone, the full CPD
+    in place of the stored one breaks glyphs.
 
-    The stored CPD only replays each coarse edge; what the coarse polish could not fit
-    (its stages' finer kernel on 400 points, slides the coarse sampling allowed) is left
-    to this stage. Until session 36 it ran the finish and the symmetric finish alone
-    there. Ground truth, tree / plain CPD, all subjects (bench/RESULTS.md 7.31):
-    glyphs rendered at 512 px and chained at 1200 points, edges 0.459 -> 0.439 and
-    skeletons 0.581 -> 0.479 (far halves at most 0.6x on 9 of 10 skeleton runs, 7
-    before); at 1200 points a shape, MPEG-7 0.496 -> 0.389, evenly sampled outlines 0.963
-    -> 0.718, random subsets 0.891 -> 0.763. The whole polish run after those finishes
-    instead of in their place: 0.444 and 0.514, in more time. Every edge again, taken
-    halfway: edges 0.419, skeletons 0.432 (every far half at most 0.6x), MPEG-7 0.287,
-    outlines 0.543 and 0.604, in 1.2-1.3x the tree's time; the test suite's 240-point
-    family decided at 60 points lost (0.0563 -> 0.0632). The 73 full-size 永 glyphs'
-    HTTP job: 13.5 s with the stored finishes, 20.8 s with this polish, 22.8 s with every
-    edge again; e at layer >= 3 0.0041 -> 0.0031 -> 0.0026."""
+    Ground truth, tree / plain CPD over all subjects (bench/RESULTS.md 7.31, where the
+    variants measured on the way are): glyph edges and skeletons rendered at 512 px and
+    chained at 1200 points, 0.459 / 0.581 with the stored finishes alone -> 0.419 /
+    0.432 (every far half at most 0.6x); at 1200 points a shape, MPEG-7 0.496 -> 0.287,
+    evenly sampled outlines 0.963 -> 0.543, random subsets 0.891 -> 0.604; the 73
+    full-size 永 glyphs' HTTP job 13.5 -> 22.8 s. Its cheaper variants (fewer stages
+    before the halfway step, an accelerated edge, fewer subject points) lose or save
+    little (7.32)."""
     results = {s.index: s for s in subjects}
     _polish_subjects(full, results, cpd, executor, progress,
                      stored=AtStored(control=control, edge_affines=affines))
