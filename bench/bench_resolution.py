@@ -176,7 +176,9 @@ def part_gt(points: int, designs: int) -> dict[str, Any]:
 def part_control(points: int, designs: list[int]) -> dict[str, Any]:
     """The stored-resolution stage with its CPDs' fields fitted on every model point
     against :data:`FINE_CONTROL_POINTS` of them, on one coarse tree per family (captured
-    from the default run, then the stage run again serially, both ways, in this process)."""
+    from the default run, then the stage run again serially, both ways, in this process),
+    the dynamic tree's polish there included as the default runs it (every CPD of that
+    polish fits its field with the same control points)."""
     import copy
 
     from registration import SerialExecutor
@@ -191,6 +193,7 @@ def part_control(points: int, designs: list[int]) -> dict[str, Any]:
 
     def capture(result: CollectionResult, *args: Any, **kwargs: Any) -> CollectionResult:
         captured["args"] = (copy.deepcopy(result), *args[:4])
+        captured["polish"] = kwargs.get("polish", False)
         return stage(result, *args, **kwargs)
 
     settings = {"every point": 10**9, "control": _resolution.FINE_CONTROL_POINTS}
@@ -212,7 +215,7 @@ def part_control(points: int, designs: list[int]) -> dict[str, Any]:
                 _resolution.FINE_CONTROL_POINTS = k
                 t = time.process_time()
                 res = stage(copy.deepcopy(coarse_result), full, coarse, cpd, wp,
-                            SerialExecutor(), None)
+                            SerialExecutor(), None, polish=captured["polish"])
                 cpu[name] += time.process_time() - t
                 errs = {s.index: correspondence_error(s.warped, truth[s.index],
                                                       fam.shapes[s.index])
