@@ -83,7 +83,10 @@ FINE_SIGMA2_FACTOR = 3.0
 #: edge families at 1205-1800 points a shape (bench/RESULTS.md section 8.2) fitting with
 #: 500 points gave the same ground-truth error as with every point (0.993x pooled, far
 #: half 0.998x, every design within 2 %; 1000 and 700 points the same) in 0.63x the
-#: stage's CPU time. Never fewer than the working resolution's points.
+#: stage's CPU time. The dynamic tree's polish at the stored resolution fits its CPDs with
+#: the same points, and there they cost more: with that polish, 1.07x the every-point
+#: error (far half 1.12x) in 0.23x the CPU; 800 points 1.05x in 0.40x, 1000 points 1.03x
+#: in 0.49x (bench/RESULTS.md 7.32). Never fewer than the working resolution's points.
 FINE_CONTROL_POINTS = 500
 
 
