@@ -197,7 +197,8 @@ class AtStored:
     """The polish at the stored resolution (:func:`registration._tree._resolution.
     _polish_stored`): `control`, the root indices every CPD's field through the model's
     points is fitted with (the backward CPD's with as many farthest points of the
-    subject; None: every point); `edge_affines`, each subject's edge's affine
+    subject; None: every point), but for the polish's stages (:func:`_stages`), which fit
+    theirs with `stage_control`; `edge_affines`, each subject's edge's affine
     pre-alignment. There every subject registers its edge again (from the root's own
     points at layer 2, else from the parent as polished there, moved or not) whatever
     that edge's e; the polish is recorded in ``quality["stored_polish"]``, reported as
@@ -206,6 +207,8 @@ class AtStored:
 
     control: IntArray | None
     edge_affines: dict[int, tuple[PointTransform, ...]]
+    # the root indices the polish's stages fit their fields with (None: every point)
+    stage_control: IntArray | None = None
 
 @dataclass(frozen=True)
 class _PolishTask:
@@ -236,6 +239,8 @@ class _PolishTask:
     # with, and the subject indices the backward CPD's is (None: every point)
     control: IntArray | None = None
     subject_control: IntArray | None = None
+    # the model indices the polish's stages (`_stages`) fit their fields with
+    stage_control: IntArray | None = None
 
     @cached_property
     def irregularity(self) -> float:
@@ -427,7 +432,7 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
         info["reason"] = "the partner's registration folds"
         return None, info
     other = _stages(partner.warped, partner.error, task.y, task.cpd, task.spacing2,
-                    task.model_irregularity, task.irregularity, task.control)
+                    task.model_irregularity, task.irregularity, task.stage_control)
     info["partner_polished_error"] = other.error
     moved = _polished_halfway(task, chain.warped, other.warped)
     if moved is None:
@@ -535,7 +540,8 @@ def _polished_halfway(task: _PolishTask, points: FloatArray, other: FloatArray
         return None
     step, start = moved
     return step, _stages(start, registration_error(start, task.y), task.y, task.cpd,
-                         task.spacing2, task.model_irregularity, task.irregularity, task.control)
+                         task.spacing2, task.model_irregularity, task.irregularity,
+                         task.stage_control)
 
 
 def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
@@ -710,14 +716,14 @@ def _extends(chain: _Stages, more: _Stages) -> _Stages:
 
 def _polish_task(task: _PolishTask) -> _PolishOutcome:
     chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2,
-                    task.model_irregularity, task.irregularity, task.control)
+                    task.model_irregularity, task.irregularity, task.stage_control)
     edge, edge_q, edge_info = None, None, None
     if task.from_parent is not None:
         edge, edge_q, edge_info = _edge_from_parent(task)
     if edge is not None and edge_info is not None:
         # the edge from the polished parent, polished (or alone, when no stage passes)
         other = _stages(edge.warped, edge.error, task.y, task.cpd, task.spacing2,
-                        task.model_irregularity, task.irregularity, task.control)
+                        task.model_irregularity, task.irregularity, task.stage_control)
         if not other.steps:
             other = replace(edge, steps=(), quality=())
         # the two polished registrations of the edge err differently: halfway, polished
@@ -915,6 +921,7 @@ def _polish_subject_task(
         edge_affine = tuple(edge[:affine_lead(edge)])
     y = coll.normed[s]
     control = None if stored is None else stored.control
+    stage_control = None if stored is None else stored.stage_control
     subject_control = (None if control is None or len(y) <= len(control)
                        else farthest_point_indices(y, len(control)))
     return _PolishTask(
@@ -925,4 +932,4 @@ def _polish_subject_task(
         else None,
         from_parent=from_parent, edge_affine=edge_affine,
         edge_within_chain_e=stored is None, control=control,
-        subject_control=subject_control)
+        subject_control=subject_control, stage_control=stage_control)

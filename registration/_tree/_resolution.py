@@ -88,6 +88,15 @@ FINE_SIGMA2_FACTOR = 3.0
 #: error (far half 1.12x) in 0.23x the CPU; 800 points 1.05x in 0.40x, 1000 points 1.03x
 #: in 0.49x (bench/RESULTS.md 7.32). Never fewer than the working resolution's points.
 FINE_CONTROL_POINTS = 500
+#: Most model points the stages of the dynamic tree's polish at the stored resolution
+#: (:func:`_polish_stored`) fit their fields with; its other CPDs (the edge registered
+#: again, the finish, the backward CPD) and its steps keep :data:`FINE_CONTROL_POINTS`.
+#: The stages' mixture of centroids is where the control points cost the polish most:
+#: with 1000 for the stages alone, eight 永 edge designs at 1200 points are at 1.03x the
+#: every-point error (far half 1.04x; 500: 1.07x / 1.12x; 1000 for every CPD: 1.03x /
+#: 1.06x in twice the stage's CPU), MPEG-7 chains at 1200 points 0.287 -> 0.265 of plain
+#: CPD, for 1.4x the polish's time (bench/RESULTS.md 7.32).
+POLISH_STAGE_CONTROL_POINTS = 1000
 
 
 def check_working_points(value: Any) -> int | None:
@@ -376,8 +385,11 @@ def at_stored_resolution(
     result.subjects, affines = _refined_subjects(full, result.subjects, cpd, control,
                                                  executor, progress, "full resolution")
     if polish:
+        n_stage = max(POLISH_STAGE_CONTROL_POINTS, n_control)
+        stage_control = (farthest_point_indices(root_points, n_stage)
+                         if len(root_points) > n_stage else None)
         result.subjects = _polish_stored(full, result.subjects, cpd, control, affines,
-                                         executor, progress)
+                                         executor, progress, stage_control)
     if result.direct is not None:
         result.direct = _refined_subjects(full, result.direct, cpd, control, executor,
                                           progress, "direct full resolution")[0]
@@ -387,16 +399,17 @@ def at_stored_resolution(
 def _polish_stored(full: _Collection, subjects: list[SubjectResult], cpd: CPDOptions,
                    control: IntArray | None,
                    affines: dict[int, tuple[PointTransform, ...]],
-                   executor: Executor | None, progress: ProgressCallback | None
-                   ) -> list[SubjectResult]:
+                   executor: Executor | None, progress: ProgressCallback | None,
+                   stage_control: IntArray | None = None) -> list[SubjectResult]:
     """`subjects`, registered at the stored resolution, polished there as the polish
     polished them at the working one (:func:`~registration._tree._polish._polish_subjects`:
     the stages from where the stored CPD left the model, the edge registered again from
     the parent as polished there (after `affines`, its affine pre-alignment), the finish
     from the root model and the symmetric finish; no consensus), every field through the
     model's points fitted with the `control` points (the backward CPD's with as many of
-    the subject's). Recorded in ``quality["stored_polish"]``; the confidence stays the
-    one the decisions were taken with.
+    the subject's), but the stages', which fit theirs with the `stage_control` points
+    (:data:`POLISH_STAGE_CONTROL_POINTS`). Recorded in ``quality["stored_polish"]``; the
+    confidence stays the one the decisions were taken with.
 
     Unlike the working resolution's polish, every subject registers its edge again (at
     layer 2 from the root's own points, deeper from the parent as polished here, whether
@@ -418,5 +431,6 @@ def _polish_stored(full: _Collection, subjects: list[SubjectResult], cpd: CPDOpt
     little (7.32)."""
     results = {s.index: s for s in subjects}
     _polish_subjects(full, results, cpd, executor, progress,
-                     stored=AtStored(control=control, edge_affines=affines))
+                     stored=AtStored(control=control, edge_affines=affines,
+                                     stage_control=stage_control))
     return [results[s.index] for s in subjects]

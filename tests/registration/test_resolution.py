@@ -15,7 +15,7 @@ from registration import (
     registration_error,
 )
 from registration._points import normalise
-from registration._tree import _resolution
+from registration._tree import _polish, _resolution
 from registration._tree._resolution import (
     DEFAULT_WORKING_POINTS,
     _edge_from_polished_parent,
@@ -257,9 +257,32 @@ def test_stored_resolution_fits_its_field_with_control_points(monkeypatch, runs,
 
 def test_control_points_are_never_fewer_than_the_working_points(monkeypatch, family):
     monkeypatch.setattr(_resolution, "FINE_CONTROL_POINTS", 50)
+    monkeypatch.setattr(_resolution, "POLISH_STAGE_CONTROL_POINTS", 50)
     res = build_dynamic_tree(family.shapes, 0, working_points=WORKING, cpd=FAST_CPD,
                              executor=SerialExecutor())
     assert {len(s.transform.steps[-1].control_points) for s in res.subjects} == {WORKING}
+
+
+def test_the_stored_polish_stages_fit_their_own_control_points(monkeypatch, family):
+    """The polish's stages at the stored resolution fit their fields with
+    ``POLISH_STAGE_CONTROL_POINTS`` of the root's points, its other CPDs with
+    ``FINE_CONTROL_POINTS``; the working resolution's stages with every point."""
+    monkeypatch.setattr(_resolution, "FINE_CONTROL_POINTS", 60)
+    monkeypatch.setattr(_resolution, "POLISH_STAGE_CONTROL_POINTS", 120)
+    stages: list[int | None] = []
+    stages_of = _polish._stages
+
+    def spy(*args, **kwargs):
+        control = args[7] if len(args) > 7 else kwargs.get("control")
+        stages.append(None if control is None else len(control))
+        return stages_of(*args, **kwargs)
+
+    monkeypatch.setattr(_polish, "_stages", spy)
+    res = build_dynamic_tree(family.shapes, 0, working_points=WORKING, cpd=FAST_CPD,
+                             executor=SerialExecutor())
+    assert set(stages) == {None, 120}
+    # the polish's steps and its other CPDs keep the stored stage's 60
+    assert {len(s.transform.steps[-1].control_points) for s in res.subjects} <= {60, 120}
 
 
 def test_static_tree_and_direct_are_at_the_stored_resolution(family):
