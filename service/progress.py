@@ -73,11 +73,12 @@ PHASE_WEIGHTS = {
     # bench/RESULTS.md 7.31)
     "full resolution": 0.011,
     # the polish again at the stored resolution (session 36, bench/RESULTS.md 7.31), at
-    # its own growth (STORED_POLISH_EXPONENT): bench_progress.py (session 37, 7.32) gives
-    # 0.46 of the decisions on chains800 (ratio 2) and 1.30 on yong40 (ratio 5.6), 0.23
-    # at ratio 1 on both when it grows linearly; 0.25 of these weights' decisions (their
-    # sum is 1.095). Session 36's weight under FINE_EXPONENT (0.13) put it at 0.37 and 1.72
-    "polish full resolution": 0.25,
+    # its own growth (STORED_POLISH_EXPONENT): bench_progress.py (session 37, 7.32, its
+    # stages at 1000 control points) gives 0.585 of the decisions on chains800 (ratio 2)
+    # and 1.81 on yong40 (ratio 5.6), 0.275 at ratio 1 on both; 0.30 of these weights'
+    # decisions (their sum is 1.095). Session 36's weight under FINE_EXPONENT (0.13)
+    # put it at 0.37 and 1.72
+    "polish full resolution": 0.30,
     "direct full resolution": 0.011,
 }
 #: A grouping job's phases, as shares of its run: the mean wall-clock shares of nine runs
@@ -104,10 +105,12 @@ ROTATION_START_COST = 3 / 16
 #: n^1.6; the weights are their means.
 FINE_EXPONENT = 1.5
 #: How the ``polish full resolution`` weight grows with the same ratio: every CPD of that
-#: polish fits the 500 control points of the root (``FINE_CONTROL_POINTS``) to the
-#: subject's points, so its E-step grows with the subject alone. Measured 1.01 between
-#: ratios 2 and 5.6 (bench/bench_progress.py, chains800 and yong40, bench/RESULTS.md 7.32).
-STORED_POLISH_EXPONENT = 1.0
+#: polish fits a fixed number of the root's points (500, its stages 1000: the
+#: ``_resolution`` module's control points) to the subject's points, so its E-step grows
+#: with the subject alone, and at 800 points a shape its stages fit every point. Measured
+#: 1.09 between ratios 2 and 5.6 (bench/bench_progress.py, chains800 and yong40,
+#: bench/RESULTS.md 7.32; 1.01 with the stages at 500).
+STORED_POLISH_EXPONENT = 1.1
 #: The ratio assumed for a job queued before ``max_points`` was recorded.
 DEFAULT_FINE_RATIO = 4.0
 #: Registrations the tree's layers run per subject, measured: 1.47 (demo), 2.38 (永 40),
