@@ -93,9 +93,10 @@ FINE_CONTROL_POINTS = 500
 #: again, the finish, the backward CPD) and its steps keep :data:`FINE_CONTROL_POINTS`.
 #: The stages' mixture of centroids is where the control points cost the polish most:
 #: with 1000 for the stages alone, eight 永 edge designs at 1200 points are at 1.03x the
-#: every-point error (far half 1.04x; 500: 1.07x / 1.12x; 1000 for every CPD: 1.03x /
-#: 1.06x in twice the stage's CPU), MPEG-7 chains at 1200 points 0.287 -> 0.265 of plain
-#: CPD, for 1.4x the polish's time (bench/RESULTS.md 7.32).
+#: every-point error (far half 1.06x; 500: 1.07x / 1.12x; 1000 for every CPD: 1.03x /
+#: 1.06x in twice the stage's CPU); against plain CPD, dense glyph edges 0.419 -> 0.407,
+#: skeletons 0.432 -> 0.417, MPEG-7 chains at 1200 points 0.287 -> 0.271, evenly sampled
+#: outlines 0.543 -> 0.555, for 1.4x the polish's time (bench/RESULTS.md 7.32).
 POLISH_STAGE_CONTROL_POINTS = 1000
 
 
