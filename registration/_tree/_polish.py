@@ -50,8 +50,8 @@ from its own start, the finish's from the root. Then the finish is made symmetri
 points move halfway to where the inverse of that backward field puts them.
 A tree decided at a working resolution (:mod:`._resolution`) is polished once more on
 the stored points, without the consensus, every subject's edge registered again there,
-its fields fitted through the stored stage's control points (``quality["stored_polish"]``;
-7.31).
+its fields fitted through the stored stage's control points, its stages' through twice
+as many (``quality["stored_polish"]``; 7.31, 7.32).
 Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine), 0.0000
 (layer 2, skipping) and 0.0000000 (the consensus); 7.4 (accelerated EM), 7.5 (the
 consensus's e rule), 7.7 (edges from polished parents, the halfway step), 7.11 (the
