@@ -236,7 +236,8 @@ class _PolishTask:
     # own rule decides: the stored resolution's polish, see `_polish_subjects`)
     edge_within_chain_e: bool = True
     # the model (root) indices every CPD's field through the model's points is fitted
-    # with, and the subject indices the backward CPD's is (None: every point)
+    # with but the stages' (`stage_control`), and the subject indices the backward CPD's
+    # is (None: every point)
     control: IntArray | None = None
     subject_control: IntArray | None = None
     # the model indices the polish's stages (`_stages`) fit their fields with

@@ -135,8 +135,8 @@ def test_phase_weights() -> None:
                           max_points=n, working_points=400)["full resolution"]
             for n in (500, 1500, 3000)]  # fmt: skip
     assert fine == sorted(fine) and fine[0] < fine[-1]
-    # against a decision's phase, the stored polish grows as the points (its CPDs fit the
-    # root's control points), the other stored-resolution phases faster
+    # against a decision's phase, the stored polish grows about as the points (its CPDs
+    # fit a fixed number of the root's points), the other stored-resolution phases faster
     two, four = (phase_weights("dynamic_tree", compare_direct=True, coarse_to_fine=True,
                                max_points=n, working_points=400) for n in (800, 1600))
     for phase, growth in (("polish full resolution", 2.0 ** STORED_POLISH_EXPONENT),
