@@ -224,10 +224,74 @@ def sampling_irregularity(points: FloatArray) -> float:
     if len(points) < 4:
         return 0.0
     d, i = cKDTree(points).query(points, k=3)
-    w = d[:, 1:].mean(axis=1)
+    return _irregularity(d, i)
+
+
+def _irregularity(d: FloatArray, i: IntArray) -> float:
+    """:func:`sampling_irregularity` from each point's nearest neighbours (a k-d tree
+    query of k >= 3, the point itself first)."""
+    w = d[:, 1:3].mean(axis=1)
     around = 0.5 * (w[i[:, 1]] + w[i[:, 2]])
     ok = (w > 0) & (around > 0)
     if not ok.any():
         return 0.0
     r = np.log(w[ok] / around[ok])
     return float(np.mean(r * r)) / IID_SAMPLING_IRREGULARITY
+
+
+#: :func:`sampling_weights`: each point's spacing is its mean distance to this many
+#: nearest neighbours ...
+SAMPLING_WEIGHT_NEIGHBOURS = 4
+#: ... as a multiple of the mean spacing, bounded to this factor either way of 1.
+SAMPLING_WEIGHT_MAX = 3.0
+#: Below this :func:`sampling_irregularity` the sampling is even and every weight is 1.
+#: Evenly sampled outlines measure 0.00-0.05 (bench/bench_groundtruth.py's even and
+#: arc-length outlines and generated shapes, also after their smooth warps), drawn at
+#: random 0.3-1.8; there the spacings' spread is the outline's geometry (its bends and
+#: narrow parts), not a sampling to even out, and weighting it only perturbs each CPD
+#: (bench/RESULTS.md 7.33).
+SAMPLING_WEIGHT_MIN_IRREGULARITY = 0.1
+
+
+def sampling_weights(points: FloatArray) -> FloatArray:
+    """Mixture weights that even out a shape's sampling: about the outline length each
+    point stands for, as a fraction of the mean (mean 1).
+
+    Points drawn independently along an outline cluster and leave gaps. As the centroids
+    of CPD's mixture each stands for the same mass, so a cluster pulls the subject's
+    points harder than the stretch of outline it covers, and a gap less. Weighting each
+    centroid by its spacing (its mean distance to its :data:`SAMPLING_WEIGHT_NEIGHBOURS`
+    nearest points, divided by the mean spacing and bounded to
+    :data:`SAMPLING_WEIGHT_MAX` either way) gives every stretch of outline about the same
+    mass. The weights are moved towards 1 as far as the sampling is even: ``1 + rho (s -
+    1)`` with ``rho = min(1, sampling_irregularity(points))``, and are all 1 below
+    :data:`SAMPLING_WEIGHT_MIN_IRREGULARITY`. So an even sampling, also one stretched by
+    a smooth deformation (whose density then varies alike on every shape of a family and
+    so carries correspondence), keeps the uniform mixture, and only the point-to-point
+    scatter of random draws is evened out. Fewer than 5 points: all 1.
+
+    Parameters
+    ----------
+    points : ndarray, shape (M, 2)
+
+    Returns
+    -------
+    ndarray, shape (M,)
+        Positive, mean 1.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    m = len(p)
+    k = max(SAMPLING_WEIGHT_NEIGHBOURS, 2)
+    if m <= k:
+        return np.ones(m)
+    # one query serves both: the nearest two (the irregularity) and the nearest four
+    d, i = cKDTree(p).query(p, k=k + 1)
+    rho = min(1.0, _irregularity(d, i))
+    if rho < SAMPLING_WEIGHT_MIN_IRREGULARITY:
+        return np.ones(m)
+    spacing = d[:, 1:SAMPLING_WEIGHT_NEIGHBOURS + 1].mean(axis=1)
+    mean = float(spacing.mean())
+    s = spacing / mean if mean > 0 else np.ones(m)
+    s = np.clip(s, 1.0 / SAMPLING_WEIGHT_MAX, SAMPLING_WEIGHT_MAX)
+    s = 1.0 + rho * (s - 1.0)
+    return np.asarray(s / s.mean(), dtype=np.float64)

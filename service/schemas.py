@@ -198,6 +198,7 @@ def _cpd_rules(schema: dict[str, Any]) -> None:
     Run when the OpenAPI document is built, so the library is imported then, not at start.
     """
     from registration._cpd import DTYPES, CPDOptions
+    from registration._cpd._options import MIXTURES
 
     properties = schema.get("properties", {})
     for name, allowed in CPDOptions.RANGES.items():
@@ -207,6 +208,10 @@ def _cpd_rules(schema: dict[str, Any]) -> None:
         if allowed.high is not None:
             prop["maximum" if allowed.high_closed else "exclusiveMaximum"] = allowed.high
     properties["dtype"]["enum"] = list(DTYPES)
+    # Optional[str]: pydantic states it as anyOf [string, null]
+    for branch in properties["mixture_weights"].get("anyOf", []):
+        if branch.get("type") == "string":
+            branch["enum"] = list(MIXTURES)
 
 
 class CPDParams(BaseModel):
@@ -233,8 +238,16 @@ class CPDParams(BaseModel):
         description="Precision of CPD's E-step: float32 is about 1.35x faster and agrees with "
         "float64 to about 1e-4 (same tree, e within 2e-5 on the 73 glyphs benchmark).",
     )
+    mixture_weights: str | None = Field(
+        default=None,
+        description="The mixture's weights: 'uniform' (every model point alike, as CPD), "
+        "'sampling' (each model point weighted by the outline length it stands for, so the "
+        "clusters of a randomly sampled shape do not outweigh its gaps), or null: the "
+        "method's own ('sampling' for the dynamic tree, 'uniform' for direct CPD and the "
+        "static tree, the paper's baselines).",
+    )
 
-    @field_validator("beta", "lmbda", "w", "max_iter", "tol", "dtype")
+    @field_validator("beta", "lmbda", "w", "max_iter", "tol", "dtype", "mixture_weights")
     @classmethod
     def _library_rule(cls, value: Any, info: ValidationInfo) -> Any:
         # imported here, not at module level, so that the API starts without numpy

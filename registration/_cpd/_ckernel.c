@@ -469,11 +469,38 @@ done:
     return ret;
 }
 
+/* obj None: 0; else its buffer in b, checked to hold `items` of `size` bytes: 1; -1 on
+ * error (an exception set). */
+static int optional_buffer(PyObject *obj, Py_buffer *b, Py_ssize_t items, Py_ssize_t size,
+                           const char *name) {
+    if (obj == Py_None)
+        return 0;
+    if (PyObject_GetBuffer(obj, b, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0)
+        return -1;
+    if (check_len(b, items, size, name)) {
+        PyBuffer_Release(b);
+        return -1;
+    }
+    return 1;
+}
+
 /* One subject point's (xa, ya) kernels with the m centroids (t0, t1) into kb, float64;
- * returns their sum. */
-static inline double column64(Py_ssize_t m, const double *t0, const double *t1, double xa,
-                              double ya, double scale, double *kb) {
+ * returns their sum. lw (M,): each centroid's log mixture weight (<= 0), added to its
+ * exponents; NULL: none. */
+static inline double column64(Py_ssize_t m, const double *t0, const double *t1,
+                              const double *lw, double xa, double ya, double scale,
+                              double *kb) {
     double s = 0.0;
+    if (lw) {
+#pragma omp simd reduction(+ : s)
+        for (Py_ssize_t i = 0; i < m; i++) {
+            const double dx = t0[i] - xa, dy = t1[i] - ya;
+            const double k = exp_nonpos(lw[i] - scale * (dx * dx + dy * dy));
+            kb[i] = k;
+            s += k;
+        }
+        return s;
+    }
 #pragma omp simd reduction(+ : s)
     for (Py_ssize_t i = 0; i < m; i++) {
         const double dx = t0[i] - xa, dy = t1[i] - ya;
@@ -487,14 +514,15 @@ static inline double column64(Py_ssize_t m, const double *t0, const double *t1, 
 /* The dense E-step's sums, float64: column n's kernels into kb, their sum, then each
  * centroid's share. */
 CLONES static double dense64(Py_ssize_t m, Py_ssize_t n, const double *t0, const double *t1,
-                             const double *x, double scale, double c, double floor_,
+                             const double *lw, const double *x, double scale, double c,
+                             double floor_,
                              double *kb, double *p1, double *px0, double *px1, double *pt1) {
     double sumlog = 0.0;
     for (Py_ssize_t i = 0; i < m; i++)
         p1[i] = px0[i] = px1[i] = 0.0;
     for (Py_ssize_t a = 0; a < n; a++) {
         const double xa = x[2 * a], ya = x[2 * a + 1];
-        const double s = column64(m, t0, t1, xa, ya, scale, kb);
+        const double s = column64(m, t0, t1, lw, xa, ya, scale, kb);
         double den = s + c;
         if (!(den >= floor_))
             den = floor_;
@@ -520,7 +548,8 @@ CLONES static double dense64(Py_ssize_t m, Py_ssize_t n, const double *t0, const
  * still theirs over their sum) has its column taken in float64. */
 #define F32_RUN 256
 CLONES static double dense32(Py_ssize_t m, Py_ssize_t n, const double *t0, const double *t1,
-                             const double *x, double scale, double c, double floor_,
+                             const double *lw, const double *x, double scale, double c,
+                             double floor_,
                              float *kb, float *acc, double *kb64, double *p1, double *px0,
                              double *px1, double *pt1) {
     double sumlog = 0.0;
@@ -534,17 +563,28 @@ CLONES static double dense32(Py_ssize_t m, Py_ssize_t n, const double *t0, const
         for (Py_ssize_t a = a0; a < end; a++) {
             const double xa = x[2 * a], ya = x[2 * a + 1];
             float s = 0.0f;
+            if (lw) {
 #pragma omp simd reduction(+ : s)
-            for (Py_ssize_t i = 0; i < m; i++) {
-                const double dx = t0[i] - xa, dy = t1[i] - ya;
-                const float k = expf_nonpos((float)(-scale * (dx * dx + dy * dy)));
-                kb[i] = k;
-                s += k;
+                for (Py_ssize_t i = 0; i < m; i++) {
+                    const double dx = t0[i] - xa, dy = t1[i] - ya;
+                    const float k =
+                        expf_nonpos((float)(lw[i] - scale * (dx * dx + dy * dy)));
+                    kb[i] = k;
+                    s += k;
+                }
+            } else {
+#pragma omp simd reduction(+ : s)
+                for (Py_ssize_t i = 0; i < m; i++) {
+                    const double dx = t0[i] - xa, dy = t1[i] - ya;
+                    const float k = expf_nonpos((float)(-scale * (dx * dx + dy * dy)));
+                    kb[i] = k;
+                    s += k;
+                }
             }
             /* kernels below float32's range (w = 0, far from every centroid), or weights
                x / den beyond it: the column in float64 */
             if (s < 1e-30f || (fabs(xa) + fabs(ya)) / ((double)s + c) > 1e30) {
-                const double s64 = column64(m, t0, t1, xa, ya, scale, kb64);
+                const double s64 = column64(m, t0, t1, lw, xa, ya, scale, kb64);
                 double den = s64 + c;
                 if (!(den >= floor_))
                     den = floor_;
@@ -580,17 +620,20 @@ CLONES static double dense32(Py_ssize_t m, Py_ssize_t n, const double *t0, const
     return sumlog;
 }
 
-/* dense(tt, x, scale, c, floor, f32, p1, px, pt1) -> sum_n log den_n
+/* dense(tt, x, scale, c, floor, f32, p1, px, pt1, lw=None) -> sum_n log den_n
  *
  * tt (2, M) float64 the centroids' coordinates; x (N, 2) float64 the subject; scale =
- * 1 / (2 sigma^2); c the outlier constant; f32 true: the kernels in float32.  den_n = max(sum_m K_mn + c, floor); p1 (M,) = K (1 / den), px (2, M) =
+ * 1 / (2 sigma^2); c the outlier constant; f32 true: the kernels in float32; lw (M,)
+ * float64 or None: each centroid's log mixture weight (<= 0), K_mn = exp(lw_m - scale
+ * |t_m - x_n|^2).  den_n = max(sum_m K_mn + c, floor); p1 (M,) = K (1 / den), px (2, M) =
  * (K (x / den))^T, pt1 (N,) = colsum / den, all float64 and overwritten. */
 static PyObject *dense(PyObject *self, PyObject *args) {
-    Py_buffer bt, bx, bp1, bpx, bpt1;
+    Py_buffer bt, bx, bp1, bpx, bpt1, blw;
     double scale, c, floor_;
-    int f32;
-    if (!PyArg_ParseTuple(args, "y*y*dddpw*w*w*", &bt, &bx, &scale, &c, &floor_, &f32, &bp1,
-                          &bpx, &bpt1))
+    int f32, have_lw = 0;
+    PyObject *lw_obj = Py_None;
+    if (!PyArg_ParseTuple(args, "y*y*dddpw*w*w*|O", &bt, &bx, &scale, &c, &floor_, &f32,
+                          &bp1, &bpx, &bpt1, &lw_obj))
         return NULL;
     PyObject *ret = NULL;
     Py_ssize_t m = bp1.len / 8, n = bx.len / 16;
@@ -599,6 +642,10 @@ static PyObject *dense(PyObject *self, PyObject *args) {
         || check_len(&bx, 2 * n, 8, "x") || check_len(&bpx, 2 * m, 8, "px")
         || check_len(&bpt1, n, 8, "pt1"))
         goto done;
+    if ((have_lw = optional_buffer(lw_obj, &blw, m, 8, "lw")) < 0) {
+        have_lw = 0;
+        goto done;
+    }
     /* float32: the kernels, three sums and a float64 column; float64: the kernels */
     if ((work = workspace(m, f32 ? 4 * sizeof(float) + sizeof(double) : sizeof(double)))
         == NULL)
@@ -606,21 +653,24 @@ static PyObject *dense(PyObject *self, PyObject *args) {
     {
         double sumlog;
         double *p1 = bp1.buf, *px = bpx.buf;
+        const double *lw = have_lw ? blw.buf : NULL;
         Py_BEGIN_ALLOW_THREADS
         const double *t = bt.buf;
         if (f32) {
-            sumlog = dense32(m, n, t, t + m, bx.buf, scale, c, floor_, work,
+            sumlog = dense32(m, n, t, t + m, lw, bx.buf, scale, c, floor_, work,
                              (float *)work + m, (double *)((float *)work + 4 * m), p1, px,
                              px + m, bpt1.buf);
         } else {
-            sumlog = dense64(m, n, t, t + m, bx.buf, scale, c, floor_, work, p1, px, px + m,
-                             bpt1.buf);
+            sumlog = dense64(m, n, t, t + m, lw, bx.buf, scale, c, floor_, work, p1, px,
+                             px + m, bpt1.buf);
         }
         Py_END_ALLOW_THREADS
         ret = PyFloat_FromDouble(sumlog);
     }
 done:
     free(work);
+    if (have_lw)
+        PyBuffer_Release(&blw);
     PyBuffer_Release(&bt);
     PyBuffer_Release(&bx);
     PyBuffer_Release(&bp1);
@@ -630,15 +680,16 @@ done:
 }
 
 CLONES static void posterior64(Py_ssize_t m, Py_ssize_t n, const double *t0,
-                               const double *t1, const double *x, double scale, double c,
-                               double floor_, double *kb, int64_t *arg, double *best) {
+                               const double *t1, const double *lw, const double *x,
+                               double scale, double c, double floor_, double *kb,
+                               int64_t *arg, double *best) {
     for (Py_ssize_t i = 0; i < m; i++) {
         best[i] = -1.0;
         arg[i] = 0;
     }
     for (Py_ssize_t a = 0; a < n; a++) {
         const double xa = x[2 * a], ya = x[2 * a + 1];
-        const double s = column64(m, t0, t1, xa, ya, scale, kb);
+        const double s = column64(m, t0, t1, lw, xa, ya, scale, kb);
         double den = s + c;
         if (!(den >= floor_))
             den = floor_;
@@ -653,13 +704,16 @@ CLONES static void posterior64(Py_ssize_t m, Py_ssize_t n, const double *t0,
     }
 }
 
-/* posterior_max(tt, x, scale, c, floor, arg, best): for each centroid m the first n
- * maximising P(m | x_n) = K_mn / den_n (den as in `dense`) and that maximum; tt (2, M)
- * float64, arg (M,) int64, best (M,) float64, both overwritten. */
+/* posterior_max(tt, x, scale, c, floor, arg, best, lw=None): for each centroid m the
+ * first n maximising P(m | x_n) = K_mn / den_n (K, den and lw as in `dense`) and that
+ * maximum; tt (2, M) float64, arg (M,) int64, best (M,) float64, both overwritten. */
 static PyObject *posterior_max(PyObject *self, PyObject *args) {
-    Py_buffer bt, bx, barg, bbest;
+    Py_buffer bt, bx, barg, bbest, blw;
     double scale, c, floor_;
-    if (!PyArg_ParseTuple(args, "y*y*dddw*w*", &bt, &bx, &scale, &c, &floor_, &barg, &bbest))
+    int have_lw = 0;
+    PyObject *lw_obj = Py_None;
+    if (!PyArg_ParseTuple(args, "y*y*dddw*w*|O", &bt, &bx, &scale, &c, &floor_, &barg,
+                          &bbest, &lw_obj))
         return NULL;
     PyObject *ret = NULL;
     Py_ssize_t m = bbest.len / 8, n = bx.len / 16;
@@ -667,17 +721,24 @@ static PyObject *posterior_max(PyObject *self, PyObject *args) {
     if (check_len(&bt, 2 * m, 8, "tt") || check_len(&bx, 2 * n, 8, "x")
         || check_len(&barg, m, 8, "arg") || check_len(&bbest, m, 8, "best"))
         goto done;
+    if ((have_lw = optional_buffer(lw_obj, &blw, m, 8, "lw")) < 0) {
+        have_lw = 0;
+        goto done;
+    }
     if ((work = workspace(m, sizeof(double))) == NULL)
         goto done;
     {
         const double *t = bt.buf;
         Py_BEGIN_ALLOW_THREADS
-        posterior64(m, n, t, t + m, bx.buf, scale, c, floor_, work, barg.buf, bbest.buf);
+        posterior64(m, n, t, t + m, have_lw ? blw.buf : NULL, bx.buf, scale, c, floor_,
+                    work, barg.buf, bbest.buf);
         Py_END_ALLOW_THREADS
         ret = Py_NewRef(Py_None);
     }
 done:
     free(work);
+    if (have_lw)
+        PyBuffer_Release(&blw);
     PyBuffer_Release(&bt);
     PyBuffer_Release(&bx);
     PyBuffer_Release(&barg);
@@ -876,19 +937,6 @@ CLONES static void nearest64(Py_ssize_t nb, Py_ssize_t n, Py_ssize_t m, const do
             }
         }
     }
-}
-
-static int optional_buffer(PyObject *obj, Py_buffer *b, Py_ssize_t items, Py_ssize_t size,
-                           const char *name) {
-    if (obj == Py_None)
-        return 0;
-    if (PyObject_GetBuffer(obj, b, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0)
-        return -1;
-    if (check_len(b, items, size, name)) {
-        PyBuffer_Release(b);
-        return -1;
-    }
-    return 1;
 }
 
 /* nearest(a0, a1, b0, b1, n, m, row_arg, row_d2, col_arg, col_d2)

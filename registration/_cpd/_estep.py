@@ -160,14 +160,48 @@ def _outlier_const(sigma2: float, w: float, m: int, n: int) -> float:
     return 2.0 * math.pi * sigma2 * w / (1.0 - w) * m / n
 
 
-class _EStep:
-    """Workspace for repeated E-steps against a fixed subject ``x`` (normalised)."""
+class _MixtureWeights:
+    """The centroids' mixture weights ``pi_m`` (mean 1; the uniform mixture's are all 1)
+    in the form every E-step pass takes them: scaled so that the largest is 1, ``rel =
+    pi / max(pi)`` (and ``log_rel``, <= 0, added to the kernels' exponents), so every
+    weighted kernel stays in ``(0, 1]``; the outlier constant is scaled by the same
+    ``1 / max(pi)`` (:meth:`outlier_const`), which leaves every posterior as with
+    ``pi`` itself, and each denominator is ``max(pi)`` times smaller (:attr:`log_max`,
+    per subject point, restores the objective)."""
 
-    def __init__(self, x: FloatArray, m: int, w: float, dtype: str) -> None:
+    __slots__ = ("log_max", "log_min_rel", "log_rel", "rel")
+
+    def __init__(self, weights: FloatArray) -> None:
+        wmax = float(np.max(weights))
+        self.rel = np.ascontiguousarray(weights / wmax, dtype=np.float64)
+        self.log_rel = np.log(self.rel)
+        self.log_max = math.log(wmax)
+        self.log_min_rel = float(np.min(self.log_rel))
+
+    def outlier_const(self, c: float) -> float:
+        return c * math.exp(-self.log_max)
+
+
+def _outlier_scaled(sigma2: float, w: float, m: int, n: int,
+                    mix: _MixtureWeights | None) -> float:
+    """The outlier constant as the passes take it (:class:`_MixtureWeights`)."""
+    c = _outlier_const(sigma2, w, m, n)
+    return c if mix is None else mix.outlier_const(c)
+
+
+class _EStep:
+    """Workspace for repeated E-steps against a fixed subject ``x`` (normalised); `mix`:
+    the centroids' mixture weights (None: uniform, CPD's)."""
+
+    def __init__(self, x: FloatArray, m: int, w: float, dtype: str,
+                 mix: _MixtureWeights | None = None) -> None:
         self.x = x
         self.n = len(x)
         self.m = m
         self.w = w
+        self.mix = mix
+        # each pass's sum of log denominators is off by n log(max pi) (see _MixtureWeights)
+        self._nll_shift = 0.0 if mix is None else -self.n * mix.log_max
         self.dtype = np.dtype(dtype)
         self.xsq = np.einsum("ij,ij->i", x, x)
         self.x_c = np.ascontiguousarray(x, dtype=np.float64)  # for _ckernel
@@ -201,12 +235,14 @@ class _EStep:
     # -- dense -------------------------------------------------------------------------
     def dense(self, t: FloatArray, sigma2: float) -> _EStepOut:
         m, n, x = self.m, self.n, self.x
-        c = _outlier_const(sigma2, self.w, m, n)
+        c = _outlier_scaled(sigma2, self.w, m, n, self.mix)
         if _switch.CKERNEL is not None:
             return self._dense_compiled(t, sigma2, c)
         # float32's exp keeps its vector path below -708 (see _kernel_in_place)
         clip = self.dtype == np.float64 and _max_exponent(t, x, sigma2) > -_EXP_MIN
         ta = _exponent_rows(t, sigma2)
+        if self.mix is not None:
+            ta[:, 2] += self.mix.log_rel  # the column that multiplies 1
         p1 = np.zeros(m)
         px = np.zeros((m, 2))
         pt1 = np.empty(n)
@@ -253,7 +289,7 @@ class _EStep:
             p1 += acc[:, 2]
             pt1[a:b] = colsum * inv
             nll -= float(np.sum(np.log(den)))
-        nll += n * math.log(sigma2)  # N D/2 log sigma2, D = 2
+        nll += n * math.log(sigma2) + self._nll_shift  # N D/2 log sigma2, D = 2
         return _EStepOut(p1, pt1, px, nll, m * n)
 
     def _dense_compiled(self, t: FloatArray, sigma2: float, c: float) -> _EStepOut:
@@ -269,8 +305,10 @@ class _EStep:
         pt1 = np.empty(n)
         ck = _switch.CKERNEL
         sumlog = ck.dense(np.ascontiguousarray(t.T, dtype=np.float64), self.x_c,
-                          0.5 / sigma2, c, _DEN_FLOOR, self.dtype == np.float32, p1, px, pt1)
-        return _EStepOut(p1, pt1, px.T, n * math.log(sigma2) - sumlog, m * n)
+                          0.5 / sigma2, c, _DEN_FLOOR, self.dtype == np.float32, p1, px, pt1,
+                          None if self.mix is None else self.mix.log_rel)
+        return _EStepOut(p1, pt1, px.T, n * math.log(sigma2) - sumlog + self._nll_shift,
+                         m * n)
 
     # -- grid (fast Gauss transform) ----------------------------------------------------
     def grid_cost(self, t: FloatArray, sigma2: float) -> float | None:
@@ -317,8 +355,9 @@ class _EStep:
         """The E-step from two Gauss transforms: ``to_x(q)`` sums weights ``q`` (M, k) at
         the centroids onto the subject points, ``to_t`` the reverse."""
         m, n, x = self.m, self.n, self.x
-        c = _outlier_const(sigma2, self.w, m, n)
-        colsum = to_x(np.ones((m, 1)))[:, 0]
+        c = _outlier_scaled(sigma2, self.w, m, n, self.mix)
+        rel = None if self.mix is None else self.mix.rel[:, None]
+        colsum = to_x(np.ones((m, 1)) if rel is None else rel)[:, 0]
         np.maximum(colsum, 0.0, out=colsum)
         den = colsum + c
         np.maximum(den, _DEN_FLOOR, out=den)
@@ -327,7 +366,9 @@ class _EStep:
         q[:, 0] = inv
         q[:, 1:] = x * inv[:, None]
         acc = to_t(q)
-        nll = -float(np.sum(np.log(den))) + n * math.log(sigma2)
+        if rel is not None:
+            acc *= rel
+        nll = -float(np.sum(np.log(den))) + n * math.log(sigma2) + self._nll_shift
         return _EStepOut(np.ascontiguousarray(acc[:, 0]), colsum * inv,
                          np.ascontiguousarray(acc[:, 1:]), nll, 0)
 
@@ -346,10 +387,12 @@ class _EStep:
         m = self.m
         eps = TRUNCATION_EPS_F32 if self.dtype == np.float32 else TRUNCATION_EPS
         if self.w > 0:
-            c = _outlier_const(sigma2, self.w, m, self.n)
+            c = _outlier_scaled(sigma2, self.w, m, self.n, self.mix)
             return math.sqrt(2.0 * sigma2 * math.log(m / (eps * min(c, 1.0))))
+        # weighted: a subject point's nearest centroid may carry the least weight
+        low = 0.0 if self.mix is None else -self.mix.log_min_rel
         dmin, _ = cKDTree(t).query(self.x, k=1)
-        return math.sqrt(float(np.max(dmin)) ** 2 + 2.0 * sigma2 * math.log(m / eps))
+        return math.sqrt(float(np.max(dmin)) ** 2 + 2.0 * sigma2 * (math.log(m / eps) + low))
 
     def density(self, t: FloatArray, r: float, sample: NDArray[np.intp]) -> float:
         """Estimated fraction of pairs within ``r`` (from a fixed sample of centroids)."""
@@ -388,12 +431,15 @@ class _EStep:
         assert xj is not None and indptr is not None and j32 is not None and kern is not None
         ck = _switch.CKERNEL
         ck.kernels(np.ascontiguousarray(t, dtype=np.float64), xj, indptr, 0.5 / sigma2, kern)
+        if self.mix is not None:  # the pairs are sorted by centroid
+            kern *= np.repeat(self.mix.rel, self._counts).astype(kern.dtype, copy=False)
         colsum, q, p1 = np.empty(n), np.empty((n, 3)), np.empty(m)
         px, pt1 = np.empty((m, 2)), np.empty(n)
         sumlog = ck.sums(kern, indptr, j32, np.ascontiguousarray(self.x, dtype=np.float64),
-                         _outlier_const(sigma2, self.w, m, n), _DEN_FLOOR,
+                         _outlier_scaled(sigma2, self.w, m, n, self.mix), _DEN_FLOOR,
                          colsum, q, p1, px, pt1)
-        return _EStepOut(p1, pt1, px, -sumlog + n * math.log(sigma2), len(kern))
+        return _EStepOut(p1, pt1, px, -sumlog + n * math.log(sigma2) + self._nll_shift,
+                         len(kern))
 
     def _truncated_numpy(self, t: FloatArray, sigma2: float) -> _EStepOut:
         """The truncated E-step's sums with numpy and scipy's sparse products."""
@@ -401,7 +447,7 @@ class _EStep:
         kmat = self._numpy_list()
         xj = self._xj
         assert xj is not None
-        c = _outlier_const(sigma2, self.w, m, n)
+        c = _outlier_scaled(sigma2, self.w, m, n, self.mix)
         # |t_i - x_j|^2 on the listed pairs, one coordinate at a time (1-D passes are
         # several times faster than a (P, 2) einsum); np.repeat = t[i] as rows are sorted
         e64 = np.repeat(t[:, 0], self._counts)
@@ -412,6 +458,8 @@ class _EStep:
         np.square(dy, out=dy)
         e64 += dy
         e64 *= -0.5 / sigma2
+        if self.mix is not None:
+            e64 += np.repeat(self.mix.log_rel, self._counts)
         # the kernel on the listed pairs (rows sorted by centroid), in float64 whatever the
         # dtype (a float32 list costs more in casts than its exp saves), written into the
         # list's own array, which its transpose (CSC) shares: the column sums are one
@@ -432,7 +480,7 @@ class _EStep:
         px[:, 0] = kmat @ xinv[:, 0]
         px[:, 1] = kmat @ xinv[:, 1]
         pt1 = colsum * inv
-        nll = -float(np.sum(np.log(den))) + n * math.log(sigma2)
+        nll = -float(np.sum(np.log(den))) + n * math.log(sigma2) + self._nll_shift
         return _EStepOut(p1, pt1, px, nll, len(e))
 
     def _moved(self, t: FloatArray) -> float:
@@ -518,8 +566,10 @@ class _EStep:
 
 
 def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float,
-                   sparse: bool = False) -> tuple[NDArray[np.intp], FloatArray]:
-    """For each centroid, ``argmax_n`` and ``max_n`` of ``P(m | x_n)``.
+                   sparse: bool = False, mix: _MixtureWeights | None = None
+                   ) -> tuple[NDArray[np.intp], FloatArray]:
+    """For each centroid, ``argmax_n`` and ``max_n`` of ``P(m | x_n)`` (`mix`: the
+    centroids' mixture weights, None: uniform).
 
     Above :data:`POSTERIOR_DENSE_MAX_PAIRS` pairs, or with ``sparse`` (the caller's last
     E-step was the truncated one, so few pairs lie within the radius), from the pairs
@@ -532,24 +582,26 @@ def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float,
     """
     m, n = len(t), len(x)
     if _switch.CKERNEL is not None and m * n <= POSTERIOR_DENSE_MAX_PAIRS_COMPILED:
-        return _posterior_max_dense(t, x, sigma2, w)
+        return _posterior_max_dense(t, x, sigma2, w, mix)
     if m * n <= POSTERIOR_DENSE_MAX_PAIRS and not sparse:
-        return _posterior_max_dense(t, x, sigma2, w)
-    r = _EStep(x, m, w, "float64").radius(t, sigma2)
+        return _posterior_max_dense(t, x, sigma2, w, mix)
+    r = _EStep(x, m, w, "float64", mix).radius(t, sigma2)
     x_tree = cKDTree(x)
     # a quarter of the pairs within the radius or more: the dense pass, without first
     # listing them (estimated from 64 centroids, as the E-step's choice does)
     sample = np.unique(np.linspace(0, m - 1, min(m, 64)).astype(np.intp))
     counts = x_tree.query_ball_point(t[sample], r, return_length=True)
     if float(np.mean(counts)) > POSTERIOR_SPARSE_MAX_DENSITY * n:
-        return _posterior_max_dense(t, x, sigma2, w)
+        return _posterior_max_dense(t, x, sigma2, w, mix)
     found = near_pairs(t, x, r, int(m * n * POSTERIOR_SPARSE_MAX_DENSITY))
     if found is None:
-        return _posterior_max_dense(t, x, sigma2, w)
+        return _posterior_max_dense(t, x, sigma2, w, mix)
     i, j, dist = found.i, found.j, found.dist
     assert dist is not None
     e = np.exp(-0.5 / sigma2 * dist**2)
-    den = np.bincount(j, weights=e, minlength=n) + _outlier_const(sigma2, w, m, n)
+    if mix is not None:
+        e *= mix.rel[i]
+    den = np.bincount(j, weights=e, minlength=n) + _outlier_scaled(sigma2, w, m, n, mix)
     np.maximum(den, _DEN_FLOOR, out=den)
     p = e / den[j]
     best = np.zeros(m)
@@ -568,13 +620,16 @@ def _posterior_max(t: FloatArray, x: FloatArray, sigma2: float, w: float,
         arg[rows] = j[hit[first]]
     lone = np.setdiff1d(np.arange(m), rows)
     if len(lone):
-        rows = _gauss_kernel(t[lone], x, math.sqrt(sigma2)) / den
-        arg[lone] = np.argmax(rows, axis=1)
-        best[lone] = rows[np.arange(len(lone)), arg[lone]]
+        post = _gauss_kernel(t[lone], x, math.sqrt(sigma2)) / den
+        if mix is not None:
+            post *= mix.rel[lone, None]
+        arg[lone] = np.argmax(post, axis=1)
+        best[lone] = post[np.arange(len(lone)), arg[lone]]
     return arg, np.clip(best, 0.0, 1.0)
 
 
-def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float
+def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float,
+                         mix: _MixtureWeights | None = None
                          ) -> tuple[NDArray[np.intp], FloatArray]:
     """For each centroid, ``argmax_n`` and ``max_n`` of ``P(m | x_n)`` over every pair, in
     blocks of subject points. The exponents come from one product per block, as in the
@@ -582,15 +637,18 @@ def _posterior_max_dense(t: FloatArray, x: FloatArray, sigma2: float, w: float
     underflowing values took 13-24 ns a pair: ten dense E-steps' time at 400 x 400
     points); float64 throughout."""
     m, n = len(t), len(x)
-    c = _outlier_const(sigma2, w, m, n)
+    c = _outlier_scaled(sigma2, w, m, n, mix)
     if _switch.CKERNEL is not None:  # one pass (see _EStep._dense_compiled)
         arg = np.empty(m, dtype=np.int64)
         best = np.empty(m)
         _switch.CKERNEL.posterior_max(np.ascontiguousarray(t.T, dtype=np.float64),
                                       np.ascontiguousarray(x, dtype=np.float64), 0.5 / sigma2,
-                                      c, _DEN_FLOOR, arg, best)
+                                      c, _DEN_FLOOR, arg, best,
+                                      None if mix is None else mix.log_rel)
         return arg.astype(np.intp, copy=False), np.clip(best, 0.0, 1.0)
     ta = _exponent_rows(t, sigma2)
+    if mix is not None:
+        ta[:, 2] += mix.log_rel
     xsq = np.einsum("ij,ij->i", x, x)
     clip = _max_exponent(t, x, sigma2) > -_EXP_MIN
     rows = np.arange(m)

@@ -16,9 +16,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._executor import checkpoint
-from .._points import as_points
+from .._points import as_points, sampling_weights
 from .._repr import number_text, points_text
-from ._estep import _EStep, _posterior_max, run_estep
+from ._estep import _EStep, _MixtureWeights, _posterior_max, run_estep
 from ._field import FloatArray, NonrigidTransform, _gauss_kernel, kernel_product
 from ._mstep import LowRankMStep, _low_rank_factor, _mstep_dense, _spd_solve
 from ._options import CPDOptions, check_run_options
@@ -80,10 +80,10 @@ class _Posterior:
 
     __slots__ = ("_args", "_value")
 
-    def __init__(self, t: FloatArray, x: FloatArray, s2: float, w: float, sparse: bool
-                 ) -> None:
-        self._args: tuple[FloatArray, FloatArray, float, float, bool] | None = (
-            t, x, s2, w, sparse)
+    def __init__(self, t: FloatArray, x: FloatArray, s2: float, w: float, sparse: bool,
+                 mix: _MixtureWeights | None = None) -> None:
+        self._args: tuple[FloatArray, FloatArray, float, float, bool,
+                          _MixtureWeights | None] | None = (t, x, s2, w, sparse, mix)
         self._value: tuple[NDArray[np.intp], FloatArray] | None = None
 
     def value(self) -> tuple[NDArray[np.intp], FloatArray]:
@@ -216,6 +216,7 @@ def cpd_nonrigid(
     control: ArrayLike | None = None,
     accelerate: bool = False,
     model_frame: tuple[ArrayLike, float] | None = None,
+    mixture_weights: ArrayLike | Literal["uniform", "sampling"] | None = None,
 ) -> CPDResult:
     """Non-rigid Coherent Point Drift: move ``model`` onto ``subject``.
 
@@ -324,6 +325,15 @@ def cpd_nonrigid(
         model already placed near its subject, whose centroid and radius would compare
         with the subject's only if both shapes were sampled alike (see the tree's polish).
         The returned transform carries it (``model_shift``, ``model_scale``).
+    mixture_weights : array_like of shape (M,), "uniform", "sampling" or None, default None
+        The mixture weight of each model point's Gaussian, relative (positive and finite;
+        scaled to mean 1): ``P(m | x_n)`` is proportional to ``pi_m exp(-|x_n -
+        t_m|^2 / (2 sigma^2))``. None or ``"uniform"``: every centroid alike, as CPD.
+        ``"sampling"``: :func:`~registration._points.sampling_weights` of the model, the
+        outline length each point stands for, so a randomly sampled model's clusters do
+        not outweigh its gaps (with ``control``: of the control points during the EM,
+        of every model point for the final correspondences). With ``control``, an array's
+        entries at the control points weight the EM's centroids. Native backend only.
 
     Returns
     -------
@@ -361,7 +371,8 @@ def cpd_nonrigid(
                              low_rank=low_rank, num_eig=num_eig, dtype=dtype,
                              truncate=truncate, gauss_grid=gauss_grid, backend=backend,
                              callback=callback, init_warped=init_warped, control=control,
-                             accelerate=accelerate, model_frame=model_frame)
+                             accelerate=accelerate, model_frame=model_frame,
+                             mixture_weights=mixture_weights)
 
 
 def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any, w: Any,
@@ -371,10 +382,12 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
                   init_warped: ArrayLike | None = None,
                   control: ArrayLike | None = None,
                   accelerate: Any = False,
-                  model_frame: tuple[ArrayLike, float] | None = None) -> CPDResult:
+                  model_frame: tuple[ArrayLike, float] | None = None,
+                  mixture_weights: Any = None) -> CPDResult:
     y_in = as_points(model, name="model")
     x_in = as_points(subject, name="subject")
     idx = _control_indices(control, len(y_in), backend)
+    weights = _checked_weights(mixture_weights, len(y_in), backend)
     m, n = (len(y_in) if idx is None else len(idx)), len(x_in)
     CPDOptions(beta=beta, lmbda=lmbda, w=w, max_iter=max_iter, tol=tol, dtype=dtype)
     check_run_options(sigma2, num_eig, backend, low_rank, truncate, normalize, callback, m,
@@ -433,7 +446,16 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
     mstep_low_rank = None if basis is None else LowRankMStep(*basis)
     gk: FloatArray | None = None if use_low_rank else _gauss_kernel(y, y, beta)
 
-    estep = _EStep(x, m, w, dtype)
+    mix: _MixtureWeights | None = None  # the EM's centroids'
+    mix_all: _MixtureWeights | None = None  # every model point's, for the correspondences
+    if isinstance(weights, str):
+        mix = _MixtureWeights(sampling_weights(y))
+        mix_all = mix if idx is None else _MixtureWeights(sampling_weights(y_all))
+    elif weights is not None:
+        mix_all = _MixtureWeights(weights)
+        # (mean 1 over the centroids: a common factor would scale the outlier weight)
+        mix = mix_all if idx is None else _MixtureWeights(weights[idx] / weights[idx].mean())
+    estep = _EStep(x, m, w, dtype, mix)
     estep.force_truncate = bool(truncate)
     sample = np.unique(np.linspace(0, m - 1, min(m, 64)).astype(np.intp))
     max_density = AUTO_TRUNCATE_MAX_DENSITY[dtype]
@@ -545,7 +567,8 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
                    yd=yd, ys=ys, iterations=it, converged=converged, objective=objective,
                    moved=None if idx is None else y_all,
                    sparse=truncate is True or (estep.choice is not None
-                                               and estep.choice[1] == "truncated"))
+                                               and estep.choice[1] == "truncated"),
+                   mix=mix_all)
 
 
 def _squarem(s0: tuple[FloatArray, FloatArray, float], s1: tuple[FloatArray, FloatArray, float],
@@ -616,6 +639,31 @@ def interpolating_field(points: ArrayLike, targets: ArrayLike, beta: float,
                              subject_scale=1.0)
 
 
+def _checked_weights(weights: Any, m: int, backend: Any) -> FloatArray | str | None:
+    """`mixture_weights` checked: None ("uniform" too), "sampling", or M positive finite
+    floats (mean 1)."""
+    if weights is None or (isinstance(weights, str) and weights == "uniform"):
+        return None
+    if backend != "native":
+        raise ValueError("mixture_weights needs backend='native'")
+    if isinstance(weights, str):
+        if weights != "sampling":
+            raise ValueError(f"mixture_weights must be None, 'uniform', 'sampling' or an "
+                             f"array of {m} positive numbers; got {weights!r}")
+        return weights
+    try:
+        arr = np.asarray(weights, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"mixture_weights must be None, 'uniform', 'sampling' or an array "
+                         f"of {m} positive numbers; got {type(weights).__name__}") from exc
+    if arr.shape != (m,):
+        raise ValueError(f"mixture_weights must have one entry per model point, shape "
+                         f"({m},); got shape {arr.shape}")
+    if not (np.all(np.isfinite(arr)) and np.all(arr > 0)):
+        raise ValueError("mixture_weights must be finite and > 0")
+    return np.asarray(arr / arr.mean(), dtype=np.float64)
+
+
 def _control_indices(control: ArrayLike | None, m: int, backend: Any) -> NDArray[np.intp] | None:
     """``control`` as validated model indices; None for every point."""
     if control is None:
@@ -640,7 +688,7 @@ def _finish(x: FloatArray, y: FloatArray, *, wmat: FloatArray,
             g: FloatArray | None, s2: float, w: float, beta: float, xd: FloatArray, xs: float,
             yd: FloatArray, ys: float, iterations: int, converged: bool,
             objective: float, moved: FloatArray | None = None,
-            sparse: bool = False) -> CPDResult:
+            sparse: bool = False, mix: _MixtureWeights | None = None) -> CPDResult:
     transform = NonrigidTransform(control_points=y, coefficients=wmat, beta=beta,
                                   model_shift=yd, model_scale=ys, subject_shift=xd,
                                   subject_scale=xs)
@@ -657,5 +705,5 @@ def _finish(x: FloatArray, y: FloatArray, *, wmat: FloatArray,
     warped.setflags(write=False)
     return CPDResult(warped=warped, transform=transform, sigma2=float(s2 * xs * xs),
                      iterations=iterations, converged=converged, objective=float(objective),
-                     _posterior=_Posterior(t, x, s2, w, sparse))
+                     _posterior=_Posterior(t, x, s2, w, sparse, mix))
 

@@ -18,6 +18,9 @@ import numpy as np
 
 #: Precisions of CPD's E-step.
 DTYPES = ("float64", "float32")
+#: CPD's mixture weights by name (:attr:`CPDOptions.mixture_weights`): every centroid
+#: alike, or each weighted by the outline length it stands for.
+MIXTURES = ("uniform", "sampling")
 BACKENDS = ("native", "pycpd")
 
 
@@ -88,6 +91,12 @@ class CPDOptions:
     #: 永 edge glyphs (400 points) it built the same tree as float64 (72 of 72 parents), e
     #: within 2e-5 relative, 1.35x faster end to end (bench/RESULTS.md).
     dtype: str = "float32"
+    #: The mixture's weights (:func:`~registration.cpd_nonrigid`'s ``mixture_weights``):
+    #: ``"uniform"`` (every model point's Gaussian alike, as CPD), ``"sampling"`` (each
+    #: weighted by the outline length it stands for), or None: the method's own,
+    #: ``"sampling"`` for the dynamic tree, ``"uniform"`` for the baselines (direct CPD,
+    #: the static tree), which stay the paper's.
+    mixture_weights: str | None = None
 
     #: The allowed values of each numeric option.
     RANGES: ClassVar[dict[str, Range]] = {
@@ -108,6 +117,11 @@ class CPDOptions:
         if name == "dtype":
             if not isinstance(value, str) or value not in DTYPES:
                 raise ValueError(f"dtype must be 'float64' or 'float32'; got {value!r}")
+            return value
+        if name == "mixture_weights":
+            if value is not None and (not isinstance(value, str) or value not in MIXTURES):
+                raise ValueError(f"mixture_weights must be 'uniform', 'sampling' or None; "
+                                 f"got {value!r}")
             return value
         allowed = cls.RANGES[name]
         if allowed.integer:

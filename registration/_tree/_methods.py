@@ -4,7 +4,7 @@ and direct CPD from the root."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Unpack
 
 import numpy as np
@@ -125,7 +125,7 @@ def build_dynamic_tree(
     _check_threshold("error_threshold", error_threshold)
     if max_candidates < 1:
         raise ValueError(f"max_candidates must be at least 1; got {max_candidates}")
-    run = _Run.prepare(shapes, root, options)
+    run = _Run.prepare(shapes, root, options, mixture="sampling")
     start = run.tree_start(options)
     cpd, prealign, spec, executor, progress = (run.cpd, run.prealign, run.pose, run.executor,
                                                run.progress)
@@ -359,15 +359,20 @@ class _Run:
     progress: ProgressCallback | None
 
     @classmethod
-    def prepare(cls, shapes: Sequence[ArrayLike], root: int, options: MethodOptions) -> _Run:
+    def prepare(cls, shapes: Sequence[ArrayLike], root: int, options: MethodOptions,
+                mixture: str = "uniform") -> _Run:
         """Check the arguments (ValueError) and prepare the collection; `options` holds
-        every option (:func:`takes_options` gives the defaults)."""
+        every option (:func:`takes_options` gives the defaults); `mixture`, the method's
+        own CPD mixture (:attr:`CPDOptions.mixture_weights`), for options that leave it to the
+        method."""
         working_points = check_working_points(options["working_points"])
         full = _Collection.prepare(shapes, root, options["names"])
         spec = PoseSpec.resolve(options["pose"], options["max_rotation"])
-        cpd = options["cpd"]
+        cpd = options["cpd"] if options["cpd"] is not None else CPDOptions()
+        if cpd.mixture_weights is None:
+            cpd = replace(cpd, mixture_weights=mixture)
         return cls(full=full, coll=coarse_collection(full, working_points),
-                   working_points=working_points, cpd=cpd if cpd is not None else CPDOptions(),
+                   working_points=working_points, cpd=cpd,
                    prealign=options["prealign"], pose=spec, executor=options["executor"],
                    progress=options["progress"])
 

@@ -359,7 +359,8 @@ def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
         res = cpd_nonrigid(cur, y, beta=factor * o.beta, lmbda=o.lmbda, w=o.w,
                            max_iter=o.max_iter, tol=o.tol, dtype=o.dtype, sigma2=sigma2,
                            accelerate=True, control=control,
-                           model_frame=_model_frame(cur, y, model_irregularity, irregularity))
+                           model_frame=_model_frame(cur, y, model_irregularity, irregularity),
+                           mixture_weights=o.mixture_weights)
         warped = np.asarray(res.warped, dtype=np.float64)
         e = registration_error(warped, y)
         q = measure_quality(cur, warped, y, res.transform, e, spacing2)
@@ -498,7 +499,8 @@ def _edge_from_parent(task: _PolishTask
         q = step.apply(q)
     o = task.cpd
     res = cpd_nonrigid(q, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter,
-                       tol=o.tol, dtype=o.dtype, control=task.control)
+                       tol=o.tol, dtype=o.dtype, control=task.control,
+                       mixture_weights=o.mixture_weights)
     warped = np.asarray(res.warped, dtype=np.float64)
     e = registration_error(warped, task.y)
     quality = measure_quality(q, warped, task.y, res.transform, e, task.spacing2)
@@ -570,7 +572,7 @@ def _cpd_from_root(model: FloatArray, y: FloatArray, start: FloatArray, sigma2: 
     res = cpd_nonrigid(model, y, beta=FINISH_BETA_FACTOR * o.beta,
                        lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w, max_iter=o.max_iter,
                        tol=o.tol, dtype=o.dtype, sigma2=sigma2, init_warped=start,
-                       accelerate=True, control=control)
+                       accelerate=True, control=control, mixture_weights=o.mixture_weights)
     if not float(jacobian_determinants(res.transform, model).min()) > 0:
         return None
     return res
@@ -662,7 +664,8 @@ def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: f
                             max_iter=o.max_iter,
                             tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * error, spacing2),
                             init_warped=start, accelerate=True,
-                            control=subject_control).transform
+                            control=subject_control,
+                            mixture_weights=o.mixture_weights).transform
 
     return halfway_back(model, y, warped, o.beta, backward, CONSENSUS_KERNEL_FACTOR * o.beta,
                         control)

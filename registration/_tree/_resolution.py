@@ -188,7 +188,8 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
     res = cpd_nonrigid(start, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, tol=o.tol,
                        max_iter=min(o.max_iter, FINE_MAX_ITER), dtype=o.dtype,
                        sigma2=warm_start_sigma2(start, task.y), normalize=False,
-                       control=task.control, accelerate=True)
+                       control=task.control, accelerate=True,
+                       mixture_weights=o.mixture_weights)
     warped = np.asarray(res.warped, dtype=np.float64)
     # chain rule: the fine step's Jacobians where the edge put the points, after the edge's
     # (one kernel product per step; taking the whole composition again cost twice that)

@@ -140,7 +140,8 @@ def _symmetric_link(q: FloatArray, y: FloatArray, warped: FloatArray, o: CPDOpti
     7.29)."""
     def backward(start: FloatArray) -> PointTransform:
         return cpd_nonrigid(y, q, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter,
-                            tol=o.tol, dtype=o.dtype, init_warped=start).transform
+                            tol=o.tol, dtype=o.dtype, init_warped=start,
+                            mixture_weights=o.mixture_weights).transform
 
     found = halfway_back(q, y, warped, o.beta, backward, o.beta)
     if isinstance(found, NoHalfway):
@@ -161,7 +162,7 @@ def _register_from(task: _RegTask, start: _Start | None) -> _RegOutcome:
         angle = rotation_angle(icp.A)
     o = task.cpd
     res = cpd_nonrigid(q, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter, tol=o.tol,
-                       dtype=o.dtype)
+                       dtype=o.dtype, mixture_weights=o.mixture_weights)
     steps.append(res.transform)
     warped = np.asarray(res.warped, dtype=np.float64)
     warp: PointTransform = res.transform

@@ -52,7 +52,7 @@ def test_every_surface_refuses_a_bad_option_with_the_same_message(
 def test_the_limits_of_every_range_are_allowed() -> None:
     options = CPDOptions(beta=1e-9, lmbda=1e-9, w=0.0, max_iter=1, tol=0.0, dtype="float64")
     assert asdict(options) == {"beta": 1e-9, "lmbda": 1e-9, "w": 0.0, "max_iter": 1,
-                               "tol": 0.0, "dtype": "float64"}
+                               "tol": 0.0, "dtype": "float64", "mixture_weights": None}
     assert CPDOptions(w=0.999999).w == 0.999999
     assert CPDOptions(max_iter=np.int64(3)).max_iter == 3
 
@@ -66,7 +66,7 @@ def test_tol_zero_runs_exactly_max_iter_iterations_everywhere() -> None:
 
 def test_every_option_has_a_rule_and_a_default_that_passes_it() -> None:
     defaults = asdict(CPDOptions())
-    assert set(CPDOptions.RANGES) | {"dtype"} == set(defaults)
+    assert set(CPDOptions.RANGES) | {"dtype", "mixture_weights"} == set(defaults)
     for name, value in defaults.items():
         assert CPDOptions.check(name, value) == value
     assert CPDOptions.RANGES["w"].rule("w") == "satisfy 0 <= w < 1"

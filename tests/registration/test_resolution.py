@@ -218,17 +218,20 @@ def test_coarse_to_fine_matches_a_full_resolution_run(runs, family):
         return np.mean([correspondence_error(s.warped, truth[s.index], family.shapes[s.index])
                         for s in res.subjects])
 
-    # measured 0.0526 (coarse to fine) vs 0.0363 (full resolution) here, 1.45x: this
+    # measured 0.0513 (coarse to fine) vs 0.0321 (full resolution) here, 1.60x (with the
+    # uniform mixture 0.0526 vs 0.0363, 1.45x: the full-resolution tree's random 240-point
+    # samples take the sampling weights, the coarse decisions' even 60 do not): this
     # family (random 240-point samples decided at 60, 60 EM iterations) is the one place
     # where session 36's polish at the stored resolution lost (0.0404 with the stored
     # finishes alone, 0.0432 with the polish but its edges again only under a moved
-    # parent); over seeds 0-3 the ratio runs 0.88-1.45, the means 0.0632 and 0.0539
-    # (0.0525 with the stored finishes). At 1200 points a shape it gains on every family
-    # measured (bench/RESULTS.md 7.31). The loss is this family's 4x coarser decisions:
-    # decided at 80 (3x, the default's 1200 -> 400) the same seeds give 0.0536 against
-    # 0.0535, evenly sampled at 60 0.0257 against 0.0284, 720 points decided at 240 0.0366
-    # against 0.0368 (default CPD options; bench/RESULTS.md 7.32)
-    assert gt(c2f) <= 1.5 * gt(full)
+    # parent); over seeds 0-3 the ratio runs 0.98-1.60 (uniform 0.88-1.45), the means
+    # 0.0646 and 0.0549 (uniform 0.0632 and 0.0539; 0.0525 with the stored finishes). At
+    # 1200 points a shape it gains on every family measured (bench/RESULTS.md 7.31). The
+    # loss is this family's 4x coarser decisions: decided at 80 (3x, the default's 1200
+    # -> 400) the same seeds give 0.0536 against 0.0535, evenly sampled at 60 0.0257
+    # against 0.0284, 720 points decided at 240 0.0366 against 0.0368 (default CPD
+    # options, uniform mixture; bench/RESULTS.md 7.32, 7.33)
+    assert gt(c2f) <= 1.7 * gt(full)
 
 
 def test_stored_resolution_fits_its_field_with_control_points(monkeypatch, runs, family):
