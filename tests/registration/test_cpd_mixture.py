@@ -15,6 +15,7 @@ from registration._cpd._estep import _EStep, _MixtureWeights, _posterior_max_den
 from registration._points import sampling_irregularity, sampling_weights
 from registration.synthetic import deformation_chains
 
+from .test_ckernel import with_engine
 from .test_cpd_fast import close, curve
 
 
@@ -30,15 +31,6 @@ def weighted_sums(t: np.ndarray, x: np.ndarray, s2: float, w: float,
     den = np.maximum(colsum + c, 1e-300)
     return _estep._EStepOut(k @ (1.0 / den), colsum / den, k @ (x / den[:, None]),
                             -float(np.sum(np.log(den))) + len(x) * np.log(s2), k.size)
-
-
-def with_engine(engine: Any, fn: Any) -> Any:
-    saved = _switch.CKERNEL
-    _switch.CKERNEL = engine
-    try:
-        return fn()
-    finally:
-        _switch.CKERNEL = saved
 
 
 ENGINES = [None] + ([_switch.CKERNEL] if _switch.CKERNEL is not None else [])
