@@ -449,8 +449,9 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
     mix: _MixtureWeights | None = None  # the EM's centroids'
     mix_all: _MixtureWeights | None = None  # every model point's, for the correspondences
     if isinstance(weights, str):
-        mix = _MixtureWeights(sampling_weights(y))
-        mix_all = mix if idx is None else _MixtureWeights(sampling_weights(y_all))
+        # an evenly sampled model's are all 1: the uniform mixture's passes, bit for bit
+        mix = _mixture_or_none(sampling_weights(y))
+        mix_all = mix if idx is None else _mixture_or_none(sampling_weights(y_all))
     elif weights is not None:
         mix_all = _MixtureWeights(weights)
         # (mean 1 over the centroids: a common factor would scale the outlier weight)
@@ -637,6 +638,10 @@ def interpolating_field(points: ArrayLike, targets: ArrayLike, beta: float,
     return NonrigidTransform(control_points=x, coefficients=coefficients, beta=beta,
                              model_shift=zero, model_scale=1.0, subject_shift=zero,
                              subject_scale=1.0)
+
+
+def _mixture_or_none(weights: FloatArray) -> _MixtureWeights | None:
+    return None if bool(np.all(weights == 1.0)) else _MixtureWeights(weights)
 
 
 def _checked_weights(weights: Any, m: int, backend: Any) -> FloatArray | str | None:

@@ -80,7 +80,8 @@ class MethodOptions(TypedDict, total=False):
         selects that mode (glyph scans, aligned outlines).""")]
     compare_direct: Annotated[bool, Option(False, "bool", """
         Also run direct CPD from the root on every subject, for comparison (a dynamic
-        tree runs it before its polish, whose consensus reuses it).""")]
+        tree runs it before its polish, whose consensus reuses it, and with the tree's
+        CPD options: its weighted mixture too, unlike ``register_direct``'s).""")]
     names: Annotated[Sequence[str] | None, Option(None, "sequence of str, optional", """
         A name for each shape, in the result and its messages; default ``shape-<k>``.""")]
     working_points: Annotated[int | None, Option(DEFAULT_WORKING_POINTS, "int or None", """
