@@ -81,15 +81,20 @@ class _Posterior:
     __slots__ = ("_args", "_value")
 
     def __init__(self, t: FloatArray, x: FloatArray, s2: float, w: float, sparse: bool,
-                 mix: _MixtureWeights | None = None) -> None:
+                 mix: _MixtureWeights | Callable[[], _MixtureWeights | None] | None = None
+                 ) -> None:
+        # `mix`: the mixture weights, or how to compute them (only once asked for)
         self._args: tuple[FloatArray, FloatArray, float, float, bool,
-                          _MixtureWeights | None] | None = (t, x, s2, w, sparse, mix)
+                          _MixtureWeights | Callable[[], _MixtureWeights | None] | None
+                          ] | None = (t, x, s2, w, sparse, mix)
         self._value: tuple[NDArray[np.intp], FloatArray] | None = None
 
     def value(self) -> tuple[NDArray[np.intp], FloatArray]:
         if self._value is None:
             assert self._args is not None
-            corr, prob = _posterior_max(*self._args)
+            t, x, s2, w, sparse, mix = self._args
+            corr, prob = _posterior_max(t, x, s2, w, sparse,
+                                        mix() if callable(mix) else mix)
             corr.setflags(write=False)
             prob.setflags(write=False)
             self._value, self._args = (corr, prob), None
@@ -447,11 +452,13 @@ def _cpd_nonrigid(model: ArrayLike, subject: ArrayLike, *, beta: Any, lmbda: Any
     gk: FloatArray | None = None if use_low_rank else _gauss_kernel(y, y, beta)
 
     mix: _MixtureWeights | None = None  # the EM's centroids'
-    mix_all: _MixtureWeights | None = None  # every model point's, for the correspondences
+    # every model point's, for the correspondences (computed when they are first read)
+    mix_all: _MixtureWeights | Callable[[], _MixtureWeights | None] | None = None
     if isinstance(weights, str):
         # an evenly sampled model's are all 1: the uniform mixture's passes, bit for bit
         mix = _mixture_or_none(sampling_weights(y))
-        mix_all = mix if idx is None else _mixture_or_none(sampling_weights(y_all))
+        mix_all = mix if idx is None else (
+            lambda: _mixture_or_none(sampling_weights(y_all)))
     elif weights is not None:
         mix_all = _MixtureWeights(weights)
         # (mean 1 over the centroids: a common factor would scale the outlier weight)
@@ -693,7 +700,9 @@ def _finish(x: FloatArray, y: FloatArray, *, wmat: FloatArray,
             g: FloatArray | None, s2: float, w: float, beta: float, xd: FloatArray, xs: float,
             yd: FloatArray, ys: float, iterations: int, converged: bool,
             objective: float, moved: FloatArray | None = None,
-            sparse: bool = False, mix: _MixtureWeights | None = None) -> CPDResult:
+            sparse: bool = False,
+            mix: _MixtureWeights | Callable[[], _MixtureWeights | None] | None = None
+            ) -> CPDResult:
     transform = NonrigidTransform(control_points=y, coefficients=wmat, beta=beta,
                                   model_shift=yd, model_scale=ys, subject_shift=xd,
                                   subject_scale=xs)
