@@ -165,7 +165,7 @@ class _MixtureWeights:
     in the form every E-step pass takes them: scaled so that the largest is 1, ``rel =
     pi / max(pi)`` (and ``log_rel``, <= 0, added to the kernels' exponents), so every
     weighted kernel stays in ``(0, 1]``; the outlier constant is scaled by the same
-    ``1 / max(pi)`` (:meth:`outlier_const`), which leaves every posterior as with
+    ``1 / max(pi)`` (:func:`_outlier_scaled`), which leaves every posterior as with
     ``pi`` itself, and each denominator is ``max(pi)`` times smaller (:attr:`log_max`,
     per subject point, restores the objective)."""
 
@@ -178,15 +178,13 @@ class _MixtureWeights:
         self.log_max = math.log(wmax)
         self.log_min_rel = float(np.min(self.log_rel))
 
-    def outlier_const(self, c: float) -> float:
-        return c * math.exp(-self.log_max)
-
 
 def _outlier_scaled(sigma2: float, w: float, m: int, n: int,
                     mix: _MixtureWeights | None) -> float:
-    """The outlier constant as the passes take it (:class:`_MixtureWeights`)."""
+    """The outlier constant as the passes take it: scaled by ``1 / max(pi)``
+    (:class:`_MixtureWeights`)."""
     c = _outlier_const(sigma2, w, m, n)
-    return c if mix is None else mix.outlier_const(c)
+    return c if mix is None else c * math.exp(-mix.log_max)
 
 
 class _EStep:
@@ -217,6 +215,9 @@ class _EStep:
         self._indptr: NDArray[np.int64] | None = None  # CSR row pointers of the list
         self._j32: NDArray[np.int32] | None = None  # its subject indices, for _ckernel
         self._kern: NDArray[Any] | None = None  # the kernel on its pairs, for _ckernel
+        # with mixture weights: each listed pair's, as the list's passes take them (the
+        # compiled: rel in the kernel's precision; numpy's: log rel), made with the list
+        self._pair_weights: NDArray[Any] | None = None
         self._kmat: scipy.sparse.csr_matrix | None = None  # numpy's passes: the list as CSR
         self._kmat_t: Any = None  # its transpose (CSC, sharing its arrays)
         self._ones_m = np.ones(m)
@@ -431,8 +432,8 @@ class _EStep:
         assert xj is not None and indptr is not None and j32 is not None and kern is not None
         ck = _switch.CKERNEL
         ck.kernels(np.ascontiguousarray(t, dtype=np.float64), xj, indptr, 0.5 / sigma2, kern)
-        if self.mix is not None:  # the pairs are sorted by centroid
-            kern *= np.repeat(self.mix.rel, self._counts).astype(kern.dtype, copy=False)
+        if self._pair_weights is not None:
+            kern *= self._pair_weights
         colsum, q, p1 = np.empty(n), np.empty((n, 3)), np.empty(m)
         px, pt1 = np.empty((m, 2)), np.empty(n)
         sumlog = ck.sums(kern, indptr, j32, np.ascontiguousarray(self.x, dtype=np.float64),
@@ -458,8 +459,8 @@ class _EStep:
         np.square(dy, out=dy)
         e64 += dy
         e64 *= -0.5 / sigma2
-        if self.mix is not None:
-            e64 += np.repeat(self.mix.log_rel, self._counts)
+        if self._pair_weights is not None:
+            e64 += self._pair_weights
         # the kernel on the listed pairs (rows sorted by centroid), in float64 whatever the
         # dtype (a float32 list costs more in casts than its exp saves), written into the
         # list's own array, which its transpose (CSC) shares: the column sums are one
@@ -550,6 +551,10 @@ class _EStep:
         # float32 runs keep the kernel in float32 here (no casts to pay for, unlike numpy's
         # passes: the exp and the list's traffic halve); every sum is float64
         self._kern = np.empty(len(pj), dtype=self.dtype) if compiled else None
+        # the pairs are sorted by centroid
+        self._pair_weights = (None if self.mix is None
+                              else np.repeat(self.mix.rel, counts).astype(self.dtype)
+                              if compiled else np.repeat(self.mix.log_rel, counts))
         self._kmat = self._kmat_t = None
         self._t_build = t.copy()
         self._r_build = r_build
