@@ -47,6 +47,10 @@ Families (collections with exact ground truth):
   skeletons have only 490-801 pixels: at 400 points two shapes share half or more of
   their points, and at 1200 every shape is all of them, which no real pair of instances
   does.
+- ``small-step``: the 永 edges of the same designs and the first three glyph-other
+  characters in the same fonts, chained with warp steps half the default (0.06): a
+  collection of near-identical instances (prints of one type), where the tree has least
+  to gain over plain CPD (root 0, seed 0).
 
 "far" subjects are those more than half the family's chain length away from the root
 along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
@@ -347,6 +351,39 @@ def dense_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
     return _rendered_glyph_cases(seeds, characters, fonts,
                                  (("dense-edge", "edges", DENSE_SCALE, DENSE_POINTS),
                                   ("dense-skel", "skeleton", DENSE_SCALE, DENSE_POINTS)))
+
+
+#: The ``small-step`` family's warp step: half of :func:`~registration.synthetic.
+#: deformation_chains`' default (0.12 of the RMS radius a step).
+SMALL_STEP = 0.06
+
+
+def small_step_cases(designs: list[str], characters: str,
+                     fonts: dict[str, Path]) -> list[Case]:
+    """``small-step``: the 永 edges of `designs` and glyph-other's `characters` in `fonts`,
+    chained as the glyph families (seed 0, root 0) but with warp steps of
+    :data:`SMALL_STEP`: collections of near-identical instances, as prints of one type or
+    block are, where plain CPD from the root is already near what one registration of two
+    random samples can reach and every further CPD the tree runs mostly fits the samples'
+    noise (bench/RESULTS.md 7.34)."""
+    sources: list[tuple[str, np.ndarray]] = []
+    for design in designs:
+        path = GLYPHS / "points" / f"{design}_edge.txt"
+        if path.exists():
+            sources.append((f"永 {design}", np.loadtxt(path)))
+    for char in characters:
+        for font_name, font in fonts.items():
+            if font.exists():
+                sources.append((f"{char} {font_name}", _glyph_points(char, font)))
+    cases = []
+    for name, dense in sources:
+        fam = deformation_chains(dense, seed=0, step=SMALL_STEP)
+        cases.append(Case(
+            kind="small-step", label=f"small-step {name} seed 0", seed=0, shapes=fam.shapes,
+            names=fam.names, root=0, truth=fam.root_images(0), depth=fam.depth,
+            distance=fam.depth, far_from=max(fam.depth) // 2 + 1,
+        ))
+    return cases
 
 
 def generated_cases(seeds: list[int]) -> list[Case]:
@@ -724,7 +761,7 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
                     "generated mpeg7 outline outline-random outline-arc glyph-other dense-edge "
-                    "dense-skel)")
+                    "dense-skel small-step)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
@@ -758,6 +795,7 @@ def main() -> None:
     if not DATA.is_dir():
         print(f"NOTE: {DATA} is missing: skipping the 永 glyph and Chui & Rangarajan families "
               "(the generated family still runs)")
+    designs: list[str] = []
     if (GLYPHS / "index.csv").exists():
         designs = pick_designs(args.designs, 1 if args.quick else 3)
         print(f"永 designs: {', '.join(designs)}; seeds {seeds}")
@@ -789,6 +827,9 @@ def main() -> None:
     if not args.quick or (args.only and {"dense-edge", "dense-skel"} & set(args.only)):
         cases += dense_glyph_cases(seeds[:1], args.characters,
                                    {f: CJK_FONTS[f] for f in fonts})
+    if not args.quick or (args.only and "small-step" in args.only):
+        cases += small_step_cases(designs, args.characters[:3],
+                                  {f: CJK_FONTS[f] for f in fonts})
     if args.only:
         cases = [c for c in cases if c.kind in args.only]
     print(f"{len(cases)} runs x 3 methods, default options (the library picks its executor); "
