@@ -364,7 +364,7 @@ def small_step_cases(designs: list[str], characters: str,
     chained as the glyph families (seed 0, root 0) but with warp steps of
     :data:`SMALL_STEP`: collections of near-identical instances, as prints of one type or
     block are, where plain CPD from the root is already near what one registration of two
-    random samples can reach and every further CPD the tree runs mostly fits the samples'
+    random samples can reach and the polish's stages and finish mostly fit the samples'
     noise (bench/RESULTS.md 7.34)."""
     sources: list[tuple[str, np.ndarray]] = []
     for design in designs:
