@@ -111,6 +111,12 @@ class CPDOptions:
         for f in fields(self):
             self.check(f.name, getattr(self, f.name))
 
+    def keywords(self, **overrides: Any) -> dict[str, Any]:
+        """Every option as :func:`~registration.cpd_nonrigid`'s keyword arguments, with
+        `overrides` in their place (a polish stage's narrower ``beta``, for example), so
+        that every CPD run with these options gets each of them, one added later too."""
+        return {**{f.name: getattr(self, f.name) for f in fields(self)}, **overrides}
+
     @classmethod
     def check(cls, name: str, value: Any) -> Any:
         """Return ``value`` if it is allowed for option ``name``, else raise ``ValueError``."""

@@ -356,11 +356,9 @@ def _stages(start: FloatArray, e_start: float, y: FloatArray, o: CPDOptions,
         # spread of all pairs, which would let CPD wander off again; never below the
         # squared point spacing
         sigma2 = max(0.5 * e_cur, spacing2)
-        res = cpd_nonrigid(cur, y, beta=factor * o.beta, lmbda=o.lmbda, w=o.w,
-                           max_iter=o.max_iter, tol=o.tol, dtype=o.dtype, sigma2=sigma2,
+        res = cpd_nonrigid(cur, y, **o.keywords(beta=factor * o.beta), sigma2=sigma2,
                            accelerate=True, control=control,
-                           model_frame=_model_frame(cur, y, model_irregularity, irregularity),
-                           mixture_weights=o.mixture_weights)
+                           model_frame=_model_frame(cur, y, model_irregularity, irregularity))
         warped = np.asarray(res.warped, dtype=np.float64)
         e = registration_error(warped, y)
         q = measure_quality(cur, warped, y, res.transform, e, spacing2)
@@ -498,9 +496,7 @@ def _edge_from_parent(task: _PolishTask
     for step in task.edge_affine:
         q = step.apply(q)
     o = task.cpd
-    res = cpd_nonrigid(q, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter,
-                       tol=o.tol, dtype=o.dtype, control=task.control,
-                       mixture_weights=o.mixture_weights)
+    res = cpd_nonrigid(q, task.y, **o.keywords(), control=task.control)
     warped = np.asarray(res.warped, dtype=np.float64)
     e = registration_error(warped, task.y)
     quality = measure_quality(q, warped, task.y, res.transform, e, task.spacing2)
@@ -562,6 +558,13 @@ def _halfway(task: _PolishTask, a: _Stages, b: _Stages) -> _Stages | None:
                    quality=(*b.quality, *found.quality))
 
 
+def _finish_keywords(o: CPDOptions) -> dict[str, Any]:
+    """The finish's CPD options (and its backward registration's): the tree's, its kernel
+    :data:`FINISH_BETA_FACTOR` as wide and its regulariser :data:`FINISH_LMBDA_FACTOR` as
+    strong."""
+    return o.keywords(beta=FINISH_BETA_FACTOR * o.beta, lmbda=FINISH_LMBDA_FACTOR * o.lmbda)
+
+
 def _cpd_from_root(model: FloatArray, y: FloatArray, start: FloatArray, sigma2: float,
                    o: CPDOptions, control: IntArray | None = None) -> CPDResult | None:
     """The finish's CPD: the root `model` itself onto `y`, started at `start`
@@ -569,10 +572,8 @@ def _cpd_from_root(model: FloatArray, y: FloatArray, start: FloatArray, sigma2: 
     beta and its regulariser :data:`FINISH_LMBDA_FACTOR` times the tree's lambda,
     accelerated (fitted with the `control` points when given); None when its field from
     the root folds at any model point."""
-    res = cpd_nonrigid(model, y, beta=FINISH_BETA_FACTOR * o.beta,
-                       lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w, max_iter=o.max_iter,
-                       tol=o.tol, dtype=o.dtype, sigma2=sigma2, init_warped=start,
-                       accelerate=True, control=control, mixture_weights=o.mixture_weights)
+    res = cpd_nonrigid(model, y, **_finish_keywords(o), sigma2=sigma2, init_warped=start,
+                       accelerate=True, control=control)
     if not float(jacobian_determinants(res.transform, model).min()) > 0:
         return None
     return res
@@ -659,13 +660,9 @@ def _halfway_back(model: FloatArray, y: FloatArray, warped: FloatArray, error: f
     0.5 s of the 73 glyphs' 20 s job and lost on the dense skeletons (bench/RESULTS.md
     7.31)."""
     def backward(start: FloatArray) -> PointTransform:
-        return cpd_nonrigid(y, model, beta=FINISH_BETA_FACTOR * o.beta,
-                            lmbda=FINISH_LMBDA_FACTOR * o.lmbda, w=o.w,
-                            max_iter=o.max_iter,
-                            tol=o.tol, dtype=o.dtype, sigma2=max(0.5 * error, spacing2),
-                            init_warped=start, accelerate=True,
-                            control=subject_control,
-                            mixture_weights=o.mixture_weights).transform
+        return cpd_nonrigid(y, model, **_finish_keywords(o),
+                            sigma2=max(0.5 * error, spacing2), init_warped=start,
+                            accelerate=True, control=subject_control).transform
 
     return halfway_back(model, y, warped, o.beta, backward, CONSENSUS_KERNEL_FACTOR * o.beta,
                         control)

@@ -185,11 +185,9 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
     assert both is not None, "every step of a tree edge gives its Jacobian"
     start, jac = both
     o = task.cpd
-    res = cpd_nonrigid(start, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, tol=o.tol,
-                       max_iter=min(o.max_iter, FINE_MAX_ITER), dtype=o.dtype,
+    res = cpd_nonrigid(start, task.y, **o.keywords(max_iter=min(o.max_iter, FINE_MAX_ITER)),
                        sigma2=warm_start_sigma2(start, task.y), normalize=False,
-                       control=task.control, accelerate=True,
-                       mixture_weights=o.mixture_weights)
+                       control=task.control, accelerate=True)
     warped = np.asarray(res.warped, dtype=np.float64)
     # chain rule: the fine step's Jacobians where the edge put the points, after the edge's
     # (one kernel product per step; taking the whole composition again cost twice that)

@@ -139,9 +139,7 @@ def _symmetric_link(q: FloatArray, y: FloatArray, warped: FloatArray, o: CPDOpti
     0.88-0.95x as much one generation step from the root and further (bench/RESULTS.md
     7.29)."""
     def backward(start: FloatArray) -> PointTransform:
-        return cpd_nonrigid(y, q, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter,
-                            tol=o.tol, dtype=o.dtype, init_warped=start,
-                            mixture_weights=o.mixture_weights).transform
+        return cpd_nonrigid(y, q, **o.keywords(), init_warped=start).transform
 
     found = halfway_back(q, y, warped, o.beta, backward, o.beta)
     if isinstance(found, NoHalfway):
@@ -161,8 +159,7 @@ def _register_from(task: _RegTask, start: _Start | None) -> _RegOutcome:
         q = affine.apply(q)
         angle = rotation_angle(icp.A)
     o = task.cpd
-    res = cpd_nonrigid(q, task.y, beta=o.beta, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter, tol=o.tol,
-                       dtype=o.dtype, mixture_weights=o.mixture_weights)
+    res = cpd_nonrigid(q, task.y, **o.keywords())
     steps.append(res.transform)
     warped = np.asarray(res.warped, dtype=np.float64)
     warp: PointTransform = res.transform

@@ -73,6 +73,17 @@ def test_every_option_has_a_rule_and_a_default_that_passes_it() -> None:
     assert CPDOptions.RANGES["max_iter"].rule("max_iter") == "be an integer >= 1"
 
 
+def test_keywords_give_every_option_to_cpd_nonrigid_with_the_overrides() -> None:
+    o = CPDOptions(beta=1.5, mixture_weights="sampling")
+    kw = o.keywords(beta=0.75)
+    assert kw == {**asdict(o), "beta": 0.75}
+    model = np.c_[np.cos(np.linspace(0, 6, 40)), np.sin(np.linspace(0, 6, 40))]
+    a = cpd_nonrigid(model, model * 1.1, **kw)
+    b = cpd_nonrigid(model, model * 1.1, beta=0.75, lmbda=o.lmbda, w=o.w, max_iter=o.max_iter,
+                     tol=o.tol, dtype=o.dtype, mixture_weights="sampling")
+    np.testing.assert_array_equal(a.warped, b.warped)
+
+
 def test_model_frame_normalises_the_model_as_given() -> None:
     """``model_frame`` replaces the model's own centroid and radius in the normalisation;
     its own gives the default run, bit for bit, and the transform carries the frame."""
