@@ -197,8 +197,7 @@ def _cpd_rules(schema: dict[str, Any]) -> None:
 
     Run when the OpenAPI document is built, so the library is imported then, not at start.
     """
-    from registration._cpd import DTYPES, CPDOptions
-    from registration._cpd._options import MIXTURES
+    from registration._cpd import DTYPES, MIXTURES, CPDOptions
 
     properties = schema.get("properties", {})
     for name, allowed in CPDOptions.RANGES.items():

@@ -36,8 +36,8 @@ option), :mod:`._estep` (the E-step engine), :mod:`._mstep` (dense and low-rank 
 
 from ._field import NonrigidTransform
 from ._nonrigid import CPDResult, cpd_nonrigid, interpolating_field
-from ._options import DTYPES, CPDOptions, Range
+from ._options import DTYPES, MIXTURES, CPDOptions, Range
 from ._switch import compiled_kernel, compiled_simd
 
-__all__ = ["DTYPES", "CPDOptions", "CPDResult", "NonrigidTransform", "Range",
+__all__ = ["DTYPES", "MIXTURES", "CPDOptions", "CPDResult", "NonrigidTransform", "Range",
            "compiled_kernel", "compiled_simd", "cpd_nonrigid", "interpolating_field"]

@@ -21,7 +21,7 @@ from .._repr import number_text, points_text
 from ._estep import _EStep, _MixtureWeights, _posterior_max, run_estep
 from ._field import FloatArray, NonrigidTransform, _gauss_kernel, kernel_product
 from ._mstep import LowRankMStep, _low_rank_factor, _mstep_dense, _spd_solve
-from ._options import CPDOptions, check_run_options
+from ._options import MIXTURES, CPDOptions, check_run_options
 from ._pycpd import _run_pycpd
 
 
@@ -659,7 +659,7 @@ def _checked_weights(weights: Any, m: int, backend: Any) -> FloatArray | str | N
     if backend != "native":
         raise ValueError("mixture_weights needs backend='native'")
     if isinstance(weights, str):
-        if weights != "sampling":
+        if weights not in MIXTURES:
             raise ValueError(f"mixture_weights must be None, 'uniform', 'sampling' or an "
                              f"array of {m} positive numbers; got {weights!r}")
         return weights
