@@ -470,12 +470,13 @@ done:
 }
 
 /* obj None: 0; else its buffer in b, checked to hold `items` of `size` bytes: 1; -1 on
- * error (an exception set). */
+ * error (an exception set). An output (`writable`) must be writable; an input need not
+ * be, so a read-only array (a view of a frozen one) is taken as it is. */
 static int optional_buffer(PyObject *obj, Py_buffer *b, Py_ssize_t items, Py_ssize_t size,
-                           const char *name) {
+                           const char *name, int writable) {
     if (obj == Py_None)
         return 0;
-    if (PyObject_GetBuffer(obj, b, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0)
+    if (PyObject_GetBuffer(obj, b, (writable ? PyBUF_WRITABLE : 0) | PyBUF_C_CONTIGUOUS) < 0)
         return -1;
     if (check_len(b, items, size, name)) {
         PyBuffer_Release(b);
@@ -642,7 +643,7 @@ static PyObject *dense(PyObject *self, PyObject *args) {
         || check_len(&bx, 2 * n, 8, "x") || check_len(&bpx, 2 * m, 8, "px")
         || check_len(&bpt1, n, 8, "pt1"))
         goto done;
-    if ((have_lw = optional_buffer(lw_obj, &blw, m, 8, "lw")) < 0) {
+    if ((have_lw = optional_buffer(lw_obj, &blw, m, 8, "lw", 0)) < 0) {
         have_lw = 0;
         goto done;
     }
@@ -721,7 +722,7 @@ static PyObject *posterior_max(PyObject *self, PyObject *args) {
     if (check_len(&bt, 2 * m, 8, "tt") || check_len(&bx, 2 * n, 8, "x")
         || check_len(&barg, m, 8, "arg") || check_len(&bbest, m, 8, "best"))
         goto done;
-    if ((have_lw = optional_buffer(lw_obj, &blw, m, 8, "lw")) < 0) {
+    if ((have_lw = optional_buffer(lw_obj, &blw, m, 8, "lw", 0)) < 0) {
         have_lw = 0;
         goto done;
     }
@@ -968,7 +969,7 @@ static PyObject *nearest(PyObject *self, PyObject *args) {
         const char *names[4] = {"row_arg", "row_d2", "col_arg", "col_d2"};
         const Py_ssize_t items[4] = {nb * n, nb * n, nb * m, nb * m};
         for (int k = 0; k < 4; k++)
-            if ((have[k] = optional_buffer(obj[k], &bo[k], items[k], 8, names[k])) < 0) {
+            if ((have[k] = optional_buffer(obj[k], &bo[k], items[k], 8, names[k], 1)) < 0) {
                 have[k] = 0;
                 goto done;
             }
@@ -1319,7 +1320,7 @@ static PyObject *lowrank_mstep(PyObject *self, PyObject *args) {
     PyObject *ret = NULL;
     double *work = NULL;
     Py_ssize_t m = bp.len / 8, k = bl.len / 8, kp = m > 0 ? bq.len / (8 * m) : 0;
-    if ((have_sums = optional_buffer(sums_obj, &bs, 5, 8, "sums")) < 0) {
+    if ((have_sums = optional_buffer(sums_obj, &bs, 5, 8, "sums", 1)) < 0) {
         have_sums = 0;
         goto done;
     }

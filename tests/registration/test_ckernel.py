@@ -363,6 +363,34 @@ def test_compiled_dense_passes_check_their_arrays(ckernel: object) -> None:
     assert ck.pivoted_cholesky(np.zeros((3, 2)), 1.0, 3, -1.0, factor, d, 0) == (1, True)  # type: ignore[attr-defined]
 
 
+def test_compiled_dense_passes_read_read_only_mixture_weights(ckernel: object) -> None:
+    """The log mixture weights are only read: a read-only array (a view of a frozen one)
+    is taken, and gives what a writable copy gives; an output must still be writable."""
+    ck = ckernel
+    x, t = curve(120, 1), curve(100, 2, wobble=0.05)
+    tt = np.ascontiguousarray(t.T)
+    lw = np.log(np.linspace(0.5, 1.0, len(t)))
+    frozen = lw.copy()
+    frozen.setflags(write=False)
+    dense, posterior = [], []
+    for weights in (lw, frozen):
+        p1, px, pt1 = np.empty(len(t)), np.empty((2, len(t))), np.empty(len(x))
+        nll = ck.dense(tt, x, 50.0, 0.1, 1e-300, False, p1, px, pt1, weights)  # type: ignore[attr-defined]
+        dense.append((nll, p1, px, pt1))
+        arg, best = np.empty(len(t), dtype=np.int64), np.empty(len(t))
+        ck.posterior_max(tt, x, 50.0, 0.1, 1e-300, arg, best, weights)  # type: ignore[attr-defined]
+        posterior.append((arg, best))
+    for a, b in zip(dense[0], dense[1], strict=True):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(posterior[0], posterior[1], strict=True):
+        np.testing.assert_array_equal(a, b)
+    read_only_out = np.empty(len(x))
+    read_only_out.setflags(write=False)
+    with pytest.raises((TypeError, BufferError, ValueError)):
+        ck.dense(tt, x, 50.0, 0.1, 1e-300, False, np.empty(len(t)),  # type: ignore[attr-defined]
+                 np.empty((2, len(t))), read_only_out, lw)
+
+
 def test_compiled_nearest_neighbours(ckernel: object) -> None:
     """Both directions from one pass, for a batch of problems: the first index at the least
     squared distance (as argmin) and that distance; e (eq. 10) from it equals the k-d
