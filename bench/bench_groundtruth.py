@@ -37,7 +37,8 @@ Families (collections with exact ground truth):
   sampling says nothing of the warp, bench/RESULTS.md 7.22).
 - ``glyph-other``: five other characters (書水心東龍) rendered from the Noto CJK fonts
   when this machine has them (sans regular, serif bold), their edge pixels chained as the
-  永 glyphs' (root 0, the first seed only): glyph sets no default was tuned on.
+  永 glyphs' (root 0, every seed: the first alone held 4 of the far-half misses where the
+  second adds 5, bench/RESULTS.md 7.35): glyph sets no default was tuned on.
   ``--characters`` and ``--fonts`` run other ones (bench/RESULTS.md 7.28: twelve simpler
   characters in the two other Noto fonts).
 - ``dense-edge`` / ``dense-skel``: the same characters rendered twice as large, their edge
@@ -818,7 +819,7 @@ def main() -> None:
             elif DATA.is_dir() and kind in ("mpeg7", "outline"):
                 print(f"NOTE: no {kind} shapes under {DATA}: skipping that family")
     if not args.quick or (args.only and "glyph-other" in args.only):
-        others = other_glyph_cases(seeds[:1], args.characters,
+        others = other_glyph_cases(seeds, args.characters,
                                    {f: CJK_FONTS[f] for f in fonts})
         if not others:
             print(f"NOTE: none of the CJK fonts {', '.join(fonts)} is installed: skipping "
