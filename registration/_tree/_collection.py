@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -86,9 +87,13 @@ def _subject_from_outcome(
     chain = parent.chain.extended(out.steps, coll.norms[s], s)
     layer = parent.layer + 1
     confidence = min(parent.confidence, out.quality.confidence)
-    # the dynamic tree's edges: whether the edge was made symmetric, and why not
-    symmetric = ({"symmetric_edge": out.symmetric, "symmetric_edge_reason": out.symmetric_reason}
-                 if out.symmetric or out.symmetric_reason else {})
+    # the dynamic tree's edges: whether the edge was made symmetric, and why not; which
+    # of CPD's starts it kept (annealed or held), with the e each reached
+    edge: dict[str, Any] = (
+        {"symmetric_edge": out.symmetric, "symmetric_edge_reason": out.symmetric_reason}
+        if out.symmetric or out.symmetric_reason else {})
+    if out.cpd_start:
+        edge.update(edge_start=out.cpd_start, edge_start_errors=out.cpd_start_errors)
     res = SubjectResult(
         index=s,
         name=coll.names[s],
@@ -104,7 +109,7 @@ def _subject_from_outcome(
         confidence=confidence,
         leaf=leaf,
         quality={**out.quality.to_dict(), "pose": out.pose, "pose_angle": out.pose_angle,
-                 "pose_errors": dict(out.pose_errors), **symmetric},
+                 "pose_errors": dict(out.pose_errors), **edge},
     )
     return res, _Node(q=out.warped, chain=chain, layer=layer, confidence=confidence,
                       joined=joined)

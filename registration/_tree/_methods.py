@@ -72,8 +72,14 @@ def build_dynamic_tree(
     where the subject, registered back onto that model, puts its points (CPD's slides
     along the outline fall differently the two ways round, so part of each cancels; the
     subject's ``quality["symmetric_edge"]`` says whether it was, and
-    ``quality["symmetric_edge_reason"]`` why not). Direct CPD and the static tree keep the
-    paper's one-way CPD.
+    ``quality["symmetric_edge_reason"]`` why not). Between shapes of at least 150 points
+    each edge's CPD runs from two starts, annealed from the spread of all pairs (the
+    paper's) and held (the member's warped model where it lies, sigma^2 from its
+    residual), and the registration with the lower e is kept: annealing can settle a group
+    of parallel strokes one stroke off
+    (``quality["edge_start"]`` says which start was kept, ``quality["edge_start_errors"]``
+    the e of each). Direct CPD and the static tree keep the paper's one-way CPD from its
+    one start.
 
     Parameters
     ----------
@@ -162,7 +168,7 @@ def build_dynamic_tree(
                 for _, m in cands:
                     tried.add((m, s))
                     tasks.append(run.task(sim, m, s, nodes[m].layer + 1, nodes[m].q,
-                                          run.symmetric_edges))
+                                          run.symmetric_edges, _tasks.HELD_START_EDGES))
             if tasks or not bridge():
                 break
         if not tasks:
@@ -223,14 +229,17 @@ def build_dynamic_tree(
             m = consensus_partner(sim.D[:, s], results, nodes, s, root, len(coll.normed[s]))
             if m == root:
                 # the partner's registration is an edge of the tree's own kind: direct
-                # CPD's (compare_direct) serves only when the edges are one-way too
-                if known is not None and not run.symmetric_edges:
+                # CPD's (compare_direct) serves only when the edges are one-way and
+                # annealed too
+                if (known is not None and not run.symmetric_edges
+                        and not _tasks.HELD_START_EDGES):
                     return known[s]
-                return run.task(sim, root, s, 2, coll.normed[root], run.symmetric_edges)
+                return run.task(sim, root, s, 2, coll.normed[root], run.symmetric_edges,
+                                _tasks.HELD_START_EDGES)
             r = results[m]
             assert r.warped is not None and r.layer is not None
             return run.task(sim, m, s, r.layer + 1, coll.norms[m].apply(r.warped),
-                            run.symmetric_edges)
+                            run.symmetric_edges, _tasks.HELD_START_EDGES)
 
         _polish_subjects(coll, results, cpd, executor, progress, partner=partner)
     return run.finish(
@@ -393,14 +402,16 @@ class _Run:
                                   self.progress)
 
     def task(self, sim: Similarity, member: int, subject: int, layer: int,
-             q: np.ndarray, symmetric: bool = False) -> _RegTask:
+             q: np.ndarray, symmetric: bool = False, held: bool = False) -> _RegTask:
         """The registration of the model as warped onto `member` (`q`) to `subject`
-        (made symmetric when `symmetric`: the dynamic tree's edges)."""
+        (made symmetric when `symmetric`, CPD also run from the held start when `held`:
+        the dynamic tree's edges)."""
         return _RegTask(
             subject=subject, member=member, layer=layer,
             similarity=float(sim.D[member, subject]), q=q, y=self.coll.normed[subject],
             starts=_starts(sim, member, subject), cpd=self.cpd, prealign=self.prealign,
             pose=self.pose, spacing2=self.coll.spacing2[subject], symmetric=symmetric,
+            held=held,
         )
 
     def direct_outcomes(self, sim: Similarity) -> dict[int, _RegOutcome]:

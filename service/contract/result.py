@@ -122,6 +122,12 @@ class Quality(_Open):
         "registration moved halfway to the subject's registered back onto the member.")
     symmetric_edge_reason: str | None = Field(
         default=None, description="Why the edge was not made symmetric (empty when it was).")
+    edge_start: Literal["annealed", "held"] | None = Field(
+        default=None, description="Which of CPD's two starts the dynamic tree's edge kept, "
+        "the one reaching the lower e: 'annealed' from the spread of all pairs (the paper's) "
+        "or 'held' from the member's warped model where it lies.")
+    edge_start_errors: dict[str, float] | None = Field(
+        default=None, description="The e each of CPD's starts reached on the edge.")
 
 
 class NormalizationDoc(_Open):

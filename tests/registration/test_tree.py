@@ -1179,6 +1179,65 @@ def test_the_dynamic_trees_edges_are_symmetric_and_the_baselines_one_way(family)
             assert len(s.transform.steps) - before <= 2
 
 
+def test_the_dynamic_trees_edges_keep_the_cpd_start_with_the_lower_e(family, monkeypatch):
+    """Every edge the dynamic tree registers between shapes of at least
+    HELD_START_MIN_POINTS points runs CPD from both starts, annealed (the paper's) and
+    held (the member's points where they lie, sigma^2 from their residual), keeps the
+    registration with the lower e and says which, with both e (with one-way edges the
+    edge's e is the kept one's); sparser shapes keep the annealed start alone, as direct
+    CPD and the static tree do."""
+    from registration._tree import _tasks as tasks_module
+
+    dense = chained_family(n_chains=2, chain_length=3,
+                           n_points=tasks_module.HELD_START_MIN_POINTS, step=0.3, seed=1)
+    monkeypatch.setattr(tasks_module, "SYMMETRIC_LINKS", False)
+    res = build_dynamic_tree(dense.shapes, 0, cpd=FAST_CPD, polish=False,
+                             executor=SerialExecutor())
+    for s in res.subjects:
+        q = s.quality
+        assert q is not None
+        errors = q["edge_start_errors"]
+        assert set(errors) == {"annealed", "held"}
+        assert errors[q["edge_start"]] == min(errors.values())
+        assert q["error"] == pytest.approx(errors[q["edge_start"]], rel=1e-9)
+    assert len(family.shapes[1]) < tasks_module.HELD_START_MIN_POINTS
+    sparse = build_dynamic_tree(family.shapes, 0, cpd=FAST_CPD, polish=False,
+                                executor=SerialExecutor())
+    for s in sparse.subjects:
+        assert s.quality is not None and "edge_start" not in s.quality
+    for baseline in (register_direct(dense.shapes, 0, cpd=FAST_CPD,
+                                     executor=SerialExecutor()),
+                     build_static_tree(dense.shapes, 0, cpd=FAST_CPD,
+                                       executor=SerialExecutor())):
+        for s in baseline.subjects:
+            assert s.quality is not None and "edge_start" not in s.quality
+
+
+def test_the_held_start_is_kept_only_when_its_e_is_lower():
+    """`_held_start` keeps the annealed registration unless the held one reaches a lower
+    e: an annealed EM stopped after one iteration (far from the subject) gives way to the
+    held start; on a tie (the held registration itself passed as the annealed one) the
+    paper's start is kept."""
+    from registration._error import registration_error
+    from registration._points import mean_spacing2, normalise
+    from registration._tree import _tasks as tasks_module
+
+    fam = chained_family(n_chains=1, chain_length=2, n_points=120, step=0.2, seed=3)
+    y, _ = normalise(fam.shapes[1])
+    q, _ = normalise(fam.shapes[0])
+    h2 = mean_spacing2(y)
+    stopped = cpd_nonrigid(q, y, **CPDOptions(max_iter=1).keywords())
+    out, which, errors = tasks_module._held_start(q, y, FAST_CPD, h2, stopped)
+    assert which == "held" and errors["held"] < errors["annealed"]
+    assert registration_error(out.warped, y) == errors["held"]
+    assert errors["annealed"] == registration_error(stopped.warped, y)
+    same = cpd_nonrigid(q, y, **FAST_CPD.keywords(), init_warped=q,
+                        sigma2=max(0.5 * registration_error(q, y), h2))
+    out, which, errors = tasks_module._held_start(q, y, FAST_CPD, h2, same)
+    assert which == "annealed" and out is same
+    assert errors["held"] == errors["annealed"]
+
+
 def test_an_edge_is_left_one_way_when_the_backward_registration_cannot_be_inverted(
         monkeypatch):
     """When the backward registration has no preimage for too many of the model's points,
