@@ -60,11 +60,11 @@ SYMMETRIC_LINK_MIN_POINTS = 150
 #: residual (as the polish's stages start). Both fit the same field with the same
 #: options, so e compares like with like: they differ only in the local optimum EM
 #: reaches. Annealing from a wide variance can settle a group of parallel strokes one
-#: stroke off, at an e 10-40 % above the truth's basin (書 and 龍 in sans regular: single
-#: links from a perfect parent err 0.08-0.15 of the radius where the held start errs
-#: 0.03-0.05); the held start keeps each model point near the subject points it already
-#: lies on. Ground truth: bench/RESULTS.md 7.36. Direct CPD and the static tree keep the
-#: paper's one start.
+#: stroke off at a higher e than the truth's basin has (書 and 龍 in sans regular: single
+#: links from a perfect parent erring 0.08-0.15 of the radius; CPD started at the truth
+#: stays at 0.03-0.07 on 17 of 19 of them, at a lower e on 18); the held start keeps each
+#: model point near the subject points it already lies on. Ground truth: bench/RESULTS.md
+#: 7.36. Direct CPD and the static tree keep the paper's one start.
 HELD_START_EDGES = True
 #: Shapes of fewer points keep the annealed start alone. At 100 points e ranks the two
 #: starts no better than chance on smooth outlines, whose points can slide or turn along
