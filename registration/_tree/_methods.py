@@ -76,10 +76,9 @@ def build_dynamic_tree(
     each edge's CPD runs from two starts, annealed from the spread of all pairs (the
     paper's) and held (the member's warped model where it lies, sigma^2 from its
     residual), and the registration with the lower e is kept: annealing can settle a group
-    of parallel strokes one stroke off
-    (``quality["edge_start"]`` says which start was kept, ``quality["edge_start_errors"]``
-    the e of each). Direct CPD and the static tree keep the paper's one-way CPD from its
-    one start.
+    of parallel strokes one stroke off (``quality["edge_start"]`` says which start was
+    kept, ``quality["edge_start_errors"]`` the e of each). Direct CPD and the static tree
+    keep the paper's one-way CPD from its one start.
 
     Parameters
     ----------

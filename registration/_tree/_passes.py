@@ -12,9 +12,10 @@ from .._executor import Executor
 from .._pose import PoseSpec
 from .._result import Attempt, SubjectResult
 from .._similarity import ProgressCallback, Similarity
+from . import _tasks
 from ._collection import _Collection, _Node, _subject_from_outcome
 from ._rules import REFINE_TIE, _error_limit, _rejection, _SimilarityRule
-from ._tasks import HELD_START_EDGES, CPDOptions, _RegOutcome, _RegTask, _run_tasks, _starts
+from ._tasks import CPDOptions, _RegOutcome, _RegTask, _run_tasks, _starts
 
 
 def _refine_parents(
@@ -64,7 +65,7 @@ def _refine_parents(
             subject=s, member=m, layer=nodes[m].layer + 1, similarity=d, q=nodes[m].q,
             y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd, prealign=prealign,
             pose=pose, spacing2=coll.spacing2[s], symmetric=symmetric,
-            held=HELD_START_EDGES,
+            held=_tasks.HELD_START_EDGES,
         ))
     moved: set[int] = set()
     for out in sorted(_run_tasks(tasks, executor, progress, "refine"), key=lambda o: o.subject):
@@ -147,7 +148,7 @@ def _attach_leaves(
                 subject=s, member=m, layer=nodes[m].layer + 1, similarity=float(sim.D[m, s]),
                 q=nodes[m].q, y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
                 prealign=prealign, pose=pose, spacing2=coll.spacing2[s],
-                symmetric=symmetric, held=HELD_START_EDGES,
+                symmetric=symmetric, held=_tasks.HELD_START_EDGES,
             ))
     for out in _run_tasks(tasks, executor, progress, "leaves"):
         rejected.setdefault(out.subject, []).append(out)
