@@ -466,6 +466,10 @@ def per_subject(case: Case) -> list[dict[str, Any]]:
                 # newer library versions attach low-confidence leaves and give a confidence
                 "leaf": bool(getattr(s, "leaf", False)),
                 "confidence": getattr(s, "confidence", None),
+                # the dynamic tree's edges: which CPD start the subject's edge kept and the
+                # e of each (bench/RESULTS.md 7.36); None where the edge ran one start
+                "edge_start": (getattr(s, "quality", None) or {}).get("edge_start"),
+                "edge_start_errors": (getattr(s, "quality", None) or {}).get("edge_start_errors"),
             }
         rows.append(row)
     return rows
