@@ -466,6 +466,9 @@ def per_subject(case: Case) -> list[dict[str, Any]]:
                 # newer library versions attach low-confidence leaves and give a confidence
                 "leaf": bool(getattr(s, "leaf", False)),
                 "confidence": getattr(s, "confidence", None),
+                # how far apart the symmetric finish's two registrations are (None without
+                # one; bench/RESULTS.md 7.38)
+                "disagreement": getattr(s, "disagreement", None),
                 # the dynamic tree's edges: which CPD start the subject's edge kept and the
                 # e of each (bench/RESULTS.md 7.36); None where the edge ran one start
                 "edge_start": (getattr(s, "quality", None) or {}).get("edge_start"),
@@ -477,6 +480,23 @@ def per_subject(case: Case) -> list[dict[str, Any]]:
 
 def _mean(v: list[float]) -> float:
     return float(np.mean(v)) if v else float("nan")
+
+
+def _auc(score: np.ndarray, positive: np.ndarray) -> float:
+    """The probability that a random positive scores above a random negative (ties half)."""
+    pos, neg = score[positive], score[~positive]
+    if not len(pos) or not len(neg):
+        return float("nan")
+    above = (pos[:, None] > neg[None, :]).mean()
+    tied = (pos[:, None] == neg[None, :]).mean()
+    return float(above + 0.5 * tied)
+
+
+def _spearman(a: np.ndarray, b: np.ndarray) -> float:
+    """Spearman's rank correlation (average ranks for ties)."""
+    from scipy.stats import rankdata
+
+    return float(np.corrcoef(rankdata(a), rankdata(b))[0, 1])
 
 
 def _p95(v: list[float]) -> float:
@@ -697,6 +717,27 @@ def summary(cases: list[Case], reports: list[dict[str, Any]],
                 parts.append(f2(sum(a * a for _, a in pairs) / total if total > 0 else None))
             cells.append(f"{m} {parts[0].strip()} / {parts[1].strip()}")
         print(f"  {kind:13s} " + "   ".join(cells))
+    print("\nwhich subjects the tree's own signs single out: AUC of each for the fifth of the "
+          "family's\nsubjects the tree registered worst (1.0 ranks them all first, 0.5 is "
+          "chance), and Spearman's rank\ncorrelation with the GT error; '1 - confidence' and "
+          "'disagreement' (bench/RESULTS.md 7.38):")
+    for kind in kinds:
+        rows = [r["tree"] for i, c in enumerate(cases) if c.kind == kind
+                for r in rows_by_case[i]]
+        rows = [r for r in rows if r["gt"] is not None and r["confidence"] is not None
+                and r.get("disagreement") is not None]
+        if len(rows) < 10:
+            print(f"  {kind:13s} {len(rows)} subjects with both signs: too few")
+            continue
+        gt = np.array([r["gt"] for r in rows])
+        worst = gt > np.percentile(gt, 80)
+        cells = []
+        for name, score in (("1 - confidence", 1 - np.array([r["confidence"] for r in rows])),
+                            ("disagreement", np.array([r["disagreement"] for r in rows]))):
+            cells.append(f"{name} AUC {_auc(score, worst):.2f}, rho {_spearman(score, gt):+.2f}")
+        ratio = float(np.median(gt / np.maximum([r["disagreement"] for r in rows], 1e-12)))
+        print(f"  {kind:13s} n={len(rows):4d}  " + "   ".join(cells)
+              + f"   GT error / disagreement, median {ratio:.2f}")
     print("\ntree subjects attached as low-confidence leaves (counted as attached above):")
     for kind in kinds:
         rows = [r for i, c in enumerate(cases) if c.kind == kind for r in rows_by_case[i]]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import math
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -103,7 +104,8 @@ class SubjectResult:
     confidence : float or None
         Estimated probability that the correspondences are right: the smallest
         calibrated confidence of the registrations on the path from the root (see
-        `registration._quality`). Sort and filter by it.
+        `registration._quality`). Sort and filter by it. See also the property
+        :attr:`disagreement`, a second sign from another source.
     leaf : bool
         Attached after the tree stopped growing, from its best registration, without
         being accepted by the tree's rule: a low-confidence leaf, never a parent.
@@ -146,6 +148,35 @@ class SubjectResult:
     quality: dict[str, Any] | None = None
 
     @property
+    def disagreement(self) -> float | None:
+        """How far apart two registrations of this subject that err differently put the
+        root's points: the polish's forward registration and the subject registered back
+        onto the root (its symmetric finish; the one run last, at the stored resolution
+        when that recorded one), as the RMS distance in units of the subject's RMS radius.
+
+        A second sign beside ``confidence``, from another source: where the two
+        registrations disagree, at least one is off by about that much; where they agree,
+        both may still have slid the same way. On the ground-truth chains of
+        bench/RESULTS.md 7.38 it singles out the worst-registered fifth of the subjects
+        better than ``confidence`` on the 永 edges, other glyphs, MPEG-7, near-identical
+        instances and randomly sampled outlines, and worse on six held-out characters,
+        outlines sampled anew and generated shapes; the correspondence error is 0.1-5 times
+        it by family (median about 2). None when no symmetric finish ran (direct CPD, the
+        static tree, ``polish=False``, the root, unattached subjects, or no backward
+        registration).
+        """
+        q = self.quality or {}
+        for record in ("stored_polish", "polish"):
+            polish = q.get(record)
+            if not isinstance(polish, dict):
+                continue
+            sym = polish.get("symmetric")
+            value = sym.get("disagreement") if isinstance(sym, dict) else None
+            if isinstance(value, int | float) and math.isfinite(value):
+                return float(value)
+        return None
+
+    @property
     def attached(self) -> bool:
         """In the tree: a member, a low-confidence leaf, or the root itself (layer 1)."""
         return self.layer is not None
@@ -170,6 +201,7 @@ class SubjectResult:
             ("D from parent", number_text(self.similarity)),
             ("e", number_text(self.error)),
             ("confidence", number_text(self.confidence)),
+            ("disagreement", number_text(self.disagreement)),
             ("leaf", self.leaf),
             ("reason", self.reason),
             ("warped", points_text(self.warped)),
@@ -189,6 +221,7 @@ class SubjectResult:
             "error": self.error,
             "attached": self.attached,
             "confidence": self.confidence,
+            "disagreement": self.disagreement,
             "leaf": self.leaf,
             "reason": self.reason,
             "quality": self.quality,

@@ -695,6 +695,11 @@ def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any
         info["reason"] = found.reason
         return best, info
     step, moved = found.step, found.moved
+    # how far apart the forward and the backward registration put the model's points:
+    # twice the step's move (RMS, in the subject's RMS radius, as the normalised
+    # coordinates are); the subject's `disagreement` (bench/RESULTS.md 7.38)
+    info["disagreement"] = 2.0 * float(np.sqrt(np.mean(np.sum((moved - best.warped) ** 2,
+                                                               axis=1))))
     return _finished(task, best, step, moved, info,
                      lambda e: _posterior_max(moved, task.y, max(0.5 * e, task.spacing2), o.w))
 

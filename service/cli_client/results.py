@@ -46,8 +46,10 @@ def select_subjects(subjects: Sequence[Mapping[str, Any]], which: str | int) -> 
 
 def subjects_table(doc: Mapping[str, Any], subjects: Sequence[Mapping[str, Any]]) -> list[str]:
     """One line per subject, in the given order: shape id, name, layer, parent, e, direct e
-    (not for a direct job, whose e is direct CPD's), confidence and status ("tree", "leaf"
-    for a low-confidence leaf, "unattached")."""
+    (not for a direct job, whose e is direct CPD's), confidence, disagreement (how far apart
+    two registrations that err differently put the model's points, in the shape's RMS
+    radius; "-" where no symmetric finish ran) and status ("tree", "leaf" for a
+    low-confidence leaf, "unattached")."""
     compares = doc.get("method") != "direct"
     names = dict(zip(doc.get("shape_ids") or [], doc.get("names") or [], strict=False))
     for s in doc.get("subjects") or []:
@@ -57,12 +59,13 @@ def subjects_table(doc: Mapping[str, Any], subjects: Sequence[Mapping[str, Any]]
     direct_e = f" {'direct e':>11}" if compares else ""
     lines = [
         f"{'shape':>8}  {_cell('name', width)}  {'layer':>5}  {_cell('parent', 16)}"
-        f" {'e':>11}{direct_e} {'confidence':>10}  status"
+        f" {'e':>11}{direct_e} {'confidence':>10} {'disagreement':>12}  status"
     ]
     for s in subjects:
         layer = s.get("layer")
         parent = s.get("parent_shape_id")
         confidence = s.get("confidence")
+        spread = s.get("disagreement")
         lines.append(
             f"{s.get('shape_id', '?'):>8}  {_cell(str(s.get('name', '')), width)}"
             f"  {('-' if layer is None else layer):>5}"
@@ -73,6 +76,11 @@ def subjects_table(doc: Mapping[str, Any], subjects: Sequence[Mapping[str, Any]]
                 f" {confidence:10.3f}"
                 if isinstance(confidence, int | float) and not isinstance(confidence, bool)
                 else f" {'-':>10}"
+            )
+            + (
+                f" {spread:12.4f}"
+                if isinstance(spread, int | float) and not isinstance(spread, bool)
+                else f" {'-':>12}"
             )
             + f"  {subject_status(s)}"
         )

@@ -179,6 +179,10 @@ class Subject:
     reason: str
     confidence: float | None = None
     leaf: bool = False
+    #: How far apart two registrations that err differently put the model's points, in the
+    #: subject's RMS radius: a second sign beside ``confidence`` (None where no symmetric
+    #: finish ran, or in a result from before it was reported).
+    disagreement: float | None = None
     #: "tree" (a member), "leaf" (a low-confidence leaf) or "unattached".
     status: SubjectStatus = "unattached"
     quality: dict[str, Any] | None = field(default=None, repr=False, compare=False)
@@ -210,6 +214,7 @@ class Subject:
             direct_error=m.direct_error,
             reason=m.reason,
             confidence=m.confidence,
+            disagreement=m.disagreement,
             leaf=m.leaf,
             status=m.status,
             quality=None if m.quality is None else m.quality.model_dump(exclude_unset=True),

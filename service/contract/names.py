@@ -96,7 +96,8 @@ TERMINAL_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled
 
 #: Orders of a result's subjects (``sort`` of ``GET /v1/jobs/{id}/result``): a key,
 #: descending with a leading "-".
-SubjectSort = Literal["position", "confidence", "-confidence", "error", "-error"]
+SubjectSort = Literal["position", "confidence", "-confidence", "error", "-error",
+                      "disagreement", "-disagreement"]
 SUBJECT_SORTS: tuple[str, ...] = get_args(SubjectSort)
 
 #: Where a subject ended up: a tree member, a low-confidence leaf (attached, never a parent),

@@ -214,6 +214,14 @@ class SubjectDetail(_Open):
         default=None, description="Estimated probability (0 to 1) that its correspondences "
         "are right; null when unattached."
     )
+    disagreement: float | None = Field(
+        default=None, description="How far apart two registrations of the subject that err "
+        "differently put the model's points (the polish's, and the subject registered back onto "
+        "the model: its symmetric finish), RMS in units of the subject's RMS radius. A second "
+        "sign beside confidence: where they disagree, at least one is off by about that much; "
+        "where they agree, both may have slid alike. Null when no symmetric finish ran (direct "
+        "CPD, the static tree, polish off, the root, unattached subjects)."
+    )
     leaf: bool = Field(default=False, description="A low-confidence leaf, never a parent.")
     root: bool = Field(default=False, description="The model itself (identity transform).")
     reason: str = ""
@@ -263,7 +271,10 @@ class ResultDocument(_Open):
     Subjects name shapes by ``shape_id``; ``parent_shape_id`` and ``path_shape_ids`` give the
     tree (``tree`` lists its nodes by shape id, root included). Each subject has
     ``confidence`` (0 to 1, the estimated probability that its correspondences are right;
-    null when unattached), ``leaf`` (true for a low-confidence leaf: given its best
+    null when unattached), ``disagreement`` (how far apart two registrations that err
+    differently put the model's points, in units of its RMS radius; null where no
+    symmetric finish ran), ``leaf`` (true for a
+    low-confidence leaf: given its best
     registration after the tree stopped growing, never a parent; its ``reason`` says why)
     and ``quality`` (the checks of its last registration). Heavy arrays (warped points,
     correspondences, transforms) are left out unless ``?full=true``;

@@ -58,6 +58,7 @@ export function renderTable() {
     el("td", { class: "num", text: fmtNum(s.error) }),
     el("td", { class: "num", text: fmtNum(s.direct_error) }),
     el("td", { class: "num", text: hasNumber(s.confidence) ? s.confidence.toFixed(2) : "–" }),
+    el("td", { class: "num", text: fmtNum(s.disagreement) }),
     el("td", { class: "status-cell" }, statusBadgeOf(s)));
     tr.addEventListener("click", () => go(`#/jobs/${state.job.id}/subjects/${s.shape_id}`));
     return tr;
@@ -177,6 +178,8 @@ export function selectSubject(shapeId) {
     number("direct e", directValue, "direct_error", "e of direct CPD from the model"),
     number("confidence", hasNumber(s.confidence) ? s.confidence.toFixed(2) : "–", "confidence",
       "estimated probability that the correspondences are right (the weakest registration on the path from the model)"),
+    number("disagreement", fmtNum(s.disagreement), "disagreement",
+      "how far apart two registrations that err differently put the model's points, in units of the shape's size: a second sign beside confidence"),
     number("status", statusBadgeOf(s), "status"));
   const path = s.path_shape_ids && s.path_shape_ids.length > 2
     ? ` Path: ${s.path_shape_ids.map(nameOf).join(" → ")}.`

@@ -1,6 +1,7 @@
 """The dynamic tree, the static tree and direct CPD on a generated chained family."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -993,6 +994,50 @@ def test_the_symmetric_finish_moves_halfway_to_the_subject_registered_back(famil
     # correspondences of the moved points: each one's most probable subject point
     assert out.correspondence.shape == (len(task.model),)
     assert ((out.probability >= 0) & (out.probability <= 1)).all()
+
+
+def test_the_symmetric_finish_records_how_far_apart_its_two_registrations_are(family):
+    """``disagreement``: twice the RMS move of the polished points to halfway, that is how
+    far apart the forward registration and the subject registered back onto the root put
+    the root's points, in the subject's RMS radius (the normalised coordinates')."""
+    from registration._tree import _polish as polish_module
+
+    task, best = _finish_setting(family)
+    out, info = polish_module._symmetric(task, best)
+    found = polish_module._halfway_back(task.model, task.y, best.warped, best.error,
+                                        task.spacing2, task.cpd, task.control,
+                                        task.subject_control)
+    rms = float(np.sqrt(np.mean(np.sum((found.moved - best.warped) ** 2, axis=1))))
+    assert info["disagreement"] == pytest.approx(2 * rms, rel=1e-9)
+    assert 0 < info["disagreement"] < 1
+    if info["kept"]:
+        moved = float(np.sqrt(np.mean(np.sum((out.warped - best.warped) ** 2, axis=1))))
+        assert info["disagreement"] == pytest.approx(2 * moved, rel=1e-9)
+
+
+def test_each_polished_subject_reports_its_disagreement_and_the_baselines_none(family,
+                                                                            dynamic):
+    """``SubjectResult.disagreement`` is the symmetric finish's record (the stored
+    resolution's when there is one), in ``to_dict`` too; the root, direct CPD and the
+    static tree, whose registrations have no symmetric finish, report None."""
+    polished = [s for s in dynamic.subjects if s.attached and (s.quality or {}).get("polish")]
+    assert polished
+    for s in polished:
+        record = s.quality["polish"]["symmetric"]
+        assert s.disagreement == record["disagreement"] and s.disagreement > 0
+        assert s.to_dict()["disagreement"] == s.disagreement
+    assert dynamic.subject(0).disagreement is None
+    assert dynamic.subject(0).to_dict()["disagreement"] is None
+    direct = register_direct(family.shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+    static = build_static_tree(family.shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+    for result in (direct, static):
+        assert all(s.disagreement is None for s in result.subjects)
+    # the stored resolution's record, when there is one, is the one reported
+    s = polished[0]
+    stored = {**s.quality, "stored_polish": {"symmetric": {"disagreement": 0.125}}}
+    assert replace(s, quality=stored).disagreement == 0.125
+    no_inverse = {**s.quality, "stored_polish": {"symmetric": {"kept": False}}}
+    assert replace(s, quality=no_inverse).disagreement == s.disagreement
 
 
 def test_a_symmetric_finish_without_an_inverse_is_not_kept(family, monkeypatch):

@@ -492,4 +492,4 @@ def test_results_tables_name_the_method_and_compare_only_a_tree(
         assert (note in summary) != compared, summary
     table = subjects_table(doc, doc["subjects"])  # type: ignore[arg-type]
     assert ("direct e" in table[0]) == (compared is not None), table[0]
-    assert len(table[1].split()) == (8 if compared is not None else 7), table
+    assert len(table[1].split()) == (9 if compared is not None else 8), table

@@ -279,18 +279,26 @@ def test_client_against_the_service(service: Service, jobs: dict[str, Any]) -> N
 # --- regtree results ---------------------------------------------------------------------
 
 ROW = re.compile(
-    r"^\s*(\d+)\s+(\S+)\s+(\d+|-)\s+(\S+)\s+(\S+)\s+(\S+)\s+([\d.]+|-)\s+(tree|leaf|unattached)$"
+    r"^\s*(\d+)\s+(\S+)\s+(\d+|-)\s+(\S+)\s+(\S+)\s+(\S+)\s+([\d.]+|-)\s+([\d.]+|-)"
+    r"\s+(tree|leaf|unattached)$"
 )
 
 
 def table_rows(stdout: str) -> list[tuple[int, float | None, str]]:
-    """(shape id, confidence, status) of each subject line."""
+    """(shape id, confidence, status) of each subject line (the disagreement between them
+    is checked by :func:`table_disagreements`)."""
     rows = []
     for line in stdout.splitlines():
         m = ROW.match(line)
         if m:
-            rows.append((int(m[1]), None if m[7] == "-" else float(m[7]), m[8]))
+            rows.append((int(m[1]), None if m[7] == "-" else float(m[7]), m[9]))
     return rows
+
+
+def table_disagreements(stdout: str) -> list[float | None]:
+    """The disagreement column of each subject line."""
+    return [None if m[8] == "-" else float(m[8])
+            for m in map(ROW.match, stdout.splitlines()) if m]
 
 
 def test_cli_results_table_sort_filter_and_pictures(
@@ -310,6 +318,10 @@ def test_cli_results_table_sort_filter_and_pictures(
     assert all(status == "leaf" for _, _, status in rows)
     for (_, shown, _), s in zip(rows, subjects, strict=True):
         assert shown == pytest.approx(s.confidence, abs=5e-4)
+    for shown_d, s in zip(table_disagreements(plain.stdout), subjects, strict=True):
+        assert (shown_d is None) == (s.disagreement is None)
+        if shown_d is not None:
+            assert shown_d == pytest.approx(s.disagreement, abs=5e-5)
     assert "leaf: a low-confidence leaf" in plain.stdout
     assert not list(tmp_path.iterdir())  # nothing written
 

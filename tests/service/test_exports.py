@@ -17,7 +17,7 @@ import httpx
 import numpy as np
 import pytest
 
-from service.client import Conflict, RegtreeClient
+from service.client import Conflict, RegtreeClient, Subject
 from service.contract.result import ResultDocument, SimilarityDocument, SubjectDetail
 from service.jobs.document import json_safe
 from tests.service.conftest import (
@@ -150,10 +150,28 @@ def test_result_csv(client: httpx.Client, job: dict[str, Any]) -> None:
         assert (float(row["error"]) if row["error"] else None) == s["error"]
         assert (float(row["direct_error"]) if row["direct_error"] else None) == s["direct_error"]
         assert row["path_shape_ids"].split() == [str(i) for i in s["path_shape_ids"]]
+        assert (float(row["disagreement"]) if row["disagreement"] else None) == s["disagreement"]
     by_error = client.get(f"/v1/jobs/{job['id']}/result.csv", params={"sort": "-error"}).text
     errors = [float(r["error"]) for r in csv.DictReader(io.StringIO(by_error)) if r["error"]]
     assert errors == sorted(errors, reverse=True)
     assert_problem(client.get(f"/v1/jobs/{job['id']}/result.csv", params={"sort": "x"}), 422)
+
+
+def test_result_sorted_by_disagreement(client: httpx.Client, job: dict[str, Any]) -> None:
+    """``sort=-disagreement``: the subjects whose two registrations disagree most first,
+    those without a value (the root) last; the client reads the field."""
+    doc = client.get(f"/v1/jobs/{job['id']}/result", params={"sort": "-disagreement"}).json()
+    values = [s["disagreement"] for s in doc["subjects"]]
+    present = [v for v in values if v is not None]
+    assert present, "the dynamic tree's polished subjects report a disagreement"
+    assert present == sorted(present, reverse=True) and all(v > 0 for v in present)
+    assert values[: len(present)] == present
+    ascending = client.get(f"/v1/jobs/{job['id']}/result", params={"sort": "disagreement"})
+    assert [s["disagreement"] for s in ascending.json()["subjects"]][: len(present)] == sorted(
+        present
+    )
+    subject = next(s for s in doc["subjects"] if s["disagreement"] is not None)
+    assert Subject.from_json(subject).disagreement == subject["disagreement"]
 
 
 def test_export_zip(service: Service, job: dict[str, Any], tmp_path: Path) -> None:

@@ -54,6 +54,7 @@ CSV_COLUMNS = (
     "error",
     "direct_error",
     "confidence",
+    "disagreement",
     "reason",
 )
 
@@ -156,6 +157,7 @@ def subjects_csv(document: Mapping[str, Any], subjects: Sequence[Mapping[str, An
                 _csv_number(s.get("error")),
                 _csv_number(s.get("direct_error")),
                 _csv_number(s.get("confidence")),
+                _csv_number(s.get("disagreement")),
                 s.get("reason", ""),
             ]
         )

@@ -100,9 +100,9 @@ def select_subjects(
     ``min_confidence`` keeps subjects whose ``confidence`` is at least that (a subject
     without one, e.g. unattached, is left out); ``leaf`` keeps only low-confidence leaves
     (True) or only the others (False). ``sort`` orders by ``position`` (the job's input
-    order, as stored), or by ``confidence`` / ``error``, ascending, or descending with a
-    leading "-"; subjects without that value come last either way, and ties keep their
-    position order.
+    order, as stored), or by ``confidence`` / ``error`` / ``disagreement``, ascending, or
+    descending with a leading "-"; subjects without that value come last either way, and
+    ties keep their position order.
     """
     if sort not in SUBJECT_SORTS:
         raise ValueError(f"sort must be one of {', '.join(SUBJECT_SORTS)}; got {sort!r}")
@@ -162,8 +162,9 @@ SortQuery = Annotated[
     SubjectSort,
     Query(
         description="Order of the subjects: position (the default: the order of the "
-        "job's shapes), confidence or error ascending, -confidence or -error descending. "
-        "Subjects without that value (unattached ones) come last either way; ties keep "
+        "job's shapes), confidence, error or disagreement ascending, -confidence, -error or "
+        "-disagreement descending. Subjects without that value (unattached ones; for "
+        "disagreement also those no symmetric finish ran for) come last either way; ties keep "
         "the position order."
     ),
 ]
