@@ -273,8 +273,7 @@ class ResultDocument(_Open):
     ``confidence`` (0 to 1, the estimated probability that its correspondences are right;
     null when unattached), ``disagreement`` (how far apart two registrations that err
     differently put the model's points, in units of its RMS radius; null where no
-    symmetric finish ran), ``leaf`` (true for a
-    low-confidence leaf: given its best
+    symmetric finish ran), ``leaf`` (true for a low-confidence leaf: given its best
     registration after the tree stopped growing, never a parent; its ``reason`` says why)
     and ``quality`` (the checks of its last registration). Heavy arrays (warped points,
     correspondences, transforms) are left out unless ``?full=true``;
