@@ -717,27 +717,39 @@ def summary(cases: list[Case], reports: list[dict[str, Any]],
                 parts.append(f2(sum(a * a for _, a in pairs) / total if total > 0 else None))
             cells.append(f"{m} {parts[0].strip()} / {parts[1].strip()}")
         print(f"  {kind:13s} " + "   ".join(cells))
-    print("\nwhich subjects the tree's own signs single out: AUC of each for the fifth of the "
-          "family's\nsubjects the tree registered worst (1.0 ranks them all first, 0.5 is "
-          "chance), and Spearman's rank\ncorrelation with the GT error; '1 - confidence' and "
-          "'disagreement' (bench/RESULTS.md 7.38):")
+    print("\nwhich subjects the tree's own signs single out, '1 - confidence' and "
+          "'disagreement' (bench/RESULTS.md 7.38):\nthe AUC of each for the fifth of the "
+          "subjects the tree registered worst (1.0 ranks them all first,\n0.5 is chance) "
+          "and Spearman's rank correlation rho with the GT error, pooled over the family's\n"
+          "subjects, and within each run (as a user sorts one job), averaged over the runs:")
     for kind in kinds:
-        rows = [r["tree"] for i, c in enumerate(cases) if c.kind == kind
-                for r in rows_by_case[i]]
-        rows = [r for r in rows if r["gt"] is not None and r["confidence"] is not None
-                and r.get("disagreement") is not None]
-        if len(rows) < 10:
-            print(f"  {kind:13s} {len(rows)} subjects with both signs: too few")
+        per_run = []
+        for i, c in enumerate(cases):
+            if c.kind != kind:
+                continue
+            rows = [r["tree"] for r in rows_by_case[i]]
+            rows = [r for r in rows if r["gt"] is not None and r["confidence"] is not None
+                    and r.get("disagreement") is not None]
+            if rows:
+                per_run.append((np.array([r["gt"] for r in rows]),
+                                1 - np.array([r["confidence"] for r in rows]),
+                                np.array([r["disagreement"] for r in rows])))
+        if sum(len(g) for g, _, _ in per_run) < 10:
+            print(f"  {kind:13s} too few subjects with both signs")
             continue
-        gt = np.array([r["gt"] for r in rows])
+        gt, unsure, spread = (np.concatenate(x) for x in zip(*per_run, strict=True))
         worst = gt > np.percentile(gt, 80)
-        cells = []
-        for name, score in (("1 - confidence", 1 - np.array([r["confidence"] for r in rows])),
-                            ("disagreement", np.array([r["disagreement"] for r in rows]))):
-            cells.append(f"{name} AUC {_auc(score, worst):.2f}, rho {_spearman(score, gt):+.2f}")
-        ratio = float(np.median(gt / np.maximum([r["disagreement"] for r in rows], 1e-12)))
-        print(f"  {kind:13s} n={len(rows):4d}  " + "   ".join(cells)
-              + f"   GT error / disagreement, median {ratio:.2f}")
+        cells = [f"{name} AUC {_auc(score, worst):.2f} rho {_spearman(score, gt):+.2f}"
+                 for name, score in (("1-conf", unsure), ("disagr.", spread))]
+        runs = [(g, u, d) for g, u, d in per_run if len(g) >= 8]
+        if runs:
+            for name, k in (("1-conf", 1), ("disagr.", 2)):
+                a = np.nanmean([_auc(r[k], r[0] > np.percentile(r[0], 80)) for r in runs])
+                rho = np.nanmean([_spearman(r[k], r[0]) for r in runs])
+                cells.append(f"per run {name} {a:.2f} {rho:+.2f}")
+        ratio = float(np.median(gt / np.maximum(spread, 1e-12)))
+        print(f"  {kind:13s} n={len(gt):4d}  " + "  ".join(cells)
+              + f"  GT/disagr. {ratio:.2f}")
     print("\ntree subjects attached as low-confidence leaves (counted as attached above):")
     for kind in kinds:
         rows = [r for i, c in enumerate(cases) if c.kind == kind for r in rows_by_case[i]]

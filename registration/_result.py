@@ -157,10 +157,10 @@ class SubjectResult:
         A second sign beside ``confidence``, from another source: where the two
         registrations disagree, at least one is off by about that much; where they agree,
         both may still have slid the same way. On the ground-truth chains of
-        bench/RESULTS.md 7.38 it singles out the worst-registered fifth of the subjects
-        better than ``confidence`` on glyph edges and skeletons, MPEG-7, near-identical
-        instances and randomly sampled outlines, and worse on six held-out characters,
-        outlines sampled anew and generated shapes. The correspondence error is 1.0-1.3
+        bench/RESULTS.md 7.38, sorting one collection's subjects by it finds the worst
+        registered better than sorting by ``confidence`` on glyph edges and skeletons and
+        MPEG-7, about as well on held-out characters and outlines, and worse on
+        near-identical instances and generated shapes. The correspondence error is 1.0-1.3
         times it on glyph edges and MPEG-7, 2-5 times on outlines, 0.14-0.18 on the Chui
         series. None when no symmetric finish ran (direct CPD, the static tree,
         ``polish=False``, the root, unattached subjects, or no backward registration).
