@@ -285,8 +285,8 @@ ROW = re.compile(
 
 
 def table_rows(stdout: str) -> list[tuple[int, float | None, str]]:
-    """(shape id, confidence, status) of each subject line (the disagreement between them
-    is checked by :func:`table_disagreements`)."""
+    """(shape id, confidence, status) of each subject line (the disagreement column, which
+    lies between the last two, is read by :func:`table_disagreements`)."""
     rows = []
     for line in stdout.splitlines():
         m = ROW.match(line)
