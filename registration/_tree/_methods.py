@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
+from functools import partial
 from typing import Any, Unpack
 
 import numpy as np
@@ -132,9 +133,9 @@ def build_dynamic_tree(
         raise ValueError(f"max_candidates must be at least 1; got {max_candidates}")
     run = _Run.prepare(shapes, root, options, mixture="sampling")
     start = run.tree_start(options)
-    cpd, prealign, spec, executor, progress = (run.cpd, run.prealign, run.pose, run.executor,
-                                               run.progress)
+    cpd, executor, progress = run.cpd, run.executor, run.progress
     coll, sim, allowed, sim_rule = start.coll, start.sim, start.allowed, start.rule
+    edge = partial(run.edge, sim)
     subjects_idx, nodes, results = start.subjects, start.nodes, start.results
     tau_err = error_threshold
     floors = {s: _spacing_floor(coll.spacing2[s]) for s in subjects_idx}
@@ -166,8 +167,7 @@ def build_dynamic_tree(
                 )[:max_candidates]
                 for _, m in cands:
                     tried.add((m, s))
-                    tasks.append(run.task(sim, m, s, nodes[m].layer + 1, nodes[m].q,
-                                          run.symmetric_edges, _tasks.HELD_START_EDGES))
+                    tasks.append(edge(m, s, nodes[m].layer + 1, nodes[m].q))
             if tasks or not bridge():
                 break
         if not tasks:
@@ -211,13 +211,11 @@ def build_dynamic_tree(
     # from their member's warped model as it was then; refinement then moves no member
     # that has a child, leaves included, so every chain stays the one it was built on
     if waiting:
-        _attach_leaves(coll, sim, nodes, results, waiting, rejected, tried, allowed, cpd,
-                       prealign, spec, max_candidates, executor, progress,
-                       run.symmetric_edges)
+        _attach_leaves(coll, sim, nodes, results, waiting, rejected, tried, allowed, edge,
+                       max_candidates, executor, progress)
     if refine:
         _refine_parents(coll, sim, sim_rule, nodes, results, tried, tau_err, floors,
-                        error_threshold is not None, fold_check, cpd, prealign, spec, executor,
-                        progress, run.symmetric_edges)
+                        error_threshold is not None, fold_check, edge, executor, progress)
     known: dict[int, _RegOutcome] | None = None
     if polish:
         if options["compare_direct"]:  # run once, for the comparison and the consensus
@@ -233,12 +231,10 @@ def build_dynamic_tree(
                 if (known is not None and not run.symmetric_edges
                         and not _tasks.HELD_START_EDGES):
                     return known[s]
-                return run.task(sim, root, s, 2, coll.normed[root], run.symmetric_edges,
-                                _tasks.HELD_START_EDGES)
+                return edge(root, s, 2, coll.normed[root])
             r = results[m]
             assert r.warped is not None and r.layer is not None
-            return run.task(sim, m, s, r.layer + 1, coll.norms[m].apply(r.warped),
-                            run.symmetric_edges, _tasks.HELD_START_EDGES)
+            return edge(m, s, r.layer + 1, coll.norms[m].apply(r.warped))
 
         _polish_subjects(coll, results, cpd, executor, progress, partner=partner)
     return run.finish(
@@ -412,6 +408,15 @@ class _Run:
             pose=self.pose, spacing2=self.coll.spacing2[subject], symmetric=symmetric,
             held=held,
         )
+
+    def edge(self, sim: Similarity, member: int, subject: int, layer: int,
+             q: np.ndarray) -> _RegTask:
+        """The dynamic tree's edge from `member` (the model warped onto it, `q`) to
+        `subject`: :meth:`task`, symmetric at the stored resolution and with CPD also run
+        from the held start. Every pass of the tree (growth, leaves, refinement, the
+        consensus's partner) registers its edges through this one builder."""
+        return self.task(sim, member, subject, layer, q, self.symmetric_edges,
+                         _tasks.HELD_START_EDGES)
 
     def direct_outcomes(self, sim: Similarity) -> dict[int, _RegOutcome]:
         """The root registered directly onto every subject, as a layer-2 edge (pose

@@ -4,18 +4,21 @@ through its best registration, then childless subjects moved to better parents."
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 
 from .._executor import Executor
-from .._pose import PoseSpec
 from .._result import Attempt, SubjectResult
 from .._similarity import ProgressCallback, Similarity
-from . import _tasks
 from ._collection import _Collection, _Node, _subject_from_outcome
 from ._rules import REFINE_TIE, _error_limit, _rejection, _SimilarityRule
-from ._tasks import CPDOptions, _RegOutcome, _RegTask, _run_tasks, _starts
+from ._tasks import _RegOutcome, _RegTask, _run_tasks
+
+# the dynamic tree's edge builder, `_Run.edge` bound to the similarity: (member, subject,
+# layer, the model as warped onto the member) -> the registration task
+EdgeTask = Callable[[int, int, int, np.ndarray], _RegTask]
 
 
 def _refine_parents(
@@ -29,12 +32,9 @@ def _refine_parents(
     floors: dict[int, float],
     explicit_error: bool,
     fold_check: bool,
-    cpd: CPDOptions,
-    prealign: bool,
-    pose: PoseSpec,
+    edge: EdgeTask,
     executor: Executor | None,
     progress: ProgressCallback | None,
-    symmetric: bool = False,
 ) -> None:
     """Move childless subjects to a later, more similar member when that registers better.
 
@@ -59,14 +59,9 @@ def _refine_parents(
         )
         if not later:
             continue
-        d, m = later[0]
+        _, m = later[0]
         tried.add((m, s))
-        tasks.append(_RegTask(
-            subject=s, member=m, layer=nodes[m].layer + 1, similarity=d, q=nodes[m].q,
-            y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd, prealign=prealign,
-            pose=pose, spacing2=coll.spacing2[s], symmetric=symmetric,
-            held=_tasks.HELD_START_EDGES,
-        ))
+        tasks.append(edge(m, s, nodes[m].layer + 1, nodes[m].q))
     moved: set[int] = set()
     for out in sorted(_run_tasks(tasks, executor, progress, "refine"), key=lambda o: o.subject):
         s = out.subject
@@ -110,13 +105,10 @@ def _attach_leaves(
     rejected: dict[int, list[_RegOutcome]],
     tried: set[tuple[int, int]],
     allowed: set[tuple[int, int]] | None,
-    cpd: CPDOptions,
-    prealign: bool,
-    pose: PoseSpec,
+    edge: EdgeTask,
     max_candidates: int,
     executor: Executor | None,
     progress: ProgressCallback | None,
-    symmetric: bool = False,
 ) -> None:
     """Give every subject the tree could not take its best registration, as a leaf.
 
@@ -144,12 +136,7 @@ def _attach_leaves(
             chosen.append(coll.root)
         for m in chosen:
             tried.add((m, s))
-            tasks.append(_RegTask(
-                subject=s, member=m, layer=nodes[m].layer + 1, similarity=float(sim.D[m, s]),
-                q=nodes[m].q, y=coll.normed[s], starts=_starts(sim, m, s), cpd=cpd,
-                prealign=prealign, pose=pose, spacing2=coll.spacing2[s],
-                symmetric=symmetric, held=_tasks.HELD_START_EDGES,
-            ))
+            tasks.append(edge(m, s, nodes[m].layer + 1, nodes[m].q))
     for out in _run_tasks(tasks, executor, progress, "leaves"):
         rejected.setdefault(out.subject, []).append(out)
     for s in sorted(waiting):
