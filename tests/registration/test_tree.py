@@ -351,6 +351,34 @@ def test_every_chain_reproduces_its_registration_with_leaves_and_refinement():
                                    atol=1e-6)
 
 
+def test_every_pass_of_the_dynamic_tree_registers_the_same_kind_of_edge(family, monkeypatch):
+    """Growth, the leaves and the refinement register their edges through one builder:
+    every task of every pass is symmetric and runs the held start too (the dynamic tree's
+    edges at the stored resolution), with the run's CPD options and pose handling."""
+    from registration._tree import _methods, _passes
+
+    seen: list[tuple[str, tuple]] = []
+    for module in (_methods, _passes):
+        def record(tasks, executor, progress, stage, _real=module._run_tasks):
+            seen.extend((stage.split()[0], (t.symmetric, t.held, t.cpd, t.prealign, t.pose))
+                        for t in tasks)
+            return _real(tasks, executor, progress, stage)
+
+        monkeypatch.setattr(module, "_run_tasks", record)
+    # the default rule refines; a similarity nothing passes sends every subject to the
+    # leaves' pass, which registers them from the root
+    build_dynamic_tree(family.shapes, 0, cpd=FAST_CPD, polish=False,
+                       executor=SerialExecutor())
+    build_dynamic_tree(family.shapes, 0, similarity_threshold=1e-9, cpd=FAST_CPD,
+                       polish=False, executor=SerialExecutor())
+    assert {stage for stage, _ in seen} == {"layer", "leaves", "refine"}
+    kinds = {kind for _, kind in seen}
+    assert len(kinds) == 1
+    symmetric, held, cpd, prealign, _ = kinds.pop()
+    assert symmetric and held and prealign
+    assert cpd == replace(FAST_CPD, mixture_weights="sampling")  # the tree's mixture
+
+
 def test_a_leaf_keeps_the_lowest_e_registration_even_when_it_folds(family, monkeypatch):
     # every candidate registers the same subject, so e compares like with like: every
     # registration onto subject 5 is made to fold, so the tree rejects it from each member
