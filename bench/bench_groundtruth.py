@@ -841,6 +841,9 @@ def main() -> None:
     args = ap.parse_args()
     fonts = [f.strip() for f in args.fonts.split(",") if f.strip()]
     unknown = [f for f in fonts if f not in CJK_FONTS]
+    if args.seeds < 1 or args.trials < 1:
+        ap.error(f"--seeds and --trials take a count of at least 1; got --seeds {args.seeds} "
+                 f"--trials {args.trials}")
     if unknown or not fonts or not args.characters:
         ap.error(f"--fonts takes names of {', '.join(CJK_FONTS)} and --characters at least "
                  f"one character; got --fonts {args.fonts!r} --characters {args.characters!r}")
