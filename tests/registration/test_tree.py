@@ -353,8 +353,9 @@ def test_every_chain_reproduces_its_registration_with_leaves_and_refinement():
 
 def test_every_pass_of_the_dynamic_tree_registers_the_same_kind_of_edge(family, monkeypatch):
     """Growth, the leaves and the refinement register their edges through one builder:
-    every task of every pass is symmetric and runs the held start too (the dynamic tree's
-    edges at the stored resolution), with the run's CPD options and pose handling."""
+    every task of every pass asks for a symmetric edge and the held start (the dynamic
+    tree's edges at the stored resolution; both apply from 150 points, the registration
+    decides), with the run's CPD options and pose handling."""
     from registration._tree import _methods, _passes
 
     seen: list[tuple[str, tuple]] = []
