@@ -52,6 +52,10 @@ Families (collections with exact ground truth):
   characters in the same fonts, chained with warp steps half the default (0.06): a
   collection of near-identical instances (prints of one type), where the tree has least
   to gain over plain CPD (root 0, seed 0).
+- ``glyph-latin``: Latin letters and digits (agR&5QOCDGSe0) from the same Noto fonts,
+  chained as glyph-other (root 0, seed 0): glyphs of a few smooth closed contours, round
+  ones among them, where the points barely show where a point lies along a contour
+  (bench/RESULTS.md 7.39). ``--latin`` runs other ones.
 
 "far" subjects are those more than half the family's chain length away from the root
 along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
@@ -332,6 +336,20 @@ def _rendered_glyph_cases(seeds: list[int], characters: str, fonts: dict[str, Pa
                         far_from=max(fam.depth) // 2 + 1,
                     ))
     return cases
+
+
+#: Latin glyphs for the ``glyph-latin`` family: letters of one contour and of several,
+#: with and without corners, and the round O, Q, 0 (bench/RESULTS.md 7.39).
+LATIN_CHARACTERS = "agR&5QOCDGSe0"
+
+
+def latin_glyph_cases(seeds: list[int], characters: str = LATIN_CHARACTERS,
+                      fonts: dict[str, Path] | None = None) -> list[Case]:
+    """``glyph-latin``: the Latin `characters` (default :data:`LATIN_CHARACTERS`) in the
+    `fonts` (default :data:`OTHER_FONTS`) found here, their edges chained as the 永
+    glyphs' (root 0)."""
+    return _rendered_glyph_cases(seeds, characters, fonts,
+                                 (("glyph-latin", "edges", 1, None),))
 
 
 def other_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
@@ -648,10 +666,11 @@ def summary(cases: list[Case], reports: list[dict[str, Any]],
         if kind != "ALL":
             worst_t_all, worst_d_all = max(worst_t_all, worst_t), max(worst_d_all, worst_d)
     # the glyph chains' target holds run by run: the 永 sets it was set on, and the glyph
-    # sets no rule was measured on (glyph-other; bench/RESULTS.md 7.28)
+    # sets no rule was measured on (glyph-other, glyph-latin; bench/RESULTS.md 7.28, 7.39)
     far_over: list[tuple[str, int, float]] = []
     for name, is_kind in (("永", lambda k: k.startswith("yong")),
                           ("other-glyph", lambda k: k == "glyph-other"),
+                          ("Latin-glyph", lambda k: k == "glyph-latin"),
                           ("dense-glyph", lambda k: k.startswith("dense"))):
         far_runs = [(c.label, c.root, r["far"]["tree/plain"]) for c, r in
                     zip(cases, reports, strict=True) if is_kind(c.kind) and r["far"]["n"]]
@@ -825,7 +844,7 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
                     "generated mpeg7 outline outline-random outline-arc glyph-other dense-edge "
-                    "dense-skel small-step)")
+                    "dense-skel small-step glyph-latin)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
@@ -837,6 +856,8 @@ def main() -> None:
     ap.add_argument("--fonts", default=",".join(OTHER_FONTS),
                     help="the glyph-other and dense families' fonts, comma-separated, of "
                     f"{', '.join(CJK_FONTS)} (default {','.join(OTHER_FONTS)})")
+    ap.add_argument("--latin", default=LATIN_CHARACTERS,
+                    help=f"the glyph-latin family's characters (default {LATIN_CHARACTERS})")
     ap.add_argument("--json", type=Path, default=None, help="dump every per-subject number")
     args = ap.parse_args()
     fonts = [f.strip() for f in args.fonts.split(",") if f.strip()]
@@ -844,9 +865,10 @@ def main() -> None:
     if args.seeds < 1 or args.trials < 1:
         ap.error(f"--seeds and --trials take a count of at least 1; got --seeds {args.seeds} "
                  f"--trials {args.trials}")
-    if unknown or not fonts or not args.characters:
-        ap.error(f"--fonts takes names of {', '.join(CJK_FONTS)} and --characters at least "
-                 f"one character; got --fonts {args.fonts!r} --characters {args.characters!r}")
+    if unknown or not fonts or not args.characters or not args.latin:
+        ap.error(f"--fonts takes names of {', '.join(CJK_FONTS)}, and --characters and --latin "
+                 f"at least one character each; got --fonts {args.fonts!r} --characters "
+                 f"{args.characters!r} --latin {args.latin!r}")
     seeds = list(range(1 if args.quick else args.seeds))
     trials = list(range(1 if args.quick else args.trials))
     mid_root = not args.quick
@@ -897,6 +919,8 @@ def main() -> None:
     if not args.quick or (args.only and "small-step" in args.only):
         cases += small_step_cases(designs, args.characters[:3],
                                   {f: CJK_FONTS[f] for f in fonts})
+    if not args.quick or (args.only and "glyph-latin" in args.only):
+        cases += latin_glyph_cases(seeds[:1], args.latin, {f: CJK_FONTS[f] for f in fonts})
     if args.only:
         cases = [c for c in cases if c.kind in args.only]
     print(f"{len(cases)} runs x 3 methods, default options (the library picks its executor); "
