@@ -77,6 +77,10 @@ class Similarity:
                    t_given=np.zeros((n, n, 2)), pose=pose if pose is not None else PoseSpec(),
                    _shapes=list(normalised_shapes))
 
+    def shape(self, index: int) -> FloatArray:
+        """Shape `index` as the ICP saw it: centred on its centroid, unit RMS radius."""
+        return self._shapes[index]
+
     @property
     def max_rotation(self) -> float | None:
         return self.pose.max_rotation

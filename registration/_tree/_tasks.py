@@ -4,6 +4,7 @@ subject (every start pose, CPD, quality; one kept), and a batch of them run on a
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from typing import Any, ParamSpec, TypeVar
@@ -39,6 +40,17 @@ T = TypeVar("T")
 POSE_DISTINCT_DEG = 20.0
 POSE_D_RATIO = 0.6
 POSE_MARGIN = 0.5
+# The largest ratio of the singular values of a map of a model onto itself that still
+# counts as one of its symmetries (`_own_symmetry`): an exact symmetry is an isometry
+# (1); the Latin O's half turn settled at 1.04, a stretch that folds a non-symmetric
+# outline onto itself at 5.2.
+SYMMETRY_MAX_STRETCH = 1.25
+# A turn under which the model fits itself at least 1 / SYMMETRY_D_RATIO times as
+# closely as the turned pose fits the subject is a near-symmetry of the model; the
+# turned start then replaces the pose as given only at an e below SYMMETRIC_POSE_MARGIN
+# of its (`_symmetry_ratio`).
+SYMMETRY_D_RATIO = 0.5
+SYMMETRIC_POSE_MARGIN = 0.1
 
 #: The dynamic tree's edges are symmetric (see `_symmetric_link`): CPD's registration of
 #: the member's model onto the subject is moved halfway to where the subject registered
@@ -83,6 +95,10 @@ class _Start:
     label: str  # "as given" or "rotated"
     A: FloatArray | None = None
     t: FloatArray | None = None
+    # the e, relative to the pose as given's, below which this start's registration
+    # replaces it (`_register_task`): POSE_MARGIN, or SYMMETRIC_POSE_MARGIN for a turn
+    # under which the model is nearly symmetric (`_symmetry_ratio`)
+    margin: float = POSE_MARGIN
 
 
 @dataclass(frozen=True)
@@ -261,11 +277,11 @@ def _register_task(task: _RegTask) -> _RegOutcome:
         return _register_from(task, None)
     outs = [_register_from(task, st) for st in task.starts]
     chosen = outs[0]
-    for other in outs[1:]:
+    for st, other in zip(task.starts[1:], outs[1:], strict=True):
         if not other.min_jacobian > 0:
             continue
         folded = not chosen.min_jacobian > 0
-        if other.error < POSE_MARGIN * chosen.error or (folded and other.error <= chosen.error):
+        if other.error < st.margin * chosen.error or (folded and other.error <= chosen.error):
             chosen = other
     errors = {o.pose: o.error for o in outs}
     return replace(chosen, pose_errors=errors)
@@ -281,11 +297,48 @@ def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
     d, d_g = sim.D[member, subject], sim.D_given[member, subject]
     if not (np.isfinite(d) and np.isfinite(d_g)) or not d < POSE_D_RATIO * d_g:
         return (given,)
-    distinct = (np.sign(np.linalg.det(A)) != np.sign(np.linalg.det(A_g))
-                or angle_between(rotation_angle(A), rotation_angle(A_g)) > POSE_DISTINCT_DEG)
-    if not distinct:
+    if not _distinct(A, A_g):
         return (given,)
-    return (given, _Start("rotated", A, sim.t[member, subject]))
+    symmetric = _symmetry_ratio(sim.shape(member), A, A_g, float(d)) <= SYMMETRY_D_RATIO
+    return (given, _Start("rotated", A, sim.t[member, subject],
+                          SYMMETRIC_POSE_MARGIN if symmetric else POSE_MARGIN))
+
+
+def _distinct(A: FloatArray, B: FloatArray) -> bool:
+    """Whether two linear maps are different poses: of the other handedness, or turned
+    apart by more than ``POSE_DISTINCT_DEG``."""
+    return bool(np.sign(np.linalg.det(A)) != np.sign(np.linalg.det(B))
+                or angle_between(rotation_angle(A), rotation_angle(B)) > POSE_DISTINCT_DEG)
+
+
+def _symmetry_ratio(model: FloatArray, A: FloatArray, A_given: FloatArray,
+                    d_pose: float) -> float:
+    """How closely the turn (or mirror) that separates the similarity's best pose from
+    the pose as given maps the model onto itself, relative to how closely that pose maps
+    it onto the subject: D(model, model) from the relative map, settled by affine ICP,
+    over ``d_pose``; infinite when the settled map is no longer a distinct pose or not
+    nearly an isometry (a symmetry is one; affine ICP can otherwise fold a shape onto
+    itself by a 5:1 stretch at a D as low as a genuine turn's, as on a generated outline
+    turned by 120 degrees).
+
+    A small ratio means the two poses differ by a near-symmetry of the model (an O
+    turned half a turn, an S): e then compares how the two registrations fit the few
+    parts that break the symmetry, and a lower e from the turned start may say only
+    which start CPD settled better from, while the turned correspondences are wrong by
+    the whole turn (the Latin O in a serif font: direct CPD took a 160-degree turn at
+    0.47x the e, correspondence error 1.99 of the radius against 0.20 as given;
+    bench/RESULTS.md 7.39). The model's points are centred (the similarity's normalised
+    shapes), so the symmetry is about the centroid.
+    """
+    rel = A @ np.linalg.inv(A_given)
+    u, _, vt = np.linalg.svd(rel)
+    turn = u @ vt  # the rotation (or rotation-reflection) nearest to the relative map
+    mode = "affine" if np.linalg.det(turn) < 0 else "rotation"
+    icp = affine_icp(model, model, init=(turn, np.zeros(2)), pose=mode)
+    stretch = np.linalg.svd(icp.A, compute_uv=False)
+    if not (_distinct(icp.A, np.eye(2)) and stretch[0] <= SYMMETRY_MAX_STRETCH * stretch[1]):
+        return math.inf
+    return float(icp.distance / d_pose) if d_pose > 0 else math.inf
 
 
 def _owns_executor(fn: Callable[P, R]) -> Callable[P, R]:

@@ -101,3 +101,63 @@ def test_pose_is_reported_in_options_and_each_subject_has_a_confidence():
         assert 0.0 <= s.confidence <= 1.0
         assert s.to_dict()["confidence"] == s.confidence
         assert {"error_ratio", "distortion", "coverage", "pose"} <= set(s.quality)
+
+
+def _half_turn_symmetric(n: int = 240) -> np.ndarray:
+    """A lobed outline with only even harmonics: symmetric under a half turn, not under a
+    quarter turn, and of no other symmetry."""
+    from registration._points import normalise
+
+    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    r = 1.0 + 0.25 * np.cos(2 * t) + 0.12 * np.sin(4 * t + 0.3)
+    return normalise(np.c_[1.5 * r * np.cos(t), r * np.sin(t)])[0]
+
+
+def test_a_turn_under_which_the_model_is_symmetric_is_recognised():
+    """`_symmetry_ratio`: a half turn of a half-turn-symmetric outline maps it onto itself
+    (a tiny D relative to the pose's), a quarter turn does not, and neither does any turn
+    of an outline without symmetry, even where affine ICP could fold it onto itself by a
+    stretch (the map must stay near an isometry)."""
+    from registration._points import normalise
+    from registration._tree._tasks import SYMMETRY_D_RATIO, _symmetry_ratio
+
+    sym = _half_turn_symmetric()
+    # relative to the pose as given: A = turn @ A_given
+    a_given = np.array([[1.1, 0.1], [0.0, 0.9]])
+    assert _symmetry_ratio(sym, _rot(180.0) @ a_given, a_given, 0.04) < 0.1
+    assert _symmetry_ratio(sym, _rot(170.0), np.eye(2), 0.04) < 0.1  # settled by ICP
+    assert _symmetry_ratio(sym, _rot(90.0), np.eye(2), 0.04) > SYMMETRY_D_RATIO
+    plain = normalise(base_outline(240))[0]
+    for deg in (90.0, 120.0, 180.0):
+        assert _symmetry_ratio(plain, _rot(deg), np.eye(2), 0.04) > SYMMETRY_D_RATIO
+
+
+def test_a_turn_the_model_is_symmetric_under_needs_a_decisive_e(monkeypatch):
+    """The turned start replaces the pose as given at an e below its margin: POSE_MARGIN
+    for a turn that changes the model, SYMMETRIC_POSE_MARGIN for one it is nearly
+    symmetric under (a Latin O turned half a turn at 0.47x the e was wrong by the whole
+    turn, bench/RESULTS.md 7.39)."""
+    from dataclasses import replace
+
+    from registration._tree import _tasks
+
+    def outcome(label: str, error: float) -> object:
+        return replace(base, pose=label, error=error, min_jacobian=1.0)
+
+    y = _half_turn_symmetric(100)
+    task = _tasks._RegTask(
+        subject=1, member=0, layer=2, similarity=0.01, q=y, y=y,
+        starts=(_tasks._Start("as given"),), cpd=FAST_CPD, prealign=True,
+        pose=PoseSpec.resolve(None, None), spacing2=0.01)
+    base = _tasks._register_task(task)
+    errors = {"as given": 1.0, "rotated": 0.47}
+    monkeypatch.setattr(_tasks, "_register_from",
+                        lambda task, st: outcome(st.label, errors[st.label]))
+    turned = _tasks._Start("rotated", _rot(180.0), np.zeros(2))
+    symmetric = replace(turned, margin=_tasks.SYMMETRIC_POSE_MARGIN)
+    assert _tasks._register_task(replace(task, starts=(task.starts[0], turned))).pose == "rotated"
+    kept = _tasks._register_task(replace(task, starts=(task.starts[0], symmetric)))
+    assert kept.pose == "as given" and kept.pose_errors == errors
+    errors["rotated"] = 0.05  # decisive: taken even under a symmetry
+    assert _tasks._register_task(replace(task, starts=(task.starts[0], symmetric))).pose == (
+        "rotated")
