@@ -41,14 +41,14 @@ POSE_DISTINCT_DEG = 20.0
 POSE_D_RATIO = 0.6
 POSE_MARGIN = 0.5
 # The largest ratio of the singular values of a map of a model onto itself that still
-# counts as one of its symmetries (`_own_symmetry`): an exact symmetry is an isometry
+# counts as one of its symmetries (`_symmetry_ratio`): an exact symmetry is an isometry
 # (1); the Latin O's half turn settled at 1.04, a stretch that folds a non-symmetric
 # outline onto itself at 5.2.
 SYMMETRY_MAX_STRETCH = 1.25
 # A turn under which the model fits itself at least 1 / SYMMETRY_D_RATIO times as
 # closely as the turned pose fits the subject is a near-symmetry of the model; the
 # turned start then replaces the pose as given only at an e below SYMMETRIC_POSE_MARGIN
-# of its (`_symmetry_ratio`).
+# times the pose as given's (`_symmetry_ratio`).
 SYMMETRY_D_RATIO = 0.5
 SYMMETRIC_POSE_MARGIN = 0.1
 
