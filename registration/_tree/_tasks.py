@@ -269,9 +269,10 @@ def _register_task(task: _RegTask) -> _RegOutcome:
     """Register the member's warped model onto the subject from every start; keep one.
 
     The pose as given (the first start) is kept unless another start's registration does
-    not fold and reaches an e below ``POSE_MARGIN`` times the pose as given's, or the
-    pose as given folds and the other reaches no larger an e. A rotated pose thus earns
-    its place by the registration it leads to, not by D alone.
+    not fold and reaches an e below its start's margin times the pose as given's
+    (``POSE_MARGIN``; ``SYMMETRIC_POSE_MARGIN`` for a turn the model is nearly symmetric
+    under), or the pose as given folds and the other reaches no larger an e. A rotated
+    pose thus earns its place by the registration it leads to, not by D alone.
     """
     if not task.prealign:
         return _register_from(task, None)
@@ -290,7 +291,9 @@ def _register_task(task: _RegTask) -> _RegOutcome:
 def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
     """The pose as given; and the similarity's best pose when it is another pose (turned
     by more than ``POSE_DISTINCT_DEG`` or of the other handedness) that fits clearly
-    better: its D below ``POSE_D_RATIO`` times the D reached from the pose as given."""
+    better: its D below ``POSE_D_RATIO`` times the D reached from the pose as given. Its
+    margin is ``SYMMETRIC_POSE_MARGIN`` when the model is nearly symmetric under the turn
+    between the two poses (`_symmetry_ratio`), else ``POSE_MARGIN``."""
     given = _Start("as given")
     A = sim.A[member, subject]
     A_g = sim.A_given[member, subject]
