@@ -854,7 +854,8 @@ def main() -> None:
                     help="the glyph-other and dense families' characters (default "
                     f"{OTHER_CHARACTERS})")
     ap.add_argument("--fonts", default=",".join(OTHER_FONTS),
-                    help="the glyph-other and dense families' fonts, comma-separated, of "
+                    help="the glyph-other, dense and glyph-latin families' fonts, "
+                    "comma-separated, of "
                     f"{', '.join(CJK_FONTS)} (default {','.join(OTHER_FONTS)})")
     ap.add_argument("--latin", default=LATIN_CHARACTERS,
                     help=f"the glyph-latin family's characters (default {LATIN_CHARACTERS})")
