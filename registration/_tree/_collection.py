@@ -109,7 +109,8 @@ def _subject_from_outcome(
         confidence=confidence,
         leaf=leaf,
         quality={**out.quality.to_dict(), "pose": out.pose, "pose_angle": out.pose_angle,
-                 "pose_errors": dict(out.pose_errors), **edge},
+                 "pose_errors": dict(out.pose_errors), "pose_margin": out.pose_margin,
+                 **edge},
     )
     return res, _Node(q=out.warped, chain=chain, layer=layer, confidence=confidence,
                       joined=joined)

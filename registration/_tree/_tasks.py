@@ -142,6 +142,9 @@ class _RegOutcome:
     # reached; empty when only the annealed one ran
     cpd_start: str = ""
     cpd_start_errors: dict[str, float] | None = None
+    # the margin the other start's e (relative to the pose as given's) had to be under to
+    # replace it (`_Start.margin`); None when only the pose as given was tried
+    pose_margin: float | None = None
 
 
 @dataclass(frozen=True)
@@ -285,7 +288,8 @@ def _register_task(task: _RegTask) -> _RegOutcome:
         if other.error < st.margin * chosen.error or (folded and other.error <= chosen.error):
             chosen = other
     errors = {o.pose: o.error for o in outs}
-    return replace(chosen, pose_errors=errors)
+    margin = task.starts[1].margin if len(task.starts) > 1 else None
+    return replace(chosen, pose_errors=errors, pose_margin=margin)
 
 
 def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:

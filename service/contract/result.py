@@ -117,6 +117,11 @@ class Quality(_Open):
     pose: str | None = None
     pose_angle: float | None = None
     pose_errors: dict[str, float | None] | None = None
+    pose_margin: float | None = Field(
+        default=None, description="The ratio to the pose as given's e below which the "
+        "other start's e had to fall to replace it: 0.5, or 0.1 for a turn under which the "
+        "model is nearly symmetric (a turned O or S). Null when only the pose as given was "
+        "tried.")
     symmetric_edge: bool | None = Field(
         default=None, description="The dynamic tree's edge was made symmetric: CPD's "
         "registration moved halfway to the subject's registered back onto the member.")

@@ -87,9 +87,12 @@ def test_a_turned_subject_is_registered_through_the_rotated_pose():
     s = res.subject(2)
     assert s.quality is not None and s.quality["pose"] == "rotated"
     assert s.quality["pose_errors"]["rotated"] < 0.5 * s.quality["pose_errors"]["as given"]
+    # the margin the turned start had to beat (the outline has no symmetry under the turn)
+    assert s.quality["pose_margin"] == 0.5
     assert correspondence_error(s.warped, truth, shapes[2]) < 0.15
-    # the others, given upright, keep the pose as given
+    # the others, given upright, keep the pose as given, the only start tried
     assert res.subject(1).quality["pose"] == "as given"
+    assert res.subject(1).quality["pose_margin"] is None
 
 
 def test_pose_is_reported_in_options_and_each_subject_has_a_confidence():
@@ -150,6 +153,7 @@ def test_a_turn_the_model_is_symmetric_under_needs_a_decisive_e(monkeypatch):
         starts=(_tasks._Start("as given"),), cpd=FAST_CPD, prealign=True,
         pose=PoseSpec.resolve(None, None), spacing2=0.01)
     base = _tasks._register_task(task)
+    assert base.pose_margin is None  # one start: no margin to report
     errors = {"as given": 1.0, "rotated": 0.47}
     monkeypatch.setattr(_tasks, "_register_from",
                         lambda task, st: outcome(st.label, errors[st.label]))
@@ -158,6 +162,7 @@ def test_a_turn_the_model_is_symmetric_under_needs_a_decisive_e(monkeypatch):
     assert _tasks._register_task(replace(task, starts=(task.starts[0], turned))).pose == "rotated"
     kept = _tasks._register_task(replace(task, starts=(task.starts[0], symmetric)))
     assert kept.pose == "as given" and kept.pose_errors == errors
+    assert kept.pose_margin == _tasks.SYMMETRIC_POSE_MARGIN  # why 0.47x was not enough
     errors["rotated"] = 0.05  # decisive: taken even under a symmetry
     assert _tasks._register_task(replace(task, starts=(task.starts[0], symmetric))).pose == (
         "rotated")

@@ -151,6 +151,8 @@ def test_openapi_describes_the_result_and_its_subject(client: httpx.Client) -> N
                 "attached", "status", "quality", "transform", "warped"):
         assert key in subject, key
     assert set(schemas["Summary"]["properties"]) >= {"subjects", "attached", "per_layer"}
+    # the pose each subject started from, what each start reached and the margin it needed
+    assert set(schemas["Quality"]["properties"]) >= {"pose", "pose_errors", "pose_margin"}
     assert "discriminator" in str(schemas["ChainTransformDoc"])
 
 
