@@ -80,6 +80,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from ranking import auc, spearman
 from scipy.spatial import cKDTree
 
 from registration import CollectionResult, build_dynamic_tree, register_direct
@@ -500,23 +501,6 @@ def _mean(v: list[float]) -> float:
     return float(np.mean(v)) if v else float("nan")
 
 
-def _auc(score: np.ndarray, positive: np.ndarray) -> float:
-    """The probability that a random positive scores above a random negative (ties half)."""
-    pos, neg = score[positive], score[~positive]
-    if not len(pos) or not len(neg):
-        return float("nan")
-    above = (pos[:, None] > neg[None, :]).mean()
-    tied = (pos[:, None] == neg[None, :]).mean()
-    return float(above + 0.5 * tied)
-
-
-def _spearman(a: np.ndarray, b: np.ndarray) -> float:
-    """Spearman's rank correlation (average ranks for ties)."""
-    from scipy.stats import rankdata
-
-    return float(np.corrcoef(rankdata(a), rankdata(b))[0, 1])
-
-
 def _p95(v: list[float]) -> float:
     return float(np.percentile(v, 95)) if v else float("nan")
 
@@ -758,13 +742,13 @@ def summary(cases: list[Case], reports: list[dict[str, Any]],
             continue
         gt, unsure, spread = (np.concatenate(x) for x in zip(*per_run, strict=True))
         worst = gt > np.percentile(gt, 80)
-        cells = [f"{name} AUC {_auc(score, worst):.2f} rho {_spearman(score, gt):+.2f}"
+        cells = [f"{name} AUC {auc(score, worst):.2f} rho {spearman(score, gt):+.2f}"
                  for name, score in (("1-conf", unsure), ("disagr.", spread))]
         runs = [(g, u, d) for g, u, d in per_run if len(g) >= 8]
         if runs:
             for name, k in (("1-conf", 1), ("disagr.", 2)):
-                a = np.nanmean([_auc(r[k], r[0] > np.percentile(r[0], 80)) for r in runs])
-                rho = np.nanmean([_spearman(r[k], r[0]) for r in runs])
+                a = np.nanmean([auc(r[k], r[0] > np.percentile(r[0], 80)) for r in runs])
+                rho = np.nanmean([spearman(r[k], r[0]) for r in runs])
                 cells.append(f"per run {name} {a:.2f} {rho:+.2f}")
         ratio = float(np.median(gt / np.maximum(spread, 1e-12)))
         print(f"  {kind:13s} n={len(gt):4d}  " + "  ".join(cells)

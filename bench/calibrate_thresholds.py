@@ -32,6 +32,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+from ranking import auc
 from scipy.optimize import minimize
 
 from registration import CPDOptions, LocalProcessExecutor, normalise
@@ -141,14 +142,6 @@ def _logistic_fit(X: np.ndarray, y: np.ndarray, l2: float = 1e-2) -> np.ndarray:
     return np.asarray(res.x)
 
 
-def _auc(score: np.ndarray, y: np.ndarray) -> float:
-    pos, neg = score[y == 1], score[y == 0]
-    if not len(pos) or not len(neg):
-        return float("nan")
-    ranks = np.argsort(np.argsort(np.concatenate([pos, neg]))) + 1
-    return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer pairs (a smoke run)")
@@ -196,7 +189,7 @@ def main() -> None:
     usable = minjac > 0
     for k, f in enumerate(_FEATURES):
         sign = -1.0 if f in ("log_error_ratio", "distortion", "anisotropy", "cpd_rotation") else 1
-        print(f"  {f:16s} AUC {_auc(sign * feats[usable, k], good[usable]):.3f}")
+        print(f"  {f:16s} AUC {auc(sign * feats[usable, k], good[usable]):.3f}")
 
     # the confidence model: standardised features, logistic fit; held out by data set
     Xs = feats[usable]
@@ -212,11 +205,11 @@ def main() -> None:
         hi = p >= 0.5
         acc = 100 * ys[te][hi].mean() if hi.any() else float("nan")
         rej = 100 * ys[te][~hi].mean() if (~hi).any() else float("nan")
-        print(f"  {g:22s} n={te.sum():4d} AUC {_auc(p, ys[te]):.3f}  accepted (p>=0.5) good"
+        print(f"  {g:22s} n={te.sum():4d} AUC {auc(p, ys[te]):.3f}  accepted (p>=0.5) good"
               f" {acc:5.1f}% of {hi.sum()}, rejected good {rej:5.1f}% of {(~hi).sum()}")
     w = _logistic_fit(Z, ys)
     p = 1.0 / (1.0 + np.exp(-(w[0] + Z @ w[1:])))
-    print(f"\nall sets: AUC {_auc(p, ys):.3f}")
+    print(f"\nall sets: AUC {auc(p, ys):.3f}")
     for lo, hi_ in itertools.pairwise([0, 0.2, 0.5, 0.8, 0.95, 1.0001]):
         m = (p >= lo) & (p < hi_)
         if m.any():
