@@ -55,7 +55,8 @@ Families (collections with exact ground truth):
 - ``glyph-latin``: Latin letters and digits (agR&5QOCDGSe0) from the same Noto fonts,
   chained as glyph-other (root 0, seed 0): glyphs of a few smooth closed contours, round
   ones among them, where the points barely show where a point lies along a contour
-  (bench/RESULTS.md 7.39). ``--latin`` runs other ones.
+  (bench/RESULTS.md 7.39). ``--latin`` runs other ones; ``--fonts dejavu-sans,dejavu-serif``
+  the same letters in DejaVu, a second type family (bench/RESULTS.md 7.40).
 
 "far" subjects are those more than half the family's chain length away from the root
 along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
@@ -283,12 +284,20 @@ OTHER_FONTS = {
     "sans-regular": _NOTO / "NotoSansCJK-Regular.ttc",
     "serif-bold": _NOTO / "NotoSerifCJK-Bold.ttc",
 }
-#: Every font ``--fonts`` can name (the two above are the family's default).
 CJK_FONTS = {
     **OTHER_FONTS,
     "sans-bold": _NOTO / "NotoSansCJK-Bold.ttc",
     "serif-regular": _NOTO / "NotoSerifCJK-Regular.ttc",
 }
+_DEJAVU = Path("/usr/share/fonts/truetype/dejavu")
+#: Latin-only fonts (Debian's fonts-dejavu-core): a second type family for ``glyph-latin``.
+#: They carry no CJK characters; a character a font lacks is skipped (`_has_glyph`).
+LATIN_FONTS = {
+    "dejavu-sans": _DEJAVU / "DejaVuSans.ttf",
+    "dejavu-serif": _DEJAVU / "DejaVuSerif.ttf",
+}
+#: Every font ``--fonts`` can name (:data:`OTHER_FONTS` are the default).
+FONTS = {**CJK_FONTS, **LATIN_FONTS}
 
 
 #: Points a shape of the ``dense-edge`` / ``dense-skel`` families: above the library's
@@ -314,16 +323,37 @@ def _glyph_points(char: str, font: Path, mode: str = "edges", scale: int = 1) ->
     return points_from_image(img, mode=mode)
 
 
+#: A code point no font draws (plane 16's last, private use): what a font renders for a
+#: character it lacks.
+_NO_GLYPH = "\U0010fffd"
+
+
+def _has_glyph(char: str, font: Path) -> bool:
+    """Whether `font` draws `char` rather than its missing-glyph box (or nothing)."""
+    from PIL import ImageFont
+
+    f = ImageFont.truetype(str(font), 64)
+    mask = f.getmask(char)
+    if mask.getbbox() is None:
+        return False
+    missing = f.getmask(_NO_GLYPH)
+    return bool(mask.size != missing.size or bytes(mask) != bytes(missing))
+
+
 def _rendered_glyph_cases(seeds: list[int], characters: str, fonts: dict[str, Path] | None,
                           families: tuple[tuple[str, str, int, int | None], ...]
                           ) -> list[Case]:
     """The `characters` in the `fonts` (default :data:`OTHER_FONTS`) found here, chained as
     the 永 glyphs' (root 0), once per family of `families`: (kind, image mode, render scale,
-    points a shape; None: :func:`~registration.synthetic.deformation_chains`' default)."""
+    points a shape; None: :func:`~registration.synthetic.deformation_chains`' default).
+    A character a font lacks (:func:`_has_glyph`) is skipped, with a note."""
     cases = []
     for char in characters:
         for font_name, font in (OTHER_FONTS if fonts is None else fonts).items():
             if not font.exists():
+                continue
+            if not _has_glyph(char, font):
+                print(f"NOTE: {font_name} has no glyph for {char!r}: skipping it there")
                 continue
             for kind, mode, scale, n_points in families:
                 dense = _glyph_points(char, font, mode, scale)
@@ -839,19 +869,19 @@ def main() -> None:
                     f"{OTHER_CHARACTERS})")
     ap.add_argument("--fonts", default=",".join(OTHER_FONTS),
                     help="the glyph-other, dense and glyph-latin families' fonts, "
-                    "comma-separated, of "
-                    f"{', '.join(CJK_FONTS)} (default {','.join(OTHER_FONTS)})")
+                    f"comma-separated, of {', '.join(FONTS)} (default "
+                    f"{','.join(OTHER_FONTS)}; the DejaVu fonts draw Latin glyphs only)")
     ap.add_argument("--latin", default=LATIN_CHARACTERS,
                     help=f"the glyph-latin family's characters (default {LATIN_CHARACTERS})")
     ap.add_argument("--json", type=Path, default=None, help="dump every per-subject number")
     args = ap.parse_args()
     fonts = [f.strip() for f in args.fonts.split(",") if f.strip()]
-    unknown = [f for f in fonts if f not in CJK_FONTS]
+    unknown = [f for f in fonts if f not in FONTS]
     if args.seeds < 1 or args.trials < 1:
         ap.error(f"--seeds and --trials take a count of at least 1; got --seeds {args.seeds} "
                  f"--trials {args.trials}")
     if unknown or not fonts or not args.characters or not args.latin:
-        ap.error(f"--fonts takes names of {', '.join(CJK_FONTS)}, and --characters and --latin "
+        ap.error(f"--fonts takes names of {', '.join(FONTS)}, and --characters and --latin "
                  f"at least one character each; got --fonts {args.fonts!r} --characters "
                  f"{args.characters!r} --latin {args.latin!r}")
     seeds = list(range(1 if args.quick else args.seeds))
@@ -893,19 +923,19 @@ def main() -> None:
                 print(f"NOTE: no {kind} shapes under {DATA}: skipping that family")
     if not args.quick or (args.only and "glyph-other" in args.only):
         others = other_glyph_cases(seeds, args.characters,
-                                   {f: CJK_FONTS[f] for f in fonts})
+                                   {f: FONTS[f] for f in fonts})
         if not others:
-            print(f"NOTE: none of the CJK fonts {', '.join(fonts)} is installed: skipping "
-                  "the glyph-other family")
+            print(f"NOTE: no font of {', '.join(fonts)} is installed with a glyph of "
+                  f"{args.characters}: skipping the glyph-other family")
         cases += others
     if not args.quick or (args.only and {"dense-edge", "dense-skel"} & set(args.only)):
         cases += dense_glyph_cases(seeds[:1], args.characters,
-                                   {f: CJK_FONTS[f] for f in fonts})
+                                   {f: FONTS[f] for f in fonts})
     if not args.quick or (args.only and "small-step" in args.only):
         cases += small_step_cases(designs, args.characters[:3],
-                                  {f: CJK_FONTS[f] for f in fonts})
+                                  {f: FONTS[f] for f in fonts})
     if not args.quick or (args.only and "glyph-latin" in args.only):
-        cases += latin_glyph_cases(seeds[:1], args.latin, {f: CJK_FONTS[f] for f in fonts})
+        cases += latin_glyph_cases(seeds[:1], args.latin, {f: FONTS[f] for f in fonts})
     if args.only:
         cases = [c for c in cases if c.kind in args.only]
     print(f"{len(cases)} runs x 3 methods, default options (the library picks its executor); "
