@@ -99,6 +99,20 @@ class _Start:
     # replaces it (`_register_task`): POSE_MARGIN, or SYMMETRIC_POSE_MARGIN for a turn
     # under which the model is nearly symmetric (`_symmetry_ratio`)
     margin: float = POSE_MARGIN
+    # what `_symmetry_ratio` needs besides A, when the margin is still to be decided by
+    # it: the member's own (normalised) shape, the pose as given's map and this pose's D.
+    # `decided` decides it in the worker that runs the task, not in the process that
+    # builds the tasks (one affine ICP of the shape onto itself per turned start).
+    symmetry: tuple[FloatArray, FloatArray, float] | None = None
+
+    def decided(self) -> _Start:
+        """This start with its margin decided (itself when it already is)."""
+        if self.symmetry is None or self.A is None:
+            return self
+        model, A_given, d = self.symmetry
+        symmetric = _symmetry_ratio(model, self.A, A_given, d) <= SYMMETRY_D_RATIO
+        return replace(self, margin=SYMMETRIC_POSE_MARGIN if symmetric else POSE_MARGIN,
+                       symmetry=None)
 
 
 @dataclass(frozen=True)
@@ -279,16 +293,17 @@ def _register_task(task: _RegTask) -> _RegOutcome:
     """
     if not task.prealign:
         return _register_from(task, None)
-    outs = [_register_from(task, st) for st in task.starts]
+    starts = tuple(st.decided() for st in task.starts)
+    outs = [_register_from(task, st) for st in starts]
     chosen = outs[0]
-    for st, other in zip(task.starts[1:], outs[1:], strict=True):
+    for st, other in zip(starts[1:], outs[1:], strict=True):
         if not other.min_jacobian > 0:
             continue
         folded = not chosen.min_jacobian > 0
         if other.error < st.margin * chosen.error or (folded and other.error <= chosen.error):
             chosen = other
     errors = {o.pose: o.error for o in outs}
-    margin = task.starts[1].margin if len(task.starts) > 1 else None
+    margin = starts[1].margin if len(starts) > 1 else None
     return replace(chosen, pose_errors=errors, pose_margin=margin)
 
 
@@ -297,7 +312,8 @@ def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
     by more than ``POSE_DISTINCT_DEG`` or of the other handedness) that fits clearly
     better: its D below ``POSE_D_RATIO`` times the D reached from the pose as given. Its
     margin is ``SYMMETRIC_POSE_MARGIN`` when the model is nearly symmetric under the turn
-    between the two poses (`_symmetry_ratio`), else ``POSE_MARGIN``."""
+    between the two poses (`_symmetry_ratio`), else ``POSE_MARGIN``: decided by
+    :meth:`_Start.decided` where the task runs."""
     given = _Start("as given")
     A = sim.A[member, subject]
     A_g = sim.A_given[member, subject]
@@ -306,9 +322,8 @@ def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
         return (given,)
     if not _distinct(A, A_g):
         return (given,)
-    symmetric = _symmetry_ratio(sim.shape(member), A, A_g, float(d)) <= SYMMETRY_D_RATIO
     return (given, _Start("rotated", A, sim.t[member, subject],
-                          SYMMETRIC_POSE_MARGIN if symmetric else POSE_MARGIN))
+                          symmetry=(sim.shape(member), A_g, float(d))))
 
 
 def _distinct(A: FloatArray, B: FloatArray) -> bool:

@@ -163,6 +163,10 @@ def test_a_turn_the_model_is_symmetric_under_needs_a_decisive_e(monkeypatch):
     kept = _tasks._register_task(replace(task, starts=(task.starts[0], symmetric)))
     assert kept.pose == "as given" and kept.pose_errors == errors
     assert kept.pose_margin == _tasks.SYMMETRIC_POSE_MARGIN  # why 0.47x was not enough
+    # `_starts` leaves the margin to the worker: decided there from the member's shape
+    deferred = replace(turned, symmetry=(_half_turn_symmetric(), np.eye(2), 0.04))
+    kept = _tasks._register_task(replace(task, starts=(task.starts[0], deferred)))
+    assert kept.pose == "as given" and kept.pose_margin == _tasks.SYMMETRIC_POSE_MARGIN
     errors["rotated"] = 0.05  # decisive: taken even under a symmetry
     assert _tasks._register_task(replace(task, starts=(task.starts[0], symmetric))).pose == (
         "rotated")
