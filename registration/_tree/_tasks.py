@@ -251,7 +251,9 @@ def _register_from(task: _RegTask, start: _Start | None) -> _RegOutcome:
             steps.append(step)
             warp = _Then(res.transform, step)
             symmetric = True
-    e = registration_error(warped, task.y)
+    # the held start's comparison already took e of the kept points, unless they moved
+    e = (start_errors[cpd_start] if start_errors is not None and not symmetric
+         else registration_error(warped, task.y))
     quality = measure_quality(q, warped, task.y, warp, e, task.spacing2)
     correspondence, probability = res.correspondence, res.probability
     if symmetric:
