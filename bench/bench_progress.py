@@ -37,7 +37,8 @@ as ``stage / fields ~ n ** c`` (``fields`` is one step per instance).
 A stage lasts from its first event to the next stage's first event (the last one to the
 method's return); the time before the first event goes to the first stage. Stages are
 grouped as ``service/progress.py`` weighs them: similarity (the first all-pairs stage),
-layers (``layer N`` and ``similarity layer N``), leaves (``similarity leaves``, ``leaves``;
+layers (the dynamic tree's rounds, ``round N`` and ``similarity round N``; a static tree's
+``layer N`` and ``similarity layer N``), leaves (``similarity leaves``, ``leaves``;
 ``service/progress.py`` counts them with the layers, and the line "layers + leaves" shows
 their sum as a share of the decisions, similarity to direct), refine, polish, direct
 (``similarity direct``, ``direct``), full resolution, polish full resolution and direct
@@ -87,7 +88,7 @@ MPEG7_CLASSES = ["fish", "lmfish", "flatfish", "horse", "bird", "bat", "camel", 
 WORKING_POINTS = 400  # the default working resolution
 GROUPS = ["similarity", "layers", "leaves", "refine", "polish", "direct", "full resolution",
           "polish full resolution", "direct full resolution"]
-_LAYER = re.compile(r"(similarity )?layer \d+")
+_LAYER = re.compile(r"(similarity )?(round|layer) \d+")
 
 
 def group_of(stage: str) -> str:
@@ -184,7 +185,7 @@ def measure(shapes: list[np.ndarray], options: dict[str, Any], serial: bool = Fa
     for _, stage, _, total in events:
         totals[stage] = total  # the last total a stage reported
     summary = result.summary()
-    layer_regs = sum(t for s, t in totals.items() if re.fullmatch(r"layer \d+", s))
+    layer_regs = sum(t for s, t in totals.items() if re.fullmatch(r"(round|layer) \d+", s))
     return {"wall": t1 - t0, "seconds": seconds, "stage_seconds": stage_seconds,
             "stage_totals": totals, "layer_registrations": layer_regs,
             "subjects": len(shapes) - 1, "attached": summary.get("attached"),
@@ -367,7 +368,7 @@ def main() -> None:
                      + m["seconds"]["leaves"]) / whole]
             print(f"  leaves start / end: {100 * true[0]:.1f}% / {100 * true[1]:.1f}% of the run's "
                   f"time, progress.py {100 * (at[0] or 0):.1f}% / {100 * (at[1] or 0):.1f}% "
-                  f"({len([s for s in totals if s.startswith('layer ')])} layers)")
+                  f"({len([s for s in totals if s.startswith(('round ', 'layer '))])} rounds)")
             print(f"  leaves: {leaf_regs} registrations for {m['leaves']} leaves, "
                   f"{per_leaf:.3f} s each against {per_layer:.3f} s in the layers "
                   f"({per_leaf / per_layer:.2f}x); {100 * m['seconds']['leaves'] / decisions:.1f}% "

@@ -5,7 +5,7 @@ Starts ``regtree serve`` on a free port with a temporary SQLite file and two emb
 ``../shared/data/glyphs_yong/points/*_edge.txt`` through :class:`service.client.RegtreeClient`
 (multipart batches, as a user's ``regtree upload`` would), runs one dynamic-tree job with
 ``compare_direct``, follows its progress, and prints how long each stage took (as the job
-reports its stages: ``similarity layer 2``, ``layer 2``, ``similarity layer 3``, ...,
+reports its stages: ``similarity round 1``, ``round 1``, ``similarity round 2``, ...,
 ``similarity direct``, ``direct``) and the job's summary: attached subjects, tree depth, and
 mean / p95 of e on the subjects at layer >= 3, tree vs direct CPD.
 

@@ -3,21 +3,26 @@
 estimate of the time left.
 
 The library reports progress per stage, each with its own count: pairs of shapes for the
-similarity stages (``similarity``, ``similarity layer 3``, ...), registrations for the
-others. A tree job runs, in order: ``similarity``; the tree's layers (``similarity layer
-N``, ``layer N`` for N = 2, 3, ...); ``similarity leaves``, ``leaves``; ``refine``; when it
-compares, ``similarity direct``, ``direct`` (a static tree: after the tree's stages, as it
-has no polish); ``polish``; and when it decides at a working resolution below its shapes'
-(coarse to fine), ``full resolution``, ``polish full resolution`` (the dynamic tree's) and
-``direct full resolution``, which count subjects. Stages with nothing to do are not
-reported. A ``grouping`` job runs ``fields`` (instances), ``alignment`` (alignments to the
-median field) and ``pairs`` (pairs aligned to each other).
+similarity stages (``similarity``, ``similarity round 2``, ...), registrations for the
+others. A tree job runs, in order: ``similarity``; the tree's rounds of growth
+(``similarity round N``, ``round N`` for N = 1, 2, ...: a dynamic tree's round N tries the
+waiting subjects from the members the round before added, or from any member after a
+stall's bridges, so it can attach subjects at any depth; a static tree reports its layers,
+``similarity layer N``, ``layer N`` for N = 2, 3, ...; progress stored by earlier versions
+names a dynamic tree's rounds that way too); ``similarity leaves``, ``leaves``;
+``refine``; when it compares, ``similarity direct``, ``direct`` (a static tree: after the
+tree's stages, as it has no polish); ``polish``; and when it decides at a working
+resolution below its shapes' (coarse to fine), ``full resolution``, ``polish full
+resolution`` (the dynamic tree's) and ``direct full resolution``, which count subjects.
+Stages with nothing to do are not reported. A ``grouping`` job runs ``fields``
+(instances), ``alignment`` (alignments to the median field) and ``pairs`` (pairs aligned
+to each other).
 
 The overall percentage places the stage within the whole run with the share of time each
 phase took in measured runs (:data:`PHASE_WEIGHTS`, bench/bench_progress.py, bench/RESULTS.md
-sections 5.2 and 5.3), counting only the phases the job runs. How many layers a tree has is
+sections 5.2 and 5.3), counting only the phases the job runs. How many rounds a tree takes is
 not known in advance, nor how many subjects it leaves to ``leaves``: the layers phase
-advances with the registrations done in all layers so far, then in the leaves, against
+advances with the registrations done in all rounds so far, then in the leaves, against
 :data:`TREE_REGISTRATIONS_PER_SUBJECT` per subject, slowing down as it nears its end rather
 than stopping (:func:`_saturating`). The percentage never goes back. The
 time left is elapsed time x what is left / what is done; it is shown rounded up, so it never
@@ -128,7 +133,8 @@ SIMILARITY_PART = 0.25
 #: Before this much is done, the time left is not estimated.
 MIN_FRACTION_FOR_ETA = 0.03
 
-_LAYER = re.compile(r"layer (\d+)")
+#: A stage of the tree's growth: a dynamic tree's round, a static tree's layer.
+_LAYER = re.compile(r"(?:round|layer) (\d+)")
 _PHASE_OF_STAGE = {
     "similarity": "similarity",
     "similarity leaves": "layers",  # the leaves go on with the tree's registrations
@@ -173,7 +179,7 @@ def phase_of(stage: str, method: str = "dynamic_tree") -> str | None:
     for one not known."""
     if method == GROUPING_METHOD:
         return stage if stage in GROUPING_WEIGHTS else None
-    if _LAYER.fullmatch(stage) or stage.startswith("similarity layer "):
+    if _LAYER.fullmatch(stage) or _LAYER.fullmatch(stage.removeprefix("similarity ")):
         return "layers"
     if method == "direct" and stage == "full resolution":
         return "direct full resolution"  # register_direct's subjects are direct's
@@ -267,9 +273,9 @@ def overall_fraction(
     a stage this does not know. `coarse_to_fine`: the job ends with the stored-resolution
     stages; `max_points`, `working_points`: the most points of its shapes and the working
     resolution (the weight of those stages grows with their ratio); `subjects`: how many
-    subjects it has; `before`: the registrations done in the tree's earlier layers
-    (``layer N`` stages before this one); `max_rotation`: a grouping's (its alignment tries
-    more starting rotations)."""
+    subjects it has; `before`: the registrations done in the tree's earlier rounds
+    (``round N`` or ``layer N`` stages before this one); `max_rotation`: a grouping's (its
+    alignment tries more starting rotations)."""
     if not stage:
         return 0.0
     phase = phase_of(stage, method)
@@ -325,7 +331,7 @@ class FractionTracker:
         self.params = params
         self.subjects = max(0, n_shapes - 1)
         self.fraction = 0.0
-        self._layers: dict[str, int] = {}  # the total of each ``layer N`` stage seen
+        self._layers: dict[str, int] = {}  # the total of each ``round N``/``layer N`` seen
 
     def update(self, stage: str | None, done: int, total: int) -> float | None:
         """The share done after this progress report; None while no stage is known."""

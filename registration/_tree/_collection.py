@@ -152,10 +152,10 @@ def _ensure_frontier(
     allowed: set[tuple[int, int]] | None,
     executor: Executor | None,
     progress: ProgressCallback | None,
-    layer: int,
+    stage: str,
 ) -> None:
     """Compute D from the newest members to the waiting subjects (lazily: only the pairs
-    that can give a subject its next candidate)."""
+    that can give a subject its next candidate), reported to `progress` as `stage`."""
     if allowed is not None and len(frontier) * len(waiting) > len(allowed):
         # a large collection: its allowed pairs (O(n k)) are fewer than frontier x waiting
         members = set(frontier)
@@ -164,7 +164,7 @@ def _ensure_frontier(
         pairs = [(m, s) for m in frontier for s in sorted(waiting)]
         if allowed is not None:
             pairs = [p for p in pairs if p in allowed]
-    sim.ensure(pairs, executor=executor, progress=progress, stage=f"similarity layer {layer}")
+    sim.ensure(pairs, executor=executor, progress=progress, stage=stage)
 
 
 @dataclass

@@ -145,7 +145,8 @@ def build_dynamic_tree(
     frontier = [root]
     # the round of growth: each tries the waiting subjects from the last round's new
     # members (from every member after a stall's bridges; a subject's layer is its depth,
-    # one below its parent's, whichever round it joined in); progress names it "layer N"
+    # one below its parent's, whichever round it joined in); progress names it "round N"
+    # (N = grown - 1), not "layer N": bridges let a later round attach subjects higher up
     grown = 1
     runs = 0  # registrations so far; bridging stops at a budget (BRIDGE_TASKS_PER_SUBJECT)
 
@@ -156,7 +157,8 @@ def build_dynamic_tree(
 
     while waiting and frontier:
         grown += 1
-        _ensure_frontier(sim, frontier, waiting, allowed, executor, progress, grown)
+        _ensure_frontier(sim, frontier, waiting, allowed, executor, progress,
+                         f"similarity round {grown - 1}")
         tasks: list[_RegTask] = []
         for _ in range(2):  # once more after new bridges when nothing is left to try
             for s in sorted(waiting):
@@ -173,7 +175,7 @@ def build_dynamic_tree(
         if not tasks:
             break
         runs += len(tasks)
-        outcomes = _run_tasks(tasks, executor, progress, f"layer {grown}")
+        outcomes = _run_tasks(tasks, executor, progress, f"round {grown - 1}")
         if tau_err is None:
             tau_err = _auto_error_threshold(outcomes)
         best: dict[int, _RegOutcome] = {}
@@ -294,7 +296,7 @@ def build_static_tree(
     while waiting and layers[-1]:
         frontier = layers[-1]
         _ensure_frontier(sim, frontier, waiting, start.allowed, executor, progress,
-                         len(layers) + 1)
+                         f"similarity layer {len(layers) + 1}")
         new = []
         for s in sorted(waiting):
             cands = [(float(sim.D[m, s]), m) for m in frontier if sim_rule.similar(sim, m, s)]

@@ -101,14 +101,16 @@ def test_a_bridged_tree_gives_every_subject_its_depth_as_layer(monkeypatch):
 
     monkeypatch.setattr(methods, "_run_tasks", counting)
     monkeypatch.setattr(methods, "_rejection", refusing)
+    reported: list[str] = []
     res = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor(),
-                             polish=False, refine=False)
+                             polish=False, refine=False,
+                             progress=lambda stage, done, total: reported.append(stage))
     layers = {0: 1} | {s.index: s.layer for s in res.subjects}
     attached = [s for s in res.subjects if s.parent is not None]
     assert len(attached) == len(shapes) - 1
     s_late = res.subject(late)
     joined = next(a for a in s_late.attempts if a.accepted)
-    assert not s_late.leaf and rounds.index("layer 5") >= 3, (s_late, rounds)
+    assert not s_late.leaf and rounds.index("round 4") >= 3, (s_late, rounds)
     for s in attached:
         assert s.layer == len(s.path) == layers[s.parent] + 1, (s.index, s.layer, s.path)
         accepted = [a for a in s.attempts if a.accepted]
@@ -116,6 +118,10 @@ def test_a_bridged_tree_gives_every_subject_its_depth_as_layer(monkeypatch):
     # it joined in round 5 or later, from a member less than four layers deep
     assert joined.layer == s_late.layer < 5, s_late
     assert f"(layer {layers[s_late.parent]})" in (s_late.reason or "")
+    # progress names the rounds of growth (s_late joined in round 4 or later, at layer 4
+    # or above), not layers
+    grown = [s for s in dict.fromkeys(reported) if "round" in s or "layer" in s]
+    assert grown == [f"round {k}" for k in range(1, len(grown) + 1)] == rounds, grown
 
 
 def test_without_bridges_the_same_groups_stay_outside_the_tree(no_bridges):

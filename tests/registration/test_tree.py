@@ -220,7 +220,7 @@ def test_progress_exception_cancels_the_run(family):
 
     def progress(stage, done, total):
         calls.append((stage, done, total))
-        if stage.startswith("layer"):
+        if stage.startswith("round"):
             raise Cancelled
 
     with pytest.raises(Cancelled):
@@ -372,7 +372,7 @@ def test_every_pass_of_the_dynamic_tree_registers_the_same_kind_of_edge(family, 
                        executor=SerialExecutor())
     build_dynamic_tree(family.shapes, 0, similarity_threshold=1e-9, cpd=FAST_CPD,
                        polish=False, executor=SerialExecutor())
-    assert {stage for stage, _ in seen} == {"layer", "leaves", "refine"}
+    assert {stage for stage, _ in seen} == {"round", "leaves", "refine"}
     kinds = {kind for _, kind in seen}
     assert len(kinds) == 1
     symmetric, held, cpd, prealign, _ = kinds.pop()

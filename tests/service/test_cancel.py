@@ -167,7 +167,7 @@ SERIAL_ENV = {**PROCESS_ENV, "REGTREE_EXECUTOR": "serial"}
 @pytest.mark.parametrize(
     ("workers", "method", "stage", "env"),
     [
-        ("embedded", "dynamic_tree", "layer", PROCESS_ENV),
+        ("embedded", "dynamic_tree", "round", PROCESS_ENV),
         ("separate", "direct", "direct", PROCESS_ENV),
         # serial: the check also runs at every CPD iteration of the registration in progress
         ("embedded", "direct", "direct", SERIAL_ENV),

@@ -18,6 +18,7 @@ from service.progress import (
     clock,
     left,
     overall_fraction,
+    phase_of,
     phase_weights,
     stored_resolution_stage,
 )
@@ -25,10 +26,10 @@ from service.progress import (
 #: The stages a dynamic-tree job with direct comparison reports, in order (from the library).
 STAGES = [
     ("similarity", 240),
-    ("layer 2", 4),
-    ("similarity layer 3", 30),
-    ("layer 3", 6),
-    ("layer 4", 3),
+    ("round 1", 4),
+    ("similarity round 2", 30),
+    ("round 2", 6),
+    ("round 3", 3),
     ("similarity leaves", 10),
     ("leaves", 2),
     ("refine", 6),
@@ -68,7 +69,7 @@ def _fractions(method: str, stages: list[tuple[str, int]], **kw: Any) -> list[fl
     layers: dict[str, int] = {}
     out = []
     for stage, total in stages:
-        if stage.startswith("layer "):
+        if stage.startswith(("round ", "layer ")):
             layers[stage] = total
         before = sum(t for s, t in layers.items() if s != stage)
         out += [overall_fraction(method, stage, done, total, subjects=15, before=before, **kw)
@@ -86,7 +87,7 @@ def test_overall_fraction_only_grows_through_a_run(compare_direct: bool) -> None
     assert fractions[-1] == pytest.approx(1.0)
     # a tree that needs more registrations than expected goes on growing, slower, and
     # stays below the next phase
-    deep = [overall_fraction("dynamic_tree", "layer 9", 1, 1, compare_direct=False,
+    deep = [overall_fraction("dynamic_tree", "round 9", 1, 1, compare_direct=False,
                              subjects=15, before=b) for b in (20, 40, 80)]  # fmt: skip
     # the leaves go on with the layers' count (each registration counted at its cost)
     leaves = [overall_fraction("dynamic_tree", "leaves", d, 40, compare_direct=False,
@@ -160,6 +161,25 @@ def test_overall_fraction_of_direct_and_unknown_stages() -> None:
     assert overall_fraction("dynamic_tree", None, 0, 0, compare_direct=True) == 0.0
 
 
+def test_layer_stages_count_as_rounds() -> None:
+    """A static tree reports its layers (``layer N``), and progress stored before the
+    dynamic tree named its rounds ``round N`` says ``layer N`` for them: both place the job
+    where the same rounds would."""
+    def renamed(stage: str) -> str:
+        if stage.startswith(("round ", "similarity round ")):
+            n = int(stage.rsplit(" ", 1)[1]) + 1
+            return stage.replace("round", "layer").rsplit(" ", 1)[0] + f" {n}"
+        return stage
+
+    as_layers = [(renamed(s), t) for s, t in STAGES]
+    assert [s for s, _ in as_layers][1:5] == ["layer 2", "similarity layer 3", "layer 3",
+                                              "layer 4"]
+    assert _fractions("dynamic_tree", as_layers, compare_direct=True) == _fractions(
+        "dynamic_tree", STAGES, compare_direct=True)
+    assert phase_of("similarity layer 3") == phase_of("round 2") == "layers"
+    assert phase_of("similarity round") is None and phase_of("rounds 2") is None
+
+
 def test_plain_lines_give_stage_counts_subjects_and_overall() -> None:
     out = io.StringIO()
     progress = Progress(7, out, tty=False)
@@ -169,7 +189,7 @@ def test_plain_lines_give_stage_counts_subjects_and_overall() -> None:
     assert "\r" not in out.getvalue() and "\x1b" not in out.getvalue()
     assert re.fullmatch(r"\[\s*[\d.]+ s\] job 7 queued; 15 subjects", lines[0])
     assert "similarity 120/240 pairs (50%); 15 subjects; overall" in lines[2]
-    assert any("layer 3 3/6 registrations (50%)" in line for line in lines)
+    assert any("round 2 3/6 registrations (50%)" in line for line in lines)
     overall = [int(m) for m in re.findall(r"overall (\d+)%", out.getvalue())]
     assert overall == sorted(overall) and overall[-1] == 100
     assert lines[-1].endswith("job 7 succeeded direct 15/15 registrations (100%); "
@@ -206,7 +226,7 @@ def test_terminal_line_is_redrawn_with_a_bar() -> None:
     screen = out.getvalue()
     frames = [f for f in screen.split("\r\x1b[K") if f]
     assert "\n" not in screen
-    assert re.search(r"job 7 running · 15 subjects · layer 3 3/6 \[#+\.*\]\s+\d+%", screen)
+    assert re.search(r"job 7 running · 15 subjects · round 2 3/6 \[#+\.*\]\s+\d+%", screen)
     assert re.fullmatch(r"job 7 succeeded · 15 subjects · direct 15/15 \[#+\] 100% [\d:]+",
                         frames[-1])  # fmt: skip
     assert screen.endswith("\r\x1b[K")  # the line is cleared before anything else is printed
