@@ -233,13 +233,18 @@ def test_sigterm_releases_a_running_job_promptly(make_service: Callable[..., Ser
     worker = svc.start_worker()
     with svc.client() as client:
         cid = create_collection(client, "released")
-        ids = upload_family(client, cid, family(n_chains=2, chain_length=2, n_points=1500)[:4])
-        # at the stored resolution (working_points=0), so that the job is still running
+        ids = upload_family(client, cid, family(n_chains=3, chain_length=2, n_points=1500))
+        # at the stored resolution (working_points=0), so that the job is still running;
+        # signalled with two registrations or more still to report: the worker gives the
+        # job back at its next report, and one that had reported its last could end first
+        # (it did, under the load of the parallel suite, when the test waited for the
+        # stage alone)
         job = submit_job(client, cid, ids[0], method="direct", working_points=0)
         wait_job(
             client,
             job["id"],
-            until=lambda j: str(j["progress"]["stage"] or "") == "direct",
+            until=lambda j: str(j["progress"]["stage"] or "") == "direct"
+            and j["progress"]["done"] <= j["progress"]["total"] - 2,
             timeout=300,
         )
         started = time.monotonic()
