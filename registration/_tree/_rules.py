@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._similarity import Similarity
-from ._tasks import _RegOutcome
+from ._tasks import SPACING_FACTOR, _RegOutcome
 
 FloatArray = NDArray[np.float64]
 
@@ -21,7 +21,6 @@ FloatArray = NDArray[np.float64]
 CAPTURE_D = 0.01
 SIMILAR_NEIGHBOURS = 4
 ERROR_FACTOR = 3.0
-SPACING_FACTOR = 0.5
 # A stalled tree opens bridges (`_SimilarityRule.bridge`) only while it has run fewer than
 # this many registrations per subject in all: a tree as the paper builds it runs about 2
 # (163 for the 72 subjects of the 永 edge glyphs), and shapes no member registers well

@@ -16,7 +16,7 @@ from .._cpd import CPDOptions, CPDResult, cpd_nonrigid
 from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor, owned_executor
-from .._icp import affine_icp
+from .._icp import AffineICPResult, affine_icp
 from .._pointmap import PointTransform, composed_with_jacobian
 from .._pose import PoseSpec, angle_between, rotation_angle
 from .._quality import RegistrationQuality, measure_quality
@@ -40,17 +40,34 @@ T = TypeVar("T")
 POSE_DISTINCT_DEG = 20.0
 POSE_D_RATIO = 0.6
 POSE_MARGIN = 0.5
-# The largest ratio of the singular values of a map of a model onto itself that still
-# counts as one of its symmetries (`_symmetry_ratio`): an exact symmetry is an isometry
-# (1); the Latin O's half turn settled at 1.04, a stretch that folds a non-symmetric
-# outline onto itself at 5.2.
-SYMMETRY_MAX_STRETCH = 1.25
+#: The sampling floor of e: ``SPACING_FACTOR`` times the subject's mean squared point
+#: spacing h^2 (the automatic error threshold's floor too, `_rules._spacing_floor`). On
+#: data with ground truth every registration within 5% of the shape's size had e below it
+#: (bench/calibrate_thresholds.py): below it e cannot tell one fit from another, so a
+#: registration from the pose as given that reaches it, without folding, is kept and no
+#: other start is tried (`_register_task`). Of a straight stroke both ends of a half turn
+#: fit that closely: on the skeleton of 一 (sans serif, 217 points) a turned start won at
+#: 0.48x an e of 8e-5 as given, under a floor of 1.2e-4, and its registration was the
+#: stroke reversed (bench/RESULTS.md 7.42).
+SPACING_FACTOR = 0.5
+# How far a map of a model onto itself may move the model's points from where the
+# nearest similarity (a rotation and one scale) puts them, RMS over the model's RMS
+# radius, and still count as one of its symmetries (`_symmetry_ratio`): an exact symmetry
+# is an isometry (0). 0.11 is about what a stretch of 1.25 between the map's singular
+# values gives on a round outline (the bound this replaces); the half turns of O, 0, S,
+# 8, H, N, Z and straight strokes settle at 0-0.04 on glyphs of 400 points, a stretch
+# that folds a non-symmetric outline onto itself at 0.32-0.47 (MPEG-7 bat, bird, horse).
+# Measured on the points rather than by the map's singular values, because of a straight
+# stroke affine ICP may shrink the width it does not have at no cost: a bent stroke's
+# half turn settled at singular values 1.0 and 0.79 (bench/RESULTS.md 7.42).
+SYMMETRY_MAX_DEVIATION = 0.11
 # A turn under which the model fits itself at least 1 / SYMMETRY_D_RATIO times as
-# closely as the turned pose fits the subject is a near-symmetry of the model; the
-# turned start then replaces the pose as given only at an e below SYMMETRIC_POSE_MARGIN
-# times the pose as given's (`_symmetry_ratio`).
+# closely as the turned pose fits the subject is a near-symmetry of the model
+# (`_symmetry_ratio`). The turned pose then says nothing the pose as given does not: its
+# correspondences are wrong by the symmetry (a Latin O in a serif font, turned half a
+# turn by direct CPD at 0.47x the e: 1.99 of the radius against 0.20 as given; 7.39), so
+# the start is the pose as given aligned instead, the turn undone (`_Start.decided`).
 SYMMETRY_D_RATIO = 0.5
-SYMMETRIC_POSE_MARGIN = 0.1
 
 #: The dynamic tree's edges are symmetric (see `_symmetric_link`): CPD's registration of
 #: the member's model onto the subject is moved halfway to where the subject registered
@@ -92,27 +109,36 @@ class _Start:
     """A pose to start a registration from: the pose as given (no affine step: CPD runs
     on the size-normalised shapes as they are) or an affine-ICP map of another pose."""
 
-    label: str  # "as given" or "rotated"
+    label: str  # "as given", "rotated" or "aligned" (see `decided`)
     A: FloatArray | None = None
     t: FloatArray | None = None
     # the e, relative to the pose as given's, below which this start's registration
-    # replaces it (`_register_task`): POSE_MARGIN, or SYMMETRIC_POSE_MARGIN for a turn
-    # under which the model is nearly symmetric (`_symmetry_ratio`)
+    # replaces it (`_register_task`)
     margin: float = POSE_MARGIN
-    # what `_symmetry_ratio` needs besides A, when the margin is still to be decided by
-    # it: the member's own (normalised) shape, the pose as given's map and this pose's D.
-    # `decided` decides it in the worker that runs the task, not in the process that
-    # builds the tasks (one affine ICP of the shape onto itself per turned start).
-    symmetry: tuple[FloatArray, FloatArray, float] | None = None
+    # what `_symmetry_ratio` needs besides A while it is still to be decided whether the
+    # turn is a near-symmetry of the model: the member's own (normalised) shape and this
+    # pose's D. `decided` decides it in the worker that runs the task, not in the process
+    # that builds the tasks (one affine ICP of the shape onto itself per turned start).
+    symmetry: tuple[FloatArray, float] | None = None
 
     def decided(self) -> _Start:
-        """This start with its margin decided (itself when it already is)."""
-        if self.symmetry is None or self.A is None:
+        """This start once it is decided whether its turn is a near-symmetry of the model
+        (`_symmetry_ratio`; itself when that is decided already). A turned registration
+        then differs from the pose as given's only by the symmetry, wrong by the whole
+        turn, and e can only compare the few parts that break the symmetry (the Latin O
+        in a serif font, turned half a turn by direct CPD at 0.47x the e: 1.99 of the
+        radius against 0.20 as given; 7.39). So the start becomes ``"aligned"``: the pose
+        as given in this pose's place, the model's own symmetry S undone (``A S^-1``),
+        where the pose as given's CPD, with no affine step, can fall short (a straight
+        stroke that turned a little on a chain, 9e-4 against 7e-5 from either end)."""
+        if self.symmetry is None or self.A is None or self.t is None:
             return self
-        model, A_given, d = self.symmetry
-        symmetric = _symmetry_ratio(model, self.A, A_given, d) <= SYMMETRY_D_RATIO
-        return replace(self, margin=SYMMETRIC_POSE_MARGIN if symmetric else POSE_MARGIN,
-                       symmetry=None)
+        model, d = self.symmetry
+        settled = _self_map(model, self.A)
+        if settled is None or not settled.distance <= SYMMETRY_D_RATIO * d:
+            return replace(self, symmetry=None)
+        undo = np.linalg.inv(settled.A)
+        return _Start("aligned", self.A @ undo, self.t - self.A @ undo @ settled.t)
 
 
 @dataclass(frozen=True)
@@ -144,7 +170,8 @@ class _RegOutcome:
     correspondence: IntArray
     probability: FloatArray
     steps: tuple[PointTransform, ...]
-    pose: str  # which start was kept: "as given", "rotated" or "plain" (prealign=False)
+    pose: str  # which start was kept: "as given", "rotated", "aligned" (`_Start.decided`) or
+    # "plain" (prealign=False)
     pose_angle: float  # rotation of the pre-alignment, degrees (0 without one)
     pose_errors: dict[str, float]  # e reached from every start tried
     quality: RegistrationQuality
@@ -288,16 +315,22 @@ def _register_task(task: _RegTask) -> _RegOutcome:
     """Register the member's warped model onto the subject from every start; keep one.
 
     The pose as given (the first start) is kept unless another start's registration does
-    not fold and reaches an e below its start's margin times the pose as given's
-    (``POSE_MARGIN``; ``SYMMETRIC_POSE_MARGIN`` for a turn the model is nearly symmetric
-    under), or the pose as given folds and the other reaches no larger an e. A rotated
-    pose thus earns its place by the registration it leads to, not by D alone.
+    not fold and reaches an e below its start's margin (``POSE_MARGIN``) times the pose
+    as given's, or the pose as given folds and the other reaches no larger an e. A
+    rotated pose thus earns its place by the registration it leads to, not by D alone;
+    a turn the model is nearly symmetric under is not tried at all, the pose as given
+    aligned by affine ICP in its place (`_Start.decided`). No other start is tried when
+    the pose as given's registration does not fold and its e is within the sampling
+    floor (``SPACING_FACTOR`` times the subject's h^2): e cannot show a closer fit.
     """
     if not task.prealign:
         return _register_from(task, None)
+    chosen = _register_from(task, task.starts[0])
+    if chosen.min_jacobian > 0 and chosen.error <= SPACING_FACTOR * task.spacing2:
+        # as close as the sampling lets e show: no other start is tried
+        return replace(chosen, pose_errors={chosen.pose: chosen.error}, pose_margin=None)
     starts = tuple(st.decided() for st in task.starts)
-    outs = [_register_from(task, st) for st in starts]
-    chosen = outs[0]
+    outs = [chosen, *(_register_from(task, st) for st in starts[1:])]
     for st, other in zip(starts[1:], outs[1:], strict=True):
         if not other.min_jacobian > 0:
             continue
@@ -312,20 +345,31 @@ def _register_task(task: _RegTask) -> _RegOutcome:
 def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
     """The pose as given; and the similarity's best pose when it is another pose (turned
     by more than ``POSE_DISTINCT_DEG`` or of the other handedness) that fits clearly
-    better: its D below ``POSE_D_RATIO`` times the D reached from the pose as given. Its
-    margin is ``SYMMETRIC_POSE_MARGIN`` when the model is nearly symmetric under the turn
-    between the two poses (`_symmetry_ratio`), else ``POSE_MARGIN``: decided by
-    :meth:`_Start.decided` where the task runs."""
+    better: its D below ``POSE_D_RATIO`` times the D reached from the pose as given.
+    Whether its turn is a near-symmetry of the model (then the pose as given, aligned, is
+    tried in its place) is decided by :meth:`_Start.decided` where the task runs."""
     given = _Start("as given")
     A = sim.A[member, subject]
     A_g = sim.A_given[member, subject]
     d, d_g = sim.D[member, subject], sim.D_given[member, subject]
     if not (np.isfinite(d) and np.isfinite(d_g)) or not d < POSE_D_RATIO * d_g:
         return (given,)
-    if not _distinct(A, A_g):
+    model = sim.shape(member)
+    if not _distinct(_turn_between(model, A, A_g), np.eye(2)):
         return (given,)
-    return (given, _Start("rotated", A, sim.t[member, subject],
-                          symmetry=(sim.shape(member), A_g, float(d))))
+    return (given, _Start("rotated", A, sim.t[member, subject], symmetry=(model, float(d))))
+
+
+def _turn_between(points: FloatArray, A: FloatArray, B: FloatArray) -> FloatArray:
+    """The turn that carries the centred `points` as `B` maps them closest to where `A`
+    maps them (Procrustes; a rotation-reflection where the two maps differ in handedness).
+    For a shape that spans the plane it is the rotation nearest ``A B^-1``; of a straight
+    stroke affine ICP leaves the map across the stroke to chance, and only the points say
+    how far the stroke turned."""
+    u, _, vt = np.linalg.svd((points @ A.T).T @ (points @ B.T))
+    if np.linalg.det(u @ vt) * np.linalg.det(A) * np.linalg.det(B) < 0:
+        u[:, -1] = -u[:, -1]
+    return np.asarray(u @ vt, dtype=np.float64)
 
 
 def _distinct(A: FloatArray, B: FloatArray) -> bool:
@@ -335,34 +379,59 @@ def _distinct(A: FloatArray, B: FloatArray) -> bool:
                 or angle_between(rotation_angle(A), rotation_angle(B)) > POSE_DISTINCT_DEG)
 
 
-def _symmetry_ratio(model: FloatArray, A: FloatArray, A_given: FloatArray,
-                    d_pose: float) -> float:
-    """How closely the turn (or mirror) that separates the similarity's best pose from
-    the pose as given maps the model onto itself, relative to how closely that pose maps
-    it onto the subject: D(model, model) from the relative map, settled by affine ICP,
-    over ``d_pose``; infinite when the settled map is no longer a distinct pose or not
-    nearly an isometry (a symmetry is one; affine ICP can otherwise fold a shape onto
-    itself by a 5:1 stretch at a D as low as a genuine turn's, as on a generated outline
-    turned by 120 degrees).
-
-    A small ratio means the two poses differ by a near-symmetry of the model (an O
-    turned half a turn, an S): e then compares how the two registrations fit the few
-    parts that break the symmetry, and a lower e from the turned start may say only
-    which start CPD settled better from, while the turned correspondences are wrong by
-    the whole turn (the Latin O in a serif font: direct CPD took a 160-degree turn at
-    0.47x the e, correspondence error 1.99 of the radius against 0.20 as given;
-    bench/RESULTS.md 7.39). The model's points are centred (the similarity's normalised
-    shapes), so the symmetry is about the centroid.
-    """
-    rel = A @ np.linalg.inv(A_given)
-    u, _, vt = np.linalg.svd(rel)
-    turn = u @ vt  # the rotation (or rotation-reflection) nearest to the relative map
+def _self_map(model: FloatArray, A: FloatArray) -> AffineICPResult | None:
+    """The turn (or mirror) of the pose `A` from the pose as given (the model as it is:
+    the pose as given's CPD runs on the normalised shapes without an affine step), settled
+    by affine ICP of the model onto itself; None when it settles on no distinct pose or,
+    on the model's points, far from a similarity (`_deviation_from_similarity`: a
+    symmetry is an isometry; affine ICP can otherwise fold a shape onto itself by a 5:1
+    stretch at a D as low as a genuine turn's, as on a generated outline turned by 120
+    degrees). The model's points are centred (the similarity's normalised shapes), so
+    the symmetry is about the centroid."""
+    turn = _turn_between(model, A, np.eye(2))
     mode = "affine" if np.linalg.det(turn) < 0 else "rotation"
     icp = affine_icp(model, model, init=(turn, np.zeros(2)), pose=mode)
-    stretch = np.linalg.svd(icp.A, compute_uv=False)
-    if not (_distinct(icp.A, np.eye(2)) and stretch[0] <= SYMMETRY_MAX_STRETCH * stretch[1]):
+    if not (_distinct(_turn_between(model, icp.A, np.eye(2)), np.eye(2))
+            and _deviation_from_similarity(icp.A, model) <= SYMMETRY_MAX_DEVIATION):
+        return None
+    return icp
+
+
+def _symmetry_ratio(model: FloatArray, A: FloatArray, d_pose: float) -> float:
+    """How closely the turn (or mirror) of the pose `A` from the pose as given maps the
+    model onto itself (:func:`_self_map`), relative to how closely the pose maps it onto
+    the subject: D(model, model) over ``d_pose``; infinite when the turn is no symmetry.
+
+    A small ratio means the two poses differ by a near-symmetry of the model (an O
+    turned half a turn, an S, a straight stroke): e then compares how the two
+    registrations fit the few parts that break the symmetry, and a lower e from the
+    turned start may say only which start CPD settled better from, while the turned
+    correspondences are wrong by the whole turn (the Latin O in a serif font: direct CPD
+    took a 160-degree turn at 0.47x the e, correspondence error 1.99 of the radius
+    against 0.20 as given; bench/RESULTS.md 7.39).
+    """
+    icp = _self_map(model, A)
+    if icp is None:
         return math.inf
     return float(icp.distance / d_pose) if d_pose > 0 else math.inf
+
+
+def _deviation_from_similarity(A: FloatArray, points: FloatArray) -> float:
+    """RMS distance between the linear map `A` of centred `points` and the similarity of
+    `A`'s handedness that best matches it on them (Procrustes: the rotation, or
+    rotation-reflection, and scale that best carry the points where `A` does), over the
+    points' RMS radius: 0 for a similarity, and for a map that only shears or stretches
+    across a straight stroke, where there are no points to move."""
+    mapped = points @ A.T
+    u, _, vt = np.linalg.svd(mapped.T @ points)
+    if np.linalg.det(u @ vt) * np.linalg.det(A) < 0:
+        u[:, -1] = -u[:, -1]
+    rotated = points @ (u @ vt).T
+    size = float(np.sum(points * points))
+    if not size > 0:
+        return math.inf
+    scale = float(np.sum(mapped * rotated)) / size
+    return math.sqrt(float(np.sum((mapped - scale * rotated) ** 2)) / size)
 
 
 def _owns_executor(fn: Callable[P, R]) -> Callable[P, R]:

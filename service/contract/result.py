@@ -119,9 +119,11 @@ class Quality(_Open):
     pose_errors: dict[str, float | None] | None = None
     pose_margin: float | None = Field(
         default=None, description="The ratio to the pose as given's e below which the "
-        "other start's e had to fall to replace it: 0.5, or 0.1 for a turn under which the "
-        "model is nearly symmetric (a turned O or S). Null when only the pose as given was "
-        "tried.")
+        "other start's e had to fall to replace it (0.5). Null when only the pose as given "
+        "was tried: no other pose fitted clearly better, or its registration already fitted "
+        "within the sampling floor. The other start is 'rotated', or 'aligned' (the pose as "
+        "given, aligned by affine ICP) when the model is nearly symmetric under the turn (a "
+        "turned O, S or straight stroke), which would only be wrong by the whole turn.")
     symmetric_edge: bool | None = Field(
         default=None, description="The dynamic tree's edge was made symmetric: CPD's "
         "registration moved halfway to the subject's registered back onto the member.")

@@ -119,7 +119,7 @@ def test_result_subjects_carry_confidence_leaf_and_quality(
         assert quality["confidence"] == pytest.approx(s["confidence"])
         for key in ("error_ratio", "distortion", "anisotropy", "coverage", "min_jacobian"):
             assert key in quality, key
-        assert quality["pose"] in ("as given", "rotated", "none")
+        assert quality["pose"] in ("as given", "rotated", "aligned", "none")
         assert "warped" not in s and "transform" not in s
     tree = result(client, jobs["tree"])
     assert tree["summary"]["leaves"] == 0
