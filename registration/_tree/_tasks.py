@@ -128,7 +128,9 @@ class _Start:
         turn, and e can only compare the few parts that break the symmetry (the Latin O
         in a serif font, turned half a turn by direct CPD at 0.47x the e: 1.99 of the
         radius against 0.20 as given; 7.39). So the start becomes ``"aligned"``: the pose
-        as given in this pose's place, the model's own symmetry S undone (``A S^-1``),
+        as given in this pose's place, the turn of the model's own symmetry undone
+        (``A R^T``, R the rotation the symmetry makes on the model's points: stable where
+        affine ICP squashed a stroke's width, which inverting its map would blow up),
         where the pose as given's CPD, with no affine step, can fall short (a straight
         stroke that turned a little on a chain, 9e-4 against 7e-5 from either end)."""
         if self.symmetry is None or self.A is None or self.t is None:
@@ -137,7 +139,7 @@ class _Start:
         settled = _self_map(model, self.A)
         if settled is None or not settled.distance <= SYMMETRY_D_RATIO * d:
             return replace(self, symmetry=None)
-        undo = np.linalg.inv(settled.A)
+        undo = _turn_between(model, settled.A, np.eye(2)).T
         return _Start("aligned", self.A @ undo, self.t - self.A @ undo @ settled.t)
 
 
