@@ -57,6 +57,10 @@ Families (collections with exact ground truth):
   ones among them, where the points barely show where a point lies along a contour
   (bench/RESULTS.md 7.39). ``--latin`` runs other ones; ``--fonts dejavu-sans,dejavu-serif``
   the same letters in DejaVu, a second type family (bench/RESULTS.md 7.40).
+- ``glyph-stroke``: glyphs of one straight stroke (一丨I-1l) from the same Noto fonts,
+  their skeletons and edges chained as glyph-other (root 0, seed 0): nearly symmetric
+  under a half turn, so a registration can come out end for end at a low e
+  (bench/RESULTS.md 7.42).
 
 "far" subjects are those more than half the family's chain length away from the root
 along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
@@ -383,6 +387,31 @@ def latin_glyph_cases(seeds: list[int], characters: str = LATIN_CHARACTERS,
                                  (("glyph-latin", "edges", 1, None),))
 
 
+#: Glyphs of one straight stroke for the ``glyph-stroke`` family (bench/RESULTS.md 7.42).
+STROKE_CHARACTERS = "一丨I-1l"
+
+
+def stroke_glyph_cases(seeds: list[int], characters: str = STROKE_CHARACTERS,
+                       fonts: dict[str, Path] | None = None) -> list[Case]:
+    """``glyph-stroke``: the one-stroke `characters` (default :data:`STROKE_CHARACTERS`)
+    in the `fonts` (default :data:`OTHER_FONTS`) found here, their skeletons and edges
+    chained as the 永 glyphs' (root 0). A character whose skeleton has fewer than three
+    points (a dot) is skipped, with a note."""
+    cases = []
+    for char in characters:
+        for mode in ("skeleton", "edges"):
+            try:
+                made = _rendered_glyph_cases(seeds, char, fonts,
+                                             (("glyph-stroke", mode, 1, None),))
+            except ValueError as exc:  # too few points to chain
+                print(f"NOTE: glyph-stroke: no {mode} chain of {char!r}: {exc}")
+                continue
+            for case in made:
+                case.label = case.label.replace("glyph-stroke ", f"glyph-stroke {mode} ", 1)
+            cases += made
+    return cases
+
+
 def other_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
                       fonts: dict[str, Path] | None = None) -> list[Case]:
     """``glyph-other``: the `characters` (default :data:`OTHER_CHARACTERS`) in the `fonts`
@@ -685,6 +714,7 @@ def summary(cases: list[Case], reports: list[dict[str, Any]],
     for name, is_kind in (("永", lambda k: k.startswith("yong")),
                           ("other-glyph", lambda k: k == "glyph-other"),
                           ("Latin-glyph", lambda k: k == "glyph-latin"),
+                          ("stroke-glyph", lambda k: k == "glyph-stroke"),
                           ("dense-glyph", lambda k: k.startswith("dense"))):
         far_runs = [(c.label, c.root, r["far"]["tree/plain"]) for c, r in
                     zip(cases, reports, strict=True) if is_kind(c.kind) and r["far"]["n"]]
@@ -858,7 +888,7 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
                     "generated mpeg7 outline outline-random outline-arc glyph-other dense-edge "
-                    "dense-skel small-step glyph-latin)")
+                    "dense-skel small-step glyph-latin glyph-stroke)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
@@ -936,6 +966,8 @@ def main() -> None:
                                   {f: FONTS[f] for f in fonts})
     if not args.quick or (args.only and "glyph-latin" in args.only):
         cases += latin_glyph_cases(seeds[:1], args.latin, {f: FONTS[f] for f in fonts})
+    if not args.quick or (args.only and "glyph-stroke" in args.only):
+        cases += stroke_glyph_cases(seeds[:1], STROKE_CHARACTERS, {f: FONTS[f] for f in fonts})
     if args.only:
         cases = [c for c in cases if c.kind in args.only]
     print(f"{len(cases)} runs x 3 methods, default options (the library picks its executor); "
