@@ -179,7 +179,7 @@ def phase_of(stage: str, method: str = "dynamic_tree") -> str | None:
     for one not known."""
     if method == GROUPING_METHOD:
         return stage if stage in GROUPING_WEIGHTS else None
-    if _LAYER.fullmatch(stage) or _LAYER.fullmatch(stage.removeprefix("similarity ")):
+    if _LAYER.fullmatch(stage.removeprefix("similarity ")):  # a round, or its similarity
         return "layers"
     if method == "direct" and stage == "full resolution":
         return "direct full resolution"  # register_direct's subjects are direct's

@@ -137,7 +137,7 @@ class _Start:
             return self
         model, d = self.symmetry
         settled = _self_map(model, self.A)
-        if settled is None or not settled.distance <= SYMMETRY_D_RATIO * d:
+        if settled is None or not _ratio_to_pose(settled, d) <= SYMMETRY_D_RATIO:
             return replace(self, symmetry=None)
         undo = _turn_between(model, settled.A, np.eye(2)).T
         return _Start("aligned", self.A @ undo, self.t - self.A @ undo @ settled.t)
@@ -412,10 +412,15 @@ def _symmetry_ratio(model: FloatArray, A: FloatArray, d_pose: float) -> float:
     took a 160-degree turn at 0.47x the e, correspondence error 1.99 of the radius
     against 0.20 as given; bench/RESULTS.md 7.39).
     """
-    icp = _self_map(model, A)
-    if icp is None:
+    return _ratio_to_pose(_self_map(model, A), d_pose)
+
+
+def _ratio_to_pose(settled: AffineICPResult | None, d_pose: float) -> float:
+    """D of the model onto itself by the `settled` self-map over the pose's ``d_pose``:
+    infinite when there is no self-map (:func:`_self_map`) or no positive ``d_pose``."""
+    if settled is None or not d_pose > 0:
         return math.inf
-    return float(icp.distance / d_pose) if d_pose > 0 else math.inf
+    return float(settled.distance / d_pose)
 
 
 def _deviation_from_similarity(A: FloatArray, points: FloatArray) -> float:
@@ -425,10 +430,7 @@ def _deviation_from_similarity(A: FloatArray, points: FloatArray) -> float:
     points' RMS radius: 0 for a similarity, and for a map that only shears or stretches
     across a straight stroke, where there are no points to move."""
     mapped = points @ A.T
-    u, _, vt = np.linalg.svd(mapped.T @ points)
-    if np.linalg.det(u @ vt) * np.linalg.det(A) < 0:
-        u[:, -1] = -u[:, -1]
-    rotated = points @ (u @ vt).T
+    rotated = points @ _turn_between(points, A, np.eye(2)).T
     size = float(np.sum(points * points))
     if not size > 0:
         return math.inf
