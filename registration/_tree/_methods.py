@@ -44,6 +44,7 @@ from ._rules import (
 )
 from ._tasks import (
     CPDOptions,
+    _lowest_error,
     _options_dict,
     _owns_executor,
     _RegOutcome,
@@ -178,7 +179,7 @@ def build_dynamic_tree(
         outcomes = _run_tasks(tasks, executor, progress, f"round {grown - 1}")
         if tau_err is None:
             tau_err = _auto_error_threshold(outcomes)
-        best: dict[int, _RegOutcome] = {}
+        accepted: dict[int, list[_RegOutcome]] = {}
         for out in outcomes:
             limit = _error_limit(tau_err, error_threshold is not None, floors[out.subject])
             rejection = _rejection(out, limit, fold_check)
@@ -192,8 +193,9 @@ def build_dynamic_tree(
                         accepted=False,
                         reason=reason)
             )
-            if ok and (out.subject not in best or out.error < best[out.subject].error):
-                best[out.subject] = out
+            if ok:
+                accepted.setdefault(out.subject, []).append(out)
+        best = {s: _lowest_error(outs) for s, outs in accepted.items()}
         new_frontier = []
         for s, out in sorted(best.items()):
             res, node = _subject_from_outcome(coll, out, nodes[out.member], joined=grown)

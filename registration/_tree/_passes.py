@@ -14,7 +14,7 @@ from .._result import Attempt, SubjectResult
 from .._similarity import ProgressCallback, Similarity
 from ._collection import _Collection, _Node, _subject_from_outcome
 from ._rules import REFINE_TIE, _error_limit, _rejection, _SimilarityRule
-from ._tasks import _RegOutcome, _RegTask, _run_tasks
+from ._tasks import POSE_MARGIN, _lowest_error, _RegOutcome, _RegTask, _run_tasks
 
 # the dynamic tree's edge builder, `_Run.edge` bound to the similarity: (member, subject,
 # layer, the model as warped onto the member) -> the registration task
@@ -77,6 +77,9 @@ def _refine_parents(
         assert old.confidence is not None and old.error is not None
         better = conf > old.confidence + REFINE_TIE or (
             conf >= old.confidence - REFINE_TIE and out.error < old.error)
+        if out.pose == "rotated" and (old.quality or {}).get("pose") != "rotated":
+            # a turn earns its place by the margin, as across members (`_lowest_error`)
+            better = better and out.error < POSE_MARGIN * old.error
         accepted = ok and better
         old.attempts.append(Attempt(
             member=out.member, layer=out.layer, similarity=out.similarity, error=out.error,
@@ -148,7 +151,7 @@ def _attach_leaves(
             continue
         # the lowest e: every candidate registers the same subject, so e compares like
         # with like; a local fold does not disqualify (a leaf is never a parent)
-        best = min(pool, key=lambda o: (o.error, -nodes[o.member].confidence))
+        best = _lowest_error(pool, key=lambda o: (o.error, -nodes[o.member].confidence))
         parent = nodes[best.member]
         res, _ = _subject_from_outcome(coll, best, parent, joined=parent.joined, leaf=True)
         why = next((a.reason for a in reversed(r.attempts) if a.member == best.member), None)

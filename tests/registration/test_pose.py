@@ -255,3 +255,65 @@ def test_a_fit_within_the_sampling_floor_tries_no_other_start(monkeypatch):
     jacobian["as given"], errors["as given"] = 1.0, 2.0 * floor  # above the floor
     tried.clear()
     assert _tasks._register_task(task).pose == "rotated" and tried == ["as given", "rotated"]
+
+
+def test_a_stroke_of_two_pixel_rows_is_symmetric_under_its_half_turn():
+    """A rendered straight stroke's skeleton lies on one or two rows of pixels: affine
+    ICP of it onto itself has no width to fit the map's second column to and stopped
+    where it started (the skeleton of 一, turned 172 degrees, at 20x the pose's D). The
+    self-map starts from the isometry that rigid ICP settles on, which needs no width."""
+    from registration._points import normalise
+    from registration._tree._tasks import SYMMETRY_D_RATIO, _rigid_self_fit, _symmetry_ratio
+
+    x = np.arange(217.0)
+    rows = (np.arange(217) // 40) % 2  # runs along one row, then the next, as pixels lie
+    stroke = normalise(np.c_[x, rows.astype(float)])[0]
+    R, t = _rigid_self_fit(stroke, _rot(-172.0))
+    assert angle_between(rotation_angle(R), 180.0) < 1.0 and np.linalg.det(R) > 0
+    assert np.abs(t).max() < 0.05  # about the centroid, up to the rows' half-pixel offset
+    assert _symmetry_ratio(stroke, _rot(-172.0), 2e-3) < SYMMETRY_D_RATIO
+    # a mirror stays a mirror: the handedness of the turn is kept
+    mirror, _ = _rigid_self_fit(stroke, np.diag([1.0, -1.0]) @ _rot(10.0))
+    assert np.linalg.det(mirror) < 0
+    # an outline without the symmetry stays without it
+    plain = normalise(base_outline(240))[0]
+    assert _symmetry_ratio(plain, _rot(-172.0), 0.04) > SYMMETRY_D_RATIO
+
+
+def test_a_turn_across_members_earns_its_place_as_within_one_task():
+    """Of one subject's registrations from several members, one that turned its member's
+    pose is kept only below POSE_MARGIN times the lowest e of those that did not (which
+    must not fold, unless it folds too): a straight stroke's two ends fit alike, and a
+    turn taken at a slightly lower e was the stroke end for end."""
+    from dataclasses import replace
+
+    from registration._tree import _tasks
+
+    y = _half_turn_symmetric(100)
+    task = _tasks._RegTask(
+        subject=1, member=0, layer=2, similarity=0.01, q=y, y=y,
+        starts=(_tasks._Start("as given"),), cpd=FAST_CPD, prealign=True,
+        pose=PoseSpec.resolve(None, None), spacing2=0.01)
+    base = _tasks._register_task(task)
+
+    def out(member: int, pose: str, error: float, jac: float = 1.0) -> object:
+        return replace(base, member=member, pose=pose, error=error, min_jacobian=jac)
+
+    given, turned = out(1, "as given", 4.2e-5), out(2, "rotated", 3.8e-5)
+    assert _tasks._lowest_error([turned, given]) is given
+    clearly = out(2, "rotated", 1.5e-5)
+    assert _tasks._lowest_error([given, clearly]) is clearly
+    aligned = out(3, "aligned", 4.0e-5)  # the pose as given, aligned: no turn kept
+    assert _tasks._lowest_error([turned, given, aligned]) is aligned
+    # an unfolded turn is not given up for a folded registration
+    folded = out(1, "as given", 4.2e-5, jac=-0.2)
+    assert _tasks._lowest_error([turned, folded]) is turned
+    both_folded = out(2, "rotated", 3.8e-5, jac=-0.1)
+    assert _tasks._lowest_error([both_folded, folded]) is folded
+    # the tie-break of the key holds among registrations of one kind
+    keyed = _tasks._lowest_error([given, out(4, "as given", 4.2e-5)],
+                                 key=lambda o: (o.error, -o.member))
+    assert keyed.member == 4
+    assert _tasks._lowest_error([turned]) is turned
+    with pytest.raises(ValueError, match="no registrations"):
+        _tasks._lowest_error([])
