@@ -6,7 +6,12 @@ mirrors, rotates or slides the model along the subject's curves can still lie on
 checks below look at the map itself:
 
 - ``min_jacobian``: the smallest Jacobian determinant of the CPD warp over the model
-  (<= 0: the warp folds the model);
+  (<= 0: the warp folds the model). On a model drawn as a lone stroke (a straight or
+  gently bent stroke's skeleton: most of its points have no model point across them,
+  :func:`points_across`), the warp's stretch along the stroke stands in for the
+  determinant at those points, in this check and in ``distortion``, and ``anisotropy``
+  is 0 there: across such a stroke the field is the kernel's extension of the stroke's
+  displacements, where no point is to fold or shear (:func:`fold_values`);
 - ``distortion``: the spread (standard deviation) of the log Jacobian determinant of the
   CPD warp over the model. A smooth deformation changes area evenly; a slide along a
   curve compresses the model on one side and stretches it on the other;
@@ -169,10 +174,13 @@ def measure_quality(
         spacing2 = mean_spacing2(subject)
     J = jacobian_matrices(warp, prealigned)
     det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-    min_jac = float(det.min())
-    logdet = np.log(np.maximum(det, 1e-6))
     s1, s2 = singular_values_2x2(J)
     aniso = np.log(np.maximum(s1, 1e-12) / np.maximum(s2, 1e-12))
+    det, across = fold_values(prealigned, J, det)
+    # along a stroke with nothing across it there is no second direction to compare
+    aniso = np.where(across, aniso, 0.0)
+    min_jac = float(det.min())
+    logdet = np.log(np.maximum(det, 1e-6))
     h = math.sqrt(max(spacing2, 1e-300))
     dist, _ = cKDTree(warped).query(subject)
     return RegistrationQuality(
@@ -184,6 +192,112 @@ def measure_quality(
         cpd_rotation=_similarity_rotation(prealigned, warped),
         coverage=float(np.mean(dist <= 2.0 * h)),
     )
+
+
+#: Neighbours (the point included) whose spread gives a model point's tangent.
+TANGENT_NEIGHBOURS = 7
+#: Model points nearer than this many mean point spacings across a point are the same
+#: stroke (a rendered skeleton's second row of pixels), not across it. At 3 the two sides
+#: of the Chui fish's thin fins (98 points) counted as one stroke too: 4.6% of its
+#: points (at most 28% of one shape) had nothing across, against 1.5% (9%) at 1.5; the
+#: straight strokes' skeletons were the same at both.
+ACROSS_MIN_SPACINGS = 1.5
+#: About this many of a shape's points are looked among for points across each point.
+ACROSS_CANDIDATES = 128
+#: The stretch along the stroke stands in for the determinant only on a model at least
+#: this share of whose points have nothing across (:func:`fold_values`): a stroke drawn
+#: alone (the skeletons of 一, 丨, I and -: 70-100%). A few such points on a shape of
+#: several strokes or a closed outline (stroke tips, fin tips: at most 1.2% of a 永
+#: skeleton's points, 9% of a Chui fish's) lie within the kernel's reach of points
+#: across, which constrain the field there: with them too, one 永 skeleton run went
+#: from 0.39 to 0.41 of plain CPD's correspondence error (bench/RESULTS.md 7.44).
+LONE_STROKE_SHARE = 0.5
+
+
+def tangents(points: FloatArray) -> FloatArray:
+    """Each point's unit tangent: the principal direction of its
+    ``TANGENT_NEIGHBOURS`` nearest points (itself included)."""
+    return _tangents_and_spacing(points)[0]
+
+
+def _tangents_and_spacing(points: FloatArray) -> tuple[FloatArray, float]:
+    """:func:`tangents`, and the RMS distance of a point to its nearest other point (h,
+    ``sqrt(mean_spacing2)``), from one neighbour query."""
+    n = len(points)
+    k = min(TANGENT_NEIGHBOURS, n)
+    dist, idx = cKDTree(points).query(points, k)
+    dist = np.asarray(dist, dtype=np.float64).reshape(n, k)
+    nb = points[np.asarray(idx).reshape(n, k)]
+    c = nb - nb.mean(axis=1, keepdims=True)
+    sxx = np.einsum("nk,nk->n", c[..., 0], c[..., 0])
+    syy = np.einsum("nk,nk->n", c[..., 1], c[..., 1])
+    sxy = np.einsum("nk,nk->n", c[..., 0], c[..., 1])
+    angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # the 2 x 2 scatter's principal axis
+    h = float(np.sqrt(np.mean(dist[:, 1] ** 2))) if k > 1 else 0.0
+    return np.c_[np.cos(angle), np.sin(angle)], h
+
+
+def points_across(points: FloatArray) -> NDArray[np.bool_]:
+    """Whether each point has other points of the set across it: within 45 degrees of
+    its normal (either side, any distance) and more than ``ACROSS_MIN_SPACINGS`` mean
+    point spacings away; looked for among every ``len(points) // ACROSS_CANDIDATES``-th
+    point. False along a straight or gently bent stroke drawn alone (its other points
+    lie along it); True on an outline (the other side of the shape) and on a glyph's
+    strokes that other strokes cross or face.
+
+    Along such a stroke CPD's field across it is only its kernel's extension of the
+    stroke's displacements: it may flip the plane there at no cost on the points. On
+    the skeleton of 一 (Noto Sans, chained as the bench's glyphs) 48 registrations from
+    the pose as given "folded" so, on 41% of their points, none of them reversing a
+    point's order along the stroke; each let a registration turned end for end win, and
+    the log determinants' spread refused the right ones on confidence
+    (bench/RESULTS.md 7.44). On the kinds of shape the confidence was fitted on almost
+    every point has points across (0.1% of the points of 永 skeletons have none, none of
+    the Chui Chinese, 1.5% of the Chui fish: its fin tips), so none of them is a lone
+    stroke (``LONE_STROKE_SHARE``) and its checks, and the fit, are as before.
+    """
+    n = len(points)
+    if n < 3:
+        return np.zeros(n, dtype=bool)
+    return _across(points, *_tangents_and_spacing(points))
+
+
+def _across(points: FloatArray, t: FloatArray, h: float) -> NDArray[np.bool_]:
+    n = len(points)
+    others = points[::max(1, n // ACROSS_CANDIDATES)]
+    near2 = (ACROSS_MIN_SPACINGS * h) ** 2
+    across = np.zeros(n, dtype=bool)
+    for lo in range(0, n, 512):  # blocks of rows: at most 512 x 2 ACROSS_CANDIDATES pairs
+        dx = others[None, :, 0] - points[lo:lo + 512, 0, None]
+        dy = others[None, :, 1] - points[lo:lo + 512, 1, None]
+        tx, ty = t[lo:lo + 512, 0, None], t[lo:lo + 512, 1, None]
+        along2 = (dx * tx + dy * ty) ** 2
+        normal2 = (dx * ty - dy * tx) ** 2
+        across[lo:lo + 512] = np.any((normal2 > near2) & (along2 <= normal2), axis=1)
+    return across
+
+
+def fold_values(points: FloatArray, J: FloatArray, det: FloatArray | None = None
+                ) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """What says, at each of the model's `points`, whether a warp with Jacobians `J`
+    (shape (N, 2, 2); `det` their determinants, computed when omitted) folds the model
+    there, and at which points the determinant is what says so: the determinant
+    where points lie across a point (:func:`points_across`); elsewhere, along a stroke
+    with nothing across it, the stretch ``|J t|`` along the stroke (t the point's
+    tangent), the determinant of the map restricted to the stroke, positive unless the
+    warp collapses it. Only on a model drawn as a lone stroke (``LONE_STROKE_SHARE``);
+    on any other the determinant everywhere. A fold is a value <= 0."""
+    if det is None:
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+    if len(points) < 3:
+        return det, np.zeros(len(points), dtype=bool)
+    t, h = _tangents_and_spacing(points)
+    across = _across(points, t, h)
+    if not np.mean(~across) >= LONE_STROKE_SHARE:
+        return det, np.ones(len(points), dtype=bool)
+    stretch = np.hypot(J[:, 0, 0] * t[:, 0] + J[:, 0, 1] * t[:, 1],
+                       J[:, 1, 0] * t[:, 0] + J[:, 1, 1] * t[:, 1])
+    return np.where(across, det, stretch), across
 
 
 def singular_values_2x2(J: FloatArray) -> tuple[FloatArray, FloatArray]:

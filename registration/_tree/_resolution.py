@@ -47,6 +47,7 @@ from .._error import registration_error
 from .._executor import Executor
 from .._pointmap import PointTransform, composed_with_jacobian
 from .._points import farthest_point_indices, mean_spacing2
+from .._quality import fold_values
 from .._result import CollectionResult, SubjectResult
 from .._similarity import ProgressCallback
 from .._transform import ChainTransform
@@ -192,7 +193,8 @@ def _refine_edge(task: _FineTask) -> _FineOutcome:
     # chain rule: the fine step's Jacobians where the edge put the points, after the edge's
     # (one kernel product per step; taking the whole composition again cost twice that)
     jac = res.transform.apply_with_jacobian(start)[1] @ jac
-    det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
+    # a fold as the working resolution's check reads one (`_quality.fold_values`)
+    det, _ = fold_values(pre, jac)
     own = task.correspondences
     return _FineOutcome(subject=task.subject, warped=warped,
                         error=registration_error(warped, task.y),

@@ -107,7 +107,11 @@ class Quality(_Open):
 
     error: float | None = None
     spacing2: float | None = None
-    min_jacobian: float | None = None
+    min_jacobian: float | None = Field(
+        default=None, description="The smallest Jacobian determinant of the CPD warp over "
+        "the model's points; <= 0: the warp folds the model (confidence 0). On a model drawn "
+        "as a lone stroke (most of its points with no model point across them) the stretch "
+        "along the stroke stands in at those points: across it the field folds nothing.")
     distortion: float | None = None
     anisotropy: float | None = None
     cpd_rotation: float | None = None

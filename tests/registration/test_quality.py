@@ -124,3 +124,60 @@ def test_closed_form_singular_values_match_lapack() -> None:
     np.testing.assert_allclose(s1, want[:, 0], rtol=1e-14)
     np.testing.assert_allclose(s2, want[:, 1], rtol=0, atol=1e-14 * want[:, 0].max())
     assert np.all(s1 >= s2) and np.all(s2 >= 0)
+
+
+def _two_row_stroke(n: int = 217) -> np.ndarray:
+    """A rendered straight stroke's skeleton: a run of pixels along one row, then the
+    next (as the skeleton of 一 lies), centred."""
+    x = np.arange(float(n))
+    rows = ((np.arange(n) // 40) % 2).astype(float)
+    p = np.c_[x, rows]
+    return (p - p.mean(axis=0)) / 60.0
+
+
+def test_points_across_a_stroke_drawn_alone_are_none_and_an_outline_has_them_everywhere():
+    from registration._quality import points_across
+
+    stroke = _two_row_stroke()
+    assert not points_across(stroke).any()  # the second row of pixels is the same stroke
+    # gently bent, still alone
+    bent = np.c_[stroke[:, 0], stroke[:, 1] + 0.15 * np.sin(stroke[:, 0])]
+    assert not points_across(bent).any()
+    assert points_across(base_outline(200)).all()
+    # a cross: every point of each bar has the other bar across it, but its far ends
+    bar = np.linspace(-1.0, 1.0, 101)
+    cross = np.r_[np.c_[bar, np.zeros_like(bar)], np.c_[np.zeros_like(bar), bar]]
+    assert points_across(cross).mean() > 0.9
+    assert points_across(stroke[:2]).tolist() == [False, False]
+
+
+def test_a_flip_across_a_stroke_drawn_alone_is_no_fold_but_on_an_outline_it_is():
+    """Across a stroke with nothing across it CPD's field is only its kernel's extension:
+    a map that flips the plane across the stroke moves no point out of order. The stretch
+    along the stroke stands in for the determinant there (a registration from the pose
+    as given refused as folded, or on the spread of its log determinants, let one turned
+    end for end win); on an outline the same flip folds."""
+    flip = AffineTransform(A=np.diag([1.0, -1.0]), t=np.zeros(2))
+    stroke = _two_row_stroke()
+    q = measure_quality(stroke, flip.apply(stroke), flip.apply(stroke), flip, 0.0,
+                        _spacing2(stroke))
+    assert abs(q.min_jacobian - 1.0) < 1e-9 and q.distortion < 1e-9 and q.anisotropy == 0.0
+    assert q.confidence > 0.5
+    squash = AffineTransform(A=np.diag([0.5, -1.0]), t=np.zeros(2))
+    q = measure_quality(stroke, squash.apply(stroke), squash.apply(stroke), squash, 0.0,
+                        _spacing2(stroke))
+    assert abs(q.min_jacobian - 0.5) < 1e-9  # the stretch along the stroke
+    x = base_outline(120)
+    q = measure_quality(x, flip.apply(x), flip.apply(x), flip, 0.0, _spacing2(x))
+    assert q.min_jacobian == -1.0 and q.confidence == 0.0
+    # a shape mostly not a lone stroke keeps the determinant everywhere, also on its
+    # stroke: an outline with a tail (a quarter of its points)
+    t = np.linspace(0.0, 2.0 * np.pi, 150, endpoint=False)
+    tail = np.c_[np.linspace(1.2, 3.0, 50), np.zeros(50)]
+    lollipop = np.r_[np.c_[np.cos(t), np.sin(t)], tail]
+    from registration._quality import LONE_STROKE_SHARE, points_across
+
+    assert 0.1 < np.mean(~points_across(lollipop)) < LONE_STROKE_SHARE
+    q = measure_quality(lollipop, flip.apply(lollipop), flip.apply(lollipop), flip, 0.0,
+                        _spacing2(lollipop))
+    assert q.min_jacobian == -1.0
