@@ -196,7 +196,7 @@ def measure_quality(
 
 #: Neighbours (the point included) whose spread gives a model point's tangent.
 TANGENT_NEIGHBOURS = 7
-#: Model points nearer than this many mean point spacings across a point are the same
+#: Model points nearer than this many point spacings (h) across a point are the same
 #: stroke (a rendered skeleton's second row of pixels), not across it. At 3 the two sides
 #: of the Chui fish's thin fins (98 points) counted as one stroke too: 4.6% of its
 #: points (at most 28% of one shape) had nothing across, against 1.5% (9%) at 1.5; the
@@ -214,15 +214,10 @@ ACROSS_CANDIDATES = 128
 LONE_STROKE_SHARE = 0.5
 
 
-def tangents(points: FloatArray) -> FloatArray:
-    """Each point's unit tangent: the principal direction of its
-    ``TANGENT_NEIGHBOURS`` nearest points (itself included)."""
-    return _tangents_and_spacing(points)[0]
-
-
 def _tangents_and_spacing(points: FloatArray) -> tuple[FloatArray, float]:
-    """:func:`tangents`, and the RMS distance of a point to its nearest other point (h,
-    ``sqrt(mean_spacing2)``), from one neighbour query."""
+    """Each point's unit tangent (the principal direction of its ``TANGENT_NEIGHBOURS``
+    nearest points, itself included) and the RMS distance of a point to its nearest
+    other point (h, ``sqrt(mean_spacing2)``), from one neighbour query."""
     n = len(points)
     k = min(TANGENT_NEIGHBOURS, n)
     dist, idx = cKDTree(points).query(points, k)
@@ -239,8 +234,8 @@ def _tangents_and_spacing(points: FloatArray) -> tuple[FloatArray, float]:
 
 def points_across(points: FloatArray) -> NDArray[np.bool_]:
     """Whether each point has other points of the set across it: within 45 degrees of
-    its normal (either side, any distance) and more than ``ACROSS_MIN_SPACINGS`` mean
-    point spacings away; looked for among every ``len(points) // ACROSS_CANDIDATES``-th
+    its normal (either side, any distance) and more than ``ACROSS_MIN_SPACINGS`` point
+    spacings (h) away; looked for among every ``len(points) // ACROSS_CANDIDATES``-th
     point. False along a straight or gently bent stroke drawn alone (its other points
     lie along it); True on an outline (the other side of the shape) and on a glyph's
     strokes that other strokes cross or face.
@@ -290,7 +285,7 @@ def fold_values(points: FloatArray, J: FloatArray, det: FloatArray | None = None
     if det is None:
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
     if len(points) < 3:
-        return det, np.zeros(len(points), dtype=bool)
+        return det, np.ones(len(points), dtype=bool)
     t, h = _tangents_and_spacing(points)
     across = _across(points, t, h)
     if not np.mean(~across) >= LONE_STROKE_SHARE:
