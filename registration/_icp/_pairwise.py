@@ -365,6 +365,18 @@ def _full_distance(x: PreparedShape, y: PreparedShape, A: FloatArray, t: FloatAr
                  + np.maximum(bwd2, 0.0).mean(dtype=np.float64))
 
 
+def fit_rigid(r: FloatArray, s: FloatArray, mirror: bool = False
+              ) -> tuple[FloatArray, FloatArray]:
+    """The isometry ``(R, t)`` minimising ``sum_l || R r_l + t - s_l ||^2``: a rotation,
+    or with `mirror` a rotation-reflection (Procrustes)."""
+    mu_r, mu_s = r.mean(axis=0), s.mean(axis=0)
+    u, _, vt = np.linalg.svd((s - mu_s).T @ (r - mu_r))
+    if (np.linalg.det(u @ vt) < 0) != mirror:
+        u[:, -1] = -u[:, -1]
+    R = u @ vt
+    return np.asarray(R, dtype=np.float64), np.asarray(mu_s - R @ mu_r, dtype=np.float64)
+
+
 def _refine(
     x: FloatArray,
     y: FloatArray,
@@ -374,11 +386,14 @@ def _refine(
     max_iter: int,
     tol: float,
     proper: bool = False,
+    rigid: bool = False,
 ) -> tuple[FloatArray, FloatArray, float, int, bool]:
     """Affine ICP on the full sets from one start (eqs. 3-4 iterated, eq. 9 returned).
 
     Keeps the best map seen, so the returned D never exceeds the start's. With `proper`,
-    an update with ``det(A) <= 0`` stops the iteration at the previous map.
+    an update with ``det(A) <= 0`` stops the iteration at the previous map. With
+    `rigid`, each step is the best isometry of the start's handedness instead of the
+    best affine map (Procrustes; :func:`fit_rigid`).
     """
 
     def evaluate(A: FloatArray, t: FloatArray) -> tuple[float, FloatArray, FloatArray]:
@@ -393,7 +408,11 @@ def _refine(
     for iterations in range(1, max_iter + 1):  # noqa: B007
         r = np.concatenate([x, x[d]])
         s = np.concatenate([y[c], y])
-        A_new, t_new = _fit_affine_batch(r[None], s[None])
+        if rigid:
+            R, tr = fit_rigid(r, s, mirror=bool(np.linalg.det(A) < 0))
+            A_new, t_new = R[None], tr[None]
+        else:
+            A_new, t_new = _fit_affine_batch(r[None], s[None])
         det = float(np.linalg.det(A_new[0])) if np.isfinite(A_new).all() else 0.0
         if (det if proper else abs(det)) <= _MIN_ABS_DET:
             converged = True  # degenerate correspondences: det(A) must stay away from 0

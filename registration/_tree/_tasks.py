@@ -18,6 +18,7 @@ from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._icp import AffineICPResult, affine_icp
+from .._icp._pairwise import _refine
 from .._pointmap import PointTransform, composed_with_jacobian
 from .._pose import PoseSpec, angle_between, rotation_angle
 from .._quality import RegistrationQuality, measure_quality
@@ -437,33 +438,9 @@ def _rigid_self_fit(model: FloatArray, turn: FloatArray, max_iter: int = 50
     to fit an affine map's second column to, so the first step's map is near singular
     (the skeleton of 一 in Noto Sans, turned 172 degrees, stayed at D 0.037 against 0.002
     for the pose). A rigid step needs no width."""
-    tree = cKDTree(model)
-    R, t = turn, np.zeros(2)
-
-    def distance(R: FloatArray, t: FloatArray) -> tuple[float, IntArray, IntArray]:
-        moved = model @ R.T + t
-        fwd, c = tree.query(moved)
-        bwd, d = cKDTree(moved).query(model)
-        return float(np.mean(fwd**2) + np.mean(bwd**2)), c, d
-
-    dist, c, d = distance(R, t)
-    for _ in range(max_iter):
-        src = np.concatenate([model, model[d]])
-        dst = np.concatenate([model[c], model])
-        mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
-        u, _, vt = np.linalg.svd((dst - mu_d).T @ (src - mu_s))
-        if np.linalg.det(u @ vt) * np.linalg.det(turn) < 0:
-            u[:, -1] = -u[:, -1]
-        R_new = u @ vt
-        t_new = mu_d - R_new @ mu_s
-        dist_new, c, d = distance(R_new, t_new)
-        if not dist_new < dist:
-            break
-        done = dist - dist_new <= 1e-6 * dist
-        R, t, dist = R_new, t_new, dist_new
-        if done:
-            break
-    return np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+    R, t, *_ = _refine(model, model, cKDTree(model), turn, np.zeros(2), max_iter, 1e-6,
+                       proper=bool(np.linalg.det(turn) > 0), rigid=True)
+    return R, t
 
 
 def _symmetry_ratio(model: FloatArray, A: FloatArray, d_pose: float) -> float:

@@ -133,3 +133,20 @@ def test_dense_full_distance_matches_kd_trees(n, m, monkeypatch):
     assert dense == pytest.approx(bidirectional_distance(x @ A.T + tt, y), abs=1e-6)
     monkeypatch.setattr(icp, "_DENSE_FULL_MAX", 0)
     assert icp._full_distance(px, py, A, tt) == pytest.approx(dense, abs=1e-6)
+
+
+def test_fit_rigid_recovers_a_rotation_and_a_mirror_of_the_asked_handedness():
+    from registration._icp._pairwise import fit_rigid
+
+    rng = np.random.default_rng(4)
+    r = rng.normal(size=(50, 2))
+    a = np.deg2rad(130.0)
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    R, t = fit_rigid(r, r @ rot.T + [0.3, -1.0])
+    assert np.allclose(R, rot) and np.allclose(t, [0.3, -1.0])
+    mirrored = r @ (rot @ np.diag([1.0, -1.0])).T
+    M, _ = fit_rigid(r, mirrored, mirror=True)
+    assert np.allclose(M, rot @ np.diag([1.0, -1.0]))
+    # asked for a rotation, the mirror image gets the nearest one, never a reflection
+    P, _ = fit_rigid(r, mirrored)
+    assert np.linalg.det(P) > 0

@@ -116,6 +116,18 @@ def _half_turn_symmetric(n: int = 240) -> np.ndarray:
     return normalise(np.c_[1.5 * r * np.cos(t), r * np.sin(t)])[0]
 
 
+def _as_given_task(starts: tuple = ()) -> object:
+    """A task registering a half-turn-symmetric outline onto itself from the pose as
+    given (and `starts` after it)."""
+    from registration._tree import _tasks
+
+    y = _half_turn_symmetric(100)
+    return _tasks._RegTask(
+        subject=1, member=0, layer=2, similarity=0.01, q=y, y=y,
+        starts=(_tasks._Start("as given"), *starts), cpd=FAST_CPD, prealign=True,
+        pose=PoseSpec.resolve(None, None), spacing2=0.01)
+
+
 def test_a_turn_under_which_the_model_is_symmetric_is_recognised():
     """`_symmetry_ratio`: a half turn of a half-turn-symmetric outline maps it onto itself
     (a tiny D relative to the pose's), a quarter turn does not, and neither does any turn
@@ -185,11 +197,7 @@ def test_a_turn_the_model_is_symmetric_under_is_not_tried(monkeypatch):
     def outcome(label: str, error: float) -> object:
         return replace(base, pose=label, error=error, min_jacobian=1.0)
 
-    y = _half_turn_symmetric(100)
-    task = _tasks._RegTask(
-        subject=1, member=0, layer=2, similarity=0.01, q=y, y=y,
-        starts=(_tasks._Start("as given"),), cpd=FAST_CPD, prealign=True,
-        pose=PoseSpec.resolve(None, None), spacing2=0.01)
+    task = _as_given_task()
     base = _tasks._register_task(task)
     assert base.pose_margin is None  # one start: no margin to report
     errors = {"as given": 1.0, "rotated": 0.47, "aligned": 0.8}
@@ -229,11 +237,7 @@ def test_a_fit_within_the_sampling_floor_tries_no_other_start(monkeypatch):
 
     from registration._tree import _tasks
 
-    y = _half_turn_symmetric(100)
-    task = _tasks._RegTask(
-        subject=1, member=0, layer=2, similarity=0.01, q=y, y=y,
-        starts=(_tasks._Start("as given"), _tasks._Start("rotated", _rot(90.0), np.zeros(2))),
-        cpd=FAST_CPD, prealign=True, pose=PoseSpec.resolve(None, None), spacing2=0.01)
+    task = _as_given_task((_tasks._Start("rotated", _rot(90.0), np.zeros(2)),))
     base = _tasks._register_task(replace(task, starts=task.starts[:1]))
     floor = _tasks.SPACING_FACTOR * task.spacing2
     errors = {"as given": 0.9 * floor, "rotated": 0.3 * floor}
@@ -289,11 +293,7 @@ def test_a_turn_across_members_earns_its_place_as_within_one_task():
 
     from registration._tree import _tasks
 
-    y = _half_turn_symmetric(100)
-    task = _tasks._RegTask(
-        subject=1, member=0, layer=2, similarity=0.01, q=y, y=y,
-        starts=(_tasks._Start("as given"),), cpd=FAST_CPD, prealign=True,
-        pose=PoseSpec.resolve(None, None), spacing2=0.01)
+    task = _as_given_task()
     base = _tasks._register_task(task)
 
     def out(member: int, pose: str, error: float, jac: float = 1.0) -> object:
