@@ -18,7 +18,7 @@ from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._icp import AffineICPResult, affine_icp
-from .._icp._pairwise import _refine
+from .._icp._pairwise import _refine, fit_rigid
 from .._pointmap import PointTransform, composed_with_jacobian
 from .._pose import PoseSpec, angle_between, rotation_angle
 from .._quality import RegistrationQuality, measure_quality
@@ -54,7 +54,7 @@ POSE_MARGIN = 0.5
 SPACING_FACTOR = 0.5
 # How far a map of a model onto itself may move the model's points from where the
 # nearest similarity (a rotation and one scale) puts them, RMS over the model's RMS
-# radius, and still count as one of its symmetries (`_symmetry_ratio`): an exact symmetry
+# radius, and still count as one of its symmetries (`_self_map`): an exact symmetry
 # is an isometry (0). 0.11 is about what a stretch of 1.25 between the map's singular
 # values gives on a round outline (the bound this replaces); the half turns of O, 0, S,
 # 8, H, N, Z and straight strokes settle at 0-0.04 on glyphs of 400 points, a stretch
@@ -65,7 +65,7 @@ SPACING_FACTOR = 0.5
 SYMMETRY_MAX_DEVIATION = 0.11
 # A turn under which the model fits itself at least 1 / SYMMETRY_D_RATIO times as
 # closely as the turned pose fits the subject is a near-symmetry of the model
-# (`_symmetry_ratio`). The turned pose then says nothing the pose as given does not: its
+# (`_ratio_to_pose`). The turned pose then says nothing the pose as given does not: its
 # correspondences are wrong by the symmetry (a Latin O in a serif font, turned half a
 # turn by direct CPD at 0.47x the e: 1.99 of the radius against 0.20 as given; 7.39), so
 # the start is the pose as given aligned instead, the turn undone (`_Start.decided`).
@@ -117,15 +117,16 @@ class _Start:
     # the e, relative to the pose as given's, below which this start's registration
     # replaces it (`_register_task`)
     margin: float = POSE_MARGIN
-    # what `_symmetry_ratio` needs besides A while it is still to be decided whether the
-    # turn is a near-symmetry of the model: the member's own (normalised) shape and this
-    # pose's D. `decided` decides it in the worker that runs the task, not in the process
-    # that builds the tasks (one affine ICP of the shape onto itself per turned start).
+    # what `_self_map` and `_ratio_to_pose` need besides A while it is still to be
+    # decided whether the turn is a near-symmetry of the model: the member's own
+    # (normalised) shape and this pose's D. `decided` decides it in the worker that runs
+    # the task, not in the process that builds the tasks (one affine ICP of the shape
+    # onto itself per turned start).
     symmetry: tuple[FloatArray, float] | None = None
 
     def decided(self) -> _Start:
         """This start once it is decided whether its turn is a near-symmetry of the model
-        (`_symmetry_ratio`; itself when that is decided already). A turned registration
+        (`_ratio_to_pose`; itself when that is decided already). A turned registration
         then differs from the pose as given's only by the symmetry, wrong by the whole
         turn, and e can only compare the few parts that break the symmetry (the Latin O
         in a serif font, turned half a turn by direct CPD at 0.47x the e: 1.99 of the
@@ -392,14 +393,13 @@ def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
 
 def _turn_between(points: FloatArray, A: FloatArray, B: FloatArray) -> FloatArray:
     """The turn that carries the centred `points` as `B` maps them closest to where `A`
-    maps them (Procrustes; a rotation-reflection where the two maps differ in handedness).
-    For a shape that spans the plane it is the rotation nearest ``A B^-1``; of a straight
-    stroke affine ICP leaves the map across the stroke to chance, and only the points say
-    how far the stroke turned."""
-    u, _, vt = np.linalg.svd((points @ A.T).T @ (points @ B.T))
-    if np.linalg.det(u @ vt) * np.linalg.det(A) * np.linalg.det(B) < 0:
-        u[:, -1] = -u[:, -1]
-    return np.asarray(u @ vt, dtype=np.float64)
+    maps them (Procrustes, :func:`~registration._icp._pairwise.fit_rigid`; a
+    rotation-reflection where the two maps differ in handedness). For a shape that spans
+    the plane it is the rotation nearest ``A B^-1``; of a straight stroke affine ICP
+    leaves the map across the stroke to chance, and only the points say how far the
+    stroke turned."""
+    mirror = bool(np.linalg.det(A) * np.linalg.det(B) < 0)
+    return fit_rigid(points @ B.T, points @ A.T, mirror=mirror)[0]
 
 
 def _distinct(A: FloatArray, B: FloatArray) -> bool:
@@ -443,10 +443,11 @@ def _rigid_self_fit(model: FloatArray, turn: FloatArray, max_iter: int = 50
     return R, t
 
 
-def _symmetry_ratio(model: FloatArray, A: FloatArray, d_pose: float) -> float:
-    """How closely the turn (or mirror) of the pose `A` from the pose as given maps the
-    model onto itself (:func:`_self_map`), relative to how closely the pose maps it onto
-    the subject: D(model, model) over ``d_pose``; infinite when the turn is no symmetry.
+def _ratio_to_pose(settled: AffineICPResult | None, d_pose: float) -> float:
+    """How closely the turn (or mirror) of a pose from the pose as given maps the model
+    onto itself (`settled`, :func:`_self_map`), relative to how closely the pose maps it
+    onto the subject: D(model, model) over ``d_pose``; infinite when the turn is no
+    symmetry (no self-map) or there is no positive ``d_pose``.
 
     A small ratio means the two poses differ by a near-symmetry of the model (an O
     turned half a turn, an S, a straight stroke): e then compares how the two
@@ -456,12 +457,6 @@ def _symmetry_ratio(model: FloatArray, A: FloatArray, d_pose: float) -> float:
     took a 160-degree turn at 0.47x the e, correspondence error 1.99 of the radius
     against 0.20 as given; bench/RESULTS.md 7.39).
     """
-    return _ratio_to_pose(_self_map(model, A), d_pose)
-
-
-def _ratio_to_pose(settled: AffineICPResult | None, d_pose: float) -> float:
-    """D of the model onto itself by the `settled` self-map over the pose's ``d_pose``:
-    infinite when there is no self-map (:func:`_self_map`) or no positive ``d_pose``."""
     if settled is None or not d_pose > 0:
         return math.inf
     return float(settled.distance / d_pose)

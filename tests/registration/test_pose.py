@@ -116,6 +116,14 @@ def _half_turn_symmetric(n: int = 240) -> np.ndarray:
     return normalise(np.c_[1.5 * r * np.cos(t), r * np.sin(t)])[0]
 
 
+def _symmetry_ratio(model: np.ndarray, A: np.ndarray, d_pose: float) -> float:
+    """The rule `_Start.decided` applies: the model's self-map for the turn of `A`, its
+    D over the pose's."""
+    from registration._tree._tasks import _ratio_to_pose, _self_map
+
+    return _ratio_to_pose(_self_map(model, A), d_pose)
+
+
 def _as_given_task(starts: tuple = ()) -> object:
     """A task registering a half-turn-symmetric outline onto itself from the pose as
     given (and `starts` after it)."""
@@ -129,12 +137,13 @@ def _as_given_task(starts: tuple = ()) -> object:
 
 
 def test_a_turn_under_which_the_model_is_symmetric_is_recognised():
-    """`_symmetry_ratio`: a half turn of a half-turn-symmetric outline maps it onto itself
-    (a tiny D relative to the pose's), a quarter turn does not, and neither does any turn
-    of an outline without symmetry, even where affine ICP could fold it onto itself by a
-    stretch (the map must stay near a similarity on the model's points)."""
+    """`_self_map` and `_ratio_to_pose`: a half turn of a half-turn-symmetric outline
+    maps it onto itself (a tiny D relative to the pose's), a quarter turn does not, and
+    neither does any turn of an outline without symmetry, even where affine ICP could fold
+    it onto itself by a stretch (the map must stay near a similarity on the model's
+    points)."""
     from registration._points import normalise
-    from registration._tree._tasks import SYMMETRY_D_RATIO, _symmetry_ratio
+    from registration._tree._tasks import SYMMETRY_D_RATIO
 
     sym = _half_turn_symmetric()
     # the pose's turn from the pose as given (the model as it is), whatever its stretch
@@ -165,7 +174,6 @@ def test_a_straight_stroke_is_symmetric_under_its_half_turn():
         SYMMETRY_D_RATIO,
         SYMMETRY_MAX_DEVIATION,
         _deviation_from_similarity,
-        _symmetry_ratio,
         _turn_between,
     )
 
@@ -267,7 +275,7 @@ def test_a_stroke_of_two_pixel_rows_is_symmetric_under_its_half_turn():
     where it started (the skeleton of 一, turned 172 degrees, at 20x the pose's D). The
     self-map starts from the isometry that rigid ICP settles on, which needs no width."""
     from registration._points import normalise
-    from registration._tree._tasks import SYMMETRY_D_RATIO, _rigid_self_fit, _symmetry_ratio
+    from registration._tree._tasks import SYMMETRY_D_RATIO, _rigid_self_fit
 
     x = np.arange(217.0)
     rows = (np.arange(217) // 40) % 2  # runs along one row, then the next, as pixels lie
