@@ -119,10 +119,11 @@ class _Start:
     margin: float = POSE_MARGIN
     # what `_self_map` and `_ratio_to_pose` need besides A while it is still to be
     # decided whether the turn is a near-symmetry of the model: the member's own
-    # (normalised) shape and this pose's D. `decided` decides it in the worker that runs
-    # the task, not in the process that builds the tasks (one affine ICP of the shape
-    # onto itself per turned start).
-    symmetry: tuple[FloatArray, float] | None = None
+    # (normalised) shape, this pose's D, and the root's shape (None when the member is
+    # the root). `decided` decides it in the worker that runs the task, not in the
+    # process that builds the tasks (one or two affine ICPs of a shape onto itself per
+    # turned start).
+    symmetry: tuple[FloatArray, float, FloatArray | None] | None = None
 
     def decided(self) -> _Start:
         """This start once it is decided whether its turn is a near-symmetry of the model
@@ -135,15 +136,30 @@ class _Start:
         (``A R^T``, R the rotation the symmetry makes on the model's points: stable where
         affine ICP squashed a stroke's width, which inverting its map would blow up),
         where the pose as given's CPD, with no affine step, can fall short (a straight
-        stroke that turned a little on a chain, 9e-4 against 7e-5 from either end)."""
+        stroke that turned a little on a chain, 9e-4 against 7e-5 from either end).
+
+        A turn (not a mirror: a rotation's angle is the same in the member's frame and
+        the root's, a mirror's axis is not) the root's shape is nearly symmetric under
+        is treated so too, when the member is not: the correspondences are the root's,
+        and the turn changes no fit of the root, only which deformation explains the
+        subject. A bar bent one way along its chain fits a bar bent the other way turned
+        end for end at 0.2-0.4x the e as given, while the bent member no longer fits
+        itself turned (the edges of a 65 x 22 rectangle, seed 1: 3.9x plain CPD's
+        correspondence error, two subjects end for end; bench/RESULTS.md 7.45)."""
         if self.symmetry is None or self.A is None or self.t is None:
             return self
-        model, d = self.symmetry
+        model, d, root = self.symmetry
         settled = _self_map(model, self.A)
-        if settled is None or not _ratio_to_pose(settled, d) <= SYMMETRY_D_RATIO:
-            return replace(self, symmetry=None)
-        undo = _turn_between(model, settled.A, np.eye(2)).T
-        return _Start("aligned", self.A @ undo, self.t - self.A @ undo @ settled.t)
+        if settled is not None and _ratio_to_pose(settled, d) <= SYMMETRY_D_RATIO:
+            undo = _turn_between(model, settled.A, np.eye(2)).T
+            return _Start("aligned", self.A @ undo, self.t - self.A @ undo @ settled.t)
+        if root is not None and np.linalg.det(self.A) > 0:
+            # the turn as a near-symmetry of the root's shape
+            settled = _self_map(root, _turn_between(model, self.A, np.eye(2)))
+            if settled is not None and _ratio_to_pose(settled, d) <= SYMMETRY_D_RATIO:
+                undo = _turn_between(root, settled.A, np.eye(2)).T
+                return _Start("aligned", self.A @ undo, self.t)
+        return replace(self, symmetry=None)
 
 
 @dataclass(frozen=True)
@@ -351,9 +367,8 @@ def _lowest_error(outs: Sequence[_RegOutcome],
                   key: Callable[[_RegOutcome], Any] = lambda o: o.error) -> _RegOutcome:
     """The registration of one subject kept among several, from different members: the
     lowest `key` (e first), except that a registration which turned its member's pose
-    (``pose == "rotated"``) is kept only when its e is below ``POSE_MARGIN`` times the
-    lowest e of those that did not (and do not fold, unless it folds too), as the pose
-    as given is kept within one task (`_register_task`).
+    (``pose == "rotated"``) is kept only when it beats those that did not by the margin
+    (`_pose_rival`), as the pose as given is kept within one task (`_register_task`).
 
     Within one task the pose as given gives way at no larger an e when its own warp
     folds; across members an unfolded registration that keeps its member's pose may
@@ -364,21 +379,41 @@ def _lowest_error(outs: Sequence[_RegOutcome],
     if not outs:
         raise ValueError("no registrations to choose from")
     best = min(outs, key=key)
+    return _pose_rival(best, outs, key) or best
+
+
+def _pose_rival(best: _RegOutcome, outs: Sequence[_RegOutcome],
+                key: Callable[[_RegOutcome], Any] = lambda o: o.error) -> _RegOutcome | None:
+    """The registration of `outs` (the same subject's) that keeps its member's pose and
+    that `best`, a registration which turned its member's pose, fails to beat: the lowest
+    `key` of those that do not fold (unless `best` folds too), when `best`'s e is not below
+    ``POSE_MARGIN`` times its e. None when `best` kept its pose or beats them all.
+
+    The tree's growth asks it of the registrations its rule refused as well (an e above
+    the threshold, a low confidence): one that keeps its pose near the threshold says the
+    pose as given fits about as well, and the turn then waits for a later round, as the
+    leaves' pass, which chooses among every registration tried, would refuse it. On the
+    edges of a bar bent along its chain (- in DejaVu Serif) a half turn from one member,
+    at 0.82x the e of another's pose as given just above the threshold, took the subject
+    end for end, and a second subject with it (bench/RESULTS.md 7.45)."""
+    if best.pose != "rotated":
+        return None
     kept = [o for o in outs if o.pose != "rotated"
             and (o.min_jacobian > 0 or not best.min_jacobian > 0)]
-    if best.pose == "rotated" and kept:
-        other = min(kept, key=key)
-        if not best.error < POSE_MARGIN * other.error:
-            return other
-    return best
+    if not kept:
+        return None
+    other = min(kept, key=key)
+    return None if best.error < POSE_MARGIN * other.error else other
 
 
-def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
+def _starts(sim: Similarity, member: int, subject: int, root: int | None = None
+            ) -> tuple[_Start, ...]:
     """The pose as given; and the similarity's best pose when it is another pose (turned
     by more than ``POSE_DISTINCT_DEG`` or of the other handedness) that fits clearly
     better: its D below ``POSE_D_RATIO`` times the D reached from the pose as given.
-    Whether its turn is a near-symmetry of the model (then the pose as given, aligned, is
-    tried in its place) is decided by :meth:`_Start.decided` where the task runs."""
+    Whether its turn is a near-symmetry of the model, or of the `root`'s shape (then the
+    pose as given, aligned, is tried in its place) is decided by :meth:`_Start.decided`
+    where the task runs."""
     given = _Start("as given")
     A = sim.A[member, subject]
     A_g = sim.A_given[member, subject]
@@ -388,7 +423,9 @@ def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
     model = sim.shape(member)
     if not _distinct(_turn_between(model, A, A_g), np.eye(2)):
         return (given,)
-    return (given, _Start("rotated", A, sim.t[member, subject], symmetry=(model, float(d))))
+    of_root = None if root is None or root == member else sim.shape(root)
+    return (given, _Start("rotated", A, sim.t[member, subject],
+                          symmetry=(model, float(d), of_root)))
 
 
 def _turn_between(points: FloatArray, A: FloatArray, B: FloatArray) -> FloatArray:
