@@ -47,7 +47,6 @@ from ._tasks import (
     _lowest_error,
     _options_dict,
     _owns_executor,
-    _pose_rival,
     _RegOutcome,
     _RegTask,
     _run_tasks,
@@ -199,17 +198,6 @@ def build_dynamic_tree(
         best = {s: _lowest_error(outs) for s, outs in accepted.items()}
         new_frontier = []
         for s, out in sorted(best.items()):
-            rival = _pose_rival(out, rejected.get(s, []))
-            if rival is not None:
-                # a turn that a refused registration as given rivals waits (`_pose_rival`)
-                results[s].attempts = [
-                    replace(a, reason=(
-                        f"turned, at e not below {_tasks.POSE_MARGIN}x the e {rival.error:.4g} "
-                        f"of the pose as given from {coll.names[rival.member]}"))
-                    if a.member == out.member and a.error == out.error else a
-                    for a in results[s].attempts]
-                rejected.setdefault(s, []).extend(accepted[s])  # the leaves' pool
-                continue
             res, node = _subject_from_outcome(coll, out, nodes[out.member], joined=grown)
             res.attempts = [
                 Attempt(**{**asdict(a), "accepted": a.member == out.member})

@@ -367,8 +367,9 @@ def _lowest_error(outs: Sequence[_RegOutcome],
                   key: Callable[[_RegOutcome], Any] = lambda o: o.error) -> _RegOutcome:
     """The registration of one subject kept among several, from different members: the
     lowest `key` (e first), except that a registration which turned its member's pose
-    (``pose == "rotated"``) is kept only when it beats those that did not by the margin
-    (`_pose_rival`), as the pose as given is kept within one task (`_register_task`).
+    (``pose == "rotated"``) is kept only when its e is below ``POSE_MARGIN`` times the
+    lowest e of those that did not (and do not fold, unless it folds too), as the pose
+    as given is kept within one task (`_register_task`).
 
     Within one task the pose as given gives way at no larger an e when its own warp
     folds; across members an unfolded registration that keeps its member's pose may
@@ -379,31 +380,13 @@ def _lowest_error(outs: Sequence[_RegOutcome],
     if not outs:
         raise ValueError("no registrations to choose from")
     best = min(outs, key=key)
-    return _pose_rival(best, outs, key) or best
-
-
-def _pose_rival(best: _RegOutcome, outs: Sequence[_RegOutcome],
-                key: Callable[[_RegOutcome], Any] = lambda o: o.error) -> _RegOutcome | None:
-    """The registration of `outs` (the same subject's) that keeps its member's pose and
-    that `best`, a registration which turned its member's pose, fails to beat: the lowest
-    `key` of those that do not fold (unless `best` folds too), when `best`'s e is not below
-    ``POSE_MARGIN`` times its e. None when `best` kept its pose or beats them all.
-
-    The tree's growth asks it of the registrations its rule refused as well (an e above
-    the threshold, a low confidence): one that keeps its pose near the threshold says the
-    pose as given fits about as well, and the turn then waits for a later round, as the
-    leaves' pass, which chooses among every registration tried, would refuse it. On the
-    edges of a bar bent along its chain (- in DejaVu Serif) a half turn from one member,
-    at 0.82x the e of another's pose as given just above the threshold, took the subject
-    end for end, and a second subject with it (bench/RESULTS.md 7.45)."""
-    if best.pose != "rotated":
-        return None
     kept = [o for o in outs if o.pose != "rotated"
             and (o.min_jacobian > 0 or not best.min_jacobian > 0)]
-    if not kept:
-        return None
-    other = min(kept, key=key)
-    return None if best.error < POSE_MARGIN * other.error else other
+    if best.pose == "rotated" and kept:
+        other = min(kept, key=key)
+        if not best.error < POSE_MARGIN * other.error:
+            return other
+    return best
 
 
 def _starts(sim: Similarity, member: int, subject: int, root: int | None = None
