@@ -62,6 +62,14 @@ Families (collections with exact ground truth):
   symmetric under a half turn, so a registration can come out end for end at a low e
   (bench/RESULTS.md 7.42-7.43: seed 0 alone hid four of the failures seed 1 showed).
 
+- ``glyph-turned`` (only when named in ``--only``): glyph-other's chains (seed 0) with
+  every subject turned about its centroid by an angle drawn uniformly from +-180 degrees,
+  the truth turned with it: instances at any angle, whose poses the pre-alignment has to
+  find (bench/RESULTS.md 7.45). Plain CPD searches no pose, so it is no baseline there:
+  the family is kept out of the targets, and its own lines compare the tree with direct
+  CPD by the mean error and the subjects registered wrong (error above
+  ``GROSS_ERROR``).
+
 "far" subjects are those more than half the family's chain length away from the root
 along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
 a glyph chain for root 0. For the mid-chain root the distance is counted along the
@@ -412,6 +420,54 @@ def stroke_glyph_cases(seeds: list[int], characters: str = STROKE_CHARACTERS,
     return cases
 
 
+#: Families whose subjects lie at any angle: no plain-CPD baseline, kept out of the targets.
+TURNED_KINDS = frozenset({"glyph-turned"})
+#: A subject registered wrong (the wrong pose: a turn, a mirror, a slide by a stroke): its
+#: RMS ground-truth error above this fraction of its RMS radius.
+GROSS_ERROR = 0.5
+
+
+def turned_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
+                       fonts: dict[str, Path] | None = None) -> list[Case]:
+    """``glyph-turned``: glyph-other's chains with every subject turned about its centroid
+    by an angle drawn uniformly from +-180 degrees (seeded by the chain's seed), the truth
+    turned with it."""
+    cases = _rendered_glyph_cases(seeds, characters, fonts,
+                                  (("glyph-turned", "edges", 1, None),))
+    for case in cases:
+        rng = np.random.default_rng([case.seed, 7])
+        for k in range(len(case.shapes)):
+            if k == case.root:
+                continue
+            a = math.radians(rng.uniform(-180.0, 180.0))
+            turn = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+            c = case.shapes[k].mean(axis=0)
+            case.shapes[k] = (case.shapes[k] - c) @ turn.T + c
+            case.truth[k] = (case.truth[k] - c) @ turn.T + c
+    return cases
+
+
+def turned_summary(cases: list[Case], rows_by_case: list[list[dict[str, Any]]]) -> None:
+    """The turned families' own lines: per run, each method's mean ground-truth error
+    and its subjects registered wrong (error above ``GROSS_ERROR``; unattached ones
+    counted apart)."""
+    print(f"\nturned collections (no plain-CPD baseline: mean GT error, and subjects with "
+          f"GT error > {GROSS_ERROR} or unattached):")
+    totals = {m: [0, 0, 0] for m in METHODS}
+    for case, rows in zip(cases, rows_by_case, strict=True):
+        cells = []
+        for m in METHODS:
+            errs = [r[m]["gt"] for r in rows if r[m]["gt"] is not None]
+            gross = sum(e > GROSS_ERROR for e in errs)
+            totals[m][0] += gross
+            totals[m][1] += len(rows) - len(errs)
+            totals[m][2] += len(rows)
+            cells.append(f"{m} {f4(_mean(errs))} {gross:2d}+{len(rows) - len(errs)}")
+        print(f"  {case.label:40s} " + "   ".join(cells))
+    print("  ALL" + " " * 38 + "   ".join(
+        f"{m} wrong {g} + unattached {u} of {n}" for m, (g, u, n) in totals.items()))
+
+
 def other_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
                       fonts: dict[str, Path] | None = None) -> list[Case]:
     """``glyph-other``: the `characters` (default :data:`OTHER_CHARACTERS`) in the `fonts`
@@ -672,6 +728,15 @@ def report_case(case: Case, rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def summary(cases: list[Case], reports: list[dict[str, Any]],
             rows_by_case: list[list[dict[str, Any]]]) -> None:
+    turned = [i for i, c in enumerate(cases) if c.kind in TURNED_KINDS]
+    if turned:
+        turned_summary([cases[i] for i in turned], [rows_by_case[i] for i in turned])
+        keep = [i for i in range(len(cases)) if i not in turned]
+        cases = [cases[i] for i in keep]
+        reports = [reports[i] for i in keep]
+        rows_by_case = [rows_by_case[i] for i in keep]
+        if not cases:
+            return
     print("\n" + "=" * 100)
     print("SUMMARY: mean ground-truth correspondence error (RMS / subject's RMS radius), "
           "pooled over the runs of each family")
@@ -888,7 +953,8 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
                     "generated mpeg7 outline outline-random outline-arc glyph-other dense-edge "
-                    "dense-skel small-step glyph-latin glyph-stroke)")
+                    "dense-skel small-step glyph-latin glyph-stroke; glyph-turned runs only "
+                    "when named)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
@@ -968,6 +1034,8 @@ def main() -> None:
         cases += latin_glyph_cases(seeds[:1], args.latin, {f: FONTS[f] for f in fonts})
     if not args.quick or (args.only and "glyph-stroke" in args.only):
         cases += stroke_glyph_cases(seeds[:2], STROKE_CHARACTERS, {f: FONTS[f] for f in fonts})
+    if args.only and "glyph-turned" in args.only:  # only when named
+        cases += turned_glyph_cases(seeds[:1], args.characters, {f: FONTS[f] for f in fonts})
     if args.only:
         cases = [c for c in cases if c.kind in args.only]
     print(f"{len(cases)} runs x 3 methods, default options (the library picks its executor); "
