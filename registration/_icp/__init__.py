@@ -15,7 +15,7 @@ then refines the best start on the full point sets with KD-trees.
 
 from ._affine import affine_icp
 from ._fit import AffineICPResult, bidirectional_distance, fit_affine
-from ._pairwise import PairPose, PreparedShape, pairwise_affine_icp, prepare_shape
+from ._pairwise import PairPose, PreparedShape, pairwise_affine_icp, prepare_shape, rigid_turns
 
 __all__ = [
     "AffineICPResult",
@@ -26,5 +26,6 @@ __all__ = [
     "fit_affine",
     "pairwise_affine_icp",
     "prepare_shape",
+    "rigid_turns",
 ]
 

@@ -410,6 +410,7 @@ class _Run:
             similarity=float(sim.D[member, subject]), q=q, y=self.coll.normed[subject],
             starts=_starts(sim, member, subject, self.coll.root), cpd=self.cpd,
             prealign=self.prealign, pose=self.pose, spacing2=self.coll.spacing2[subject],
+            root_shape=None if member == self.coll.root else sim.shape(self.coll.root),
             symmetric=symmetric, held=held,
         )
 

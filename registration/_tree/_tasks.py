@@ -17,7 +17,7 @@ from .._cpd import CPDOptions, CPDResult, cpd_nonrigid
 from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor, owned_executor
-from .._icp import AffineICPResult, affine_icp
+from .._icp import AffineICPResult, affine_icp, rigid_turns
 from .._icp._pairwise import _refine, fit_rigid
 from .._pointmap import PointTransform, composed_with_jacobian
 from .._pose import PoseSpec, angle_between, rotation_angle
@@ -39,9 +39,22 @@ T = TypeVar("T")
 # (bench/calibrate_thresholds.py): on collections given upright every rotated pose was
 # wrong (0 of 82 good) and its D was 0.34-0.97 (median 0.78-0.81) of the pose as given's;
 # on glyphs turned by 90 degrees 63-78% of them were right, at 0.07-0.65 (median 0.23-0.26).
+# The margin, on the glyph chains of bench_groundtruth.py turned at random (書水心東龍 in
+# two fonts, every registration the tree and direct CPD ran; bench/RESULTS.md 7.46): of
+# 704 turns to the truth 542 reached below 0.5x the e as given and 613 below 0.7x, while
+# of 41 wrong turns 8 did (each where the pose as given was wrong too). Given upright,
+# no turn tried reached below 1.0x (908 registrations of the same characters), and at 0.7
+# every turned start of the 208 upright runs of the default bench was refused as at 0.5.
 POSE_DISTINCT_DEG = 20.0
 POSE_D_RATIO = 0.6
-POSE_MARGIN = 0.5
+POSE_MARGIN = 0.7
+#: The margin of an ``"aligned"`` start (`_Start.decided`): the pose as given again,
+#: pre-aligned by affine ICP with a turn of the model's (or root's) symmetry undone. Its
+#: e differs from the pose as given's only by how the two fit what breaks the symmetry,
+#: and on a straight stroke by a stretch across it that affine ICP leaves to chance: the
+#: skeleton of 一 (Noto Sans, seed 0) reached 0.56x the e as given from it at a
+#: correspondence error of 0.34 of the radius against 0.10 (bench/RESULTS.md 7.46).
+ALIGNED_MARGIN = 0.5
 #: The sampling floor of e: ``SPACING_FACTOR`` times the subject's mean squared point
 #: spacing h^2 (the automatic error threshold's floor too, `_rules._spacing_floor`). On
 #: data with ground truth every registration within 5% of the shape's size had e below it
@@ -70,6 +83,18 @@ SYMMETRY_MAX_DEVIATION = 0.11
 # turn by direct CPD at 0.47x the e: 1.99 of the radius against 0.20 as given; 7.39), so
 # the start is the pose as given aligned instead, the turn undone (`_Start.decided`).
 SYMMETRY_D_RATIO = 0.5
+#: A turn of the member's warped model onto the subject found by rigid ICP (a rotation,
+#: no shear or scale: `_rigid_start`) is registered too when its D is below
+#: ``TURN_D_RATIO`` times the D rigid ICP reaches from the pose as given, as the
+#: similarity's best pose is at ``POSE_D_RATIO``, and earns its place the same way.
+#: Affine ICP fits a glyph of many parallel strokes about as well at several turns, so
+#: on glyphs turned apart its best pose is often not the truth and, when it is, often
+#: above ``POSE_D_RATIO`` (書 in Noto Sans turned at random: 1 of 20 true turns offered
+#: from the root). Rigid D ranks turns by the shape alone. Over pairs of 書水心東龍 in two
+#: fonts (bench/RESULTS.md 7.46): of 1390 pairs turned apart, the true turn was offered
+#: on 1071 at 0.8 (and a wrong one on 56), while of 1590 pairs given upright a turn was
+#: offered on 48 (3%); each then has to win by CPD's e.
+TURN_D_RATIO = 0.8
 
 #: The dynamic tree's edges are symmetric (see `_symmetric_link`): CPD's registration of
 #: the member's model onto the subject is moved halfway to where the subject registered
@@ -152,13 +177,14 @@ class _Start:
         settled = _self_map(model, self.A)
         if settled is not None and _ratio_to_pose(settled, d) <= SYMMETRY_D_RATIO:
             undo = _turn_between(model, settled.A, np.eye(2)).T
-            return _Start("aligned", self.A @ undo, self.t - self.A @ undo @ settled.t)
+            return _Start("aligned", self.A @ undo, self.t - self.A @ undo @ settled.t,
+                          margin=ALIGNED_MARGIN)
         if root is not None and np.linalg.det(self.A) > 0:
             # the turn as a near-symmetry of the root's shape
             settled = _self_map(root, _turn_between(model, self.A, np.eye(2)))
             if settled is not None and _ratio_to_pose(settled, d) <= SYMMETRY_D_RATIO:
                 undo = _turn_between(root, settled.A, np.eye(2)).T
-                return _Start("aligned", self.A @ undo, self.t)
+                return _Start("aligned", self.A @ undo, self.t, margin=ALIGNED_MARGIN)
         return replace(self, symmetry=None)
 
 
@@ -175,6 +201,9 @@ class _RegTask:
     prealign: bool
     pose: PoseSpec
     spacing2: float  # the subject's squared point spacing h^2
+    # the root's normalised shape when the member is another shape (for `_rigid_start`'s
+    # symmetry test, as `_starts` gives the similarity's pose)
+    root_shape: FloatArray | None = None
     symmetric: bool = False  # make the edge symmetric (`_symmetric_link`): the dynamic tree's
     held: bool = False  # also run CPD from the held start (`_held_start`): the dynamic tree's
 
@@ -350,17 +379,51 @@ def _register_task(task: _RegTask) -> _RegOutcome:
     if chosen.min_jacobian > 0 and chosen.error <= SPACING_FACTOR * task.spacing2:
         # as close as the sampling lets e show: no other start is tried
         return replace(chosen, pose_errors={chosen.pose: chosen.error}, pose_margin=None)
-    starts = tuple(st.decided() for st in task.starts)
+    starts = task.starts
+    if task.pose.mode in ("rotation", "affine"):
+        turned = _rigid_start(task.q, task.y, starts, task.root_shape)
+        if turned is not None:
+            starts = (*starts, turned)
+    starts = tuple(st.decided() for st in starts)
     outs = [chosen, *(_register_from(task, st) for st in starts[1:])]
+    # the margin reported: the kept start's, or the first other start's when none beat
+    # the pose as given
+    margin = starts[1].margin if len(starts) > 1 else None
     for st, other in zip(starts[1:], outs[1:], strict=True):
         if not other.min_jacobian > 0:
             continue
         folded = not chosen.min_jacobian > 0
         if other.error < st.margin * chosen.error or (folded and other.error <= chosen.error):
-            chosen = other
-    errors = {o.pose: o.error for o in outs}
-    margin = starts[1].margin if len(starts) > 1 else None
+            chosen, margin = other, st.margin
+    errors: dict[str, float] = {}
+    for o in outs:  # two turned starts: the lower e
+        errors[o.pose] = min(o.error, errors.get(o.pose, math.inf))
     return replace(chosen, pose_errors=errors, pose_margin=margin)
+
+
+def _rigid_start(q: FloatArray, y: FloatArray, starts: Sequence[_Start],
+                 root: FloatArray | None) -> _Start | None:
+    """The turn of the model `q` onto the subject `y` that rigid ICP fits best
+    (:func:`~registration._icp.rigid_turns`), as a start to register from, when it is
+    distinct (by more than ``POSE_DISTINCT_DEG``) from the turn rigid ICP reaches from
+    the pose as given and from the turns of `starts`, and its D is below
+    ``TURN_D_RATIO`` times that of the pose as given (:data:`TURN_D_RATIO`); else None.
+    Affine ICP refines it into the start's map, and its D is the one the symmetry tests
+    of :meth:`_Start.decided` weigh (with the `root`'s shape, as `_starts` gives it)."""
+    R, t, D = rigid_turns(q, y)
+    angles = [rotation_angle(r) for r in R]
+    others = [k for k in range(1, len(D))
+              if angle_between(angles[k], angles[0]) > POSE_DISTINCT_DEG]
+    if not others:
+        return None
+    best = min(others, key=lambda k: float(D[k]))
+    if not D[best] < TURN_D_RATIO * D[0]:
+        return None
+    if any(st.A is not None and not _distinct(_turn_between(q, st.A, np.eye(2)), R[best])
+           for st in starts):
+        return None
+    icp = affine_icp(q, y, init=(R[best], t[best]), pose="rotation")
+    return _Start("rotated", icp.A, icp.t, symmetry=(q, float(icp.distance), root))
 
 
 def _lowest_error(outs: Sequence[_RegOutcome],

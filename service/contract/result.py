@@ -123,7 +123,8 @@ class Quality(_Open):
     pose_errors: dict[str, float | None] | None = None
     pose_margin: float | None = Field(
         default=None, description="The ratio to the pose as given's e below which the "
-        "other start's e had to fall to replace it (0.5). Null when only the pose as given "
+        "other start's e had to fall to replace it (0.7 for a turn, 0.5 for 'aligned'; the "
+        "kept start's when another start was kept). Null when only the pose as given "
         "was tried: no other pose fitted clearly better, or its registration already fitted "
         "within the sampling floor. The other start is 'rotated', or 'aligned' (the pose as "
         "given, aligned by affine ICP) when the model is nearly symmetric under the turn (a "

@@ -150,3 +150,26 @@ def test_fit_rigid_recovers_a_rotation_and_a_mirror_of_the_asked_handedness():
     # asked for a rotation, the mirror image gets the nearest one, never a reflection
     P, _ = fit_rigid(r, mirrored)
     assert np.linalg.det(P) > 0
+
+
+def test_rigid_turns_finds_the_turn_of_a_turned_outline():
+    from registration._icp import rigid_turns
+    from registration._pose import rotation_angle
+
+    outline = base_outline(200)
+    outline = outline - outline.mean(axis=0)
+    turned = outline @ _rot(130.0).T + [0.2, -0.1]
+    R, t, D = rigid_turns(outline, turned)
+    assert R.shape == (4, 2, 2) and t.shape == (4, 2) and D.shape == (4,)
+    assert np.allclose(np.linalg.det(R), 1.0)  # rotations: no scale, no reflection
+    best = int(np.argmin(D))
+    assert abs(rotation_angle(R[best]) - 130.0) < 1.0
+    assert np.allclose(t[best], [0.2, -0.1], atol=1e-2)
+    assert D[best] < 1e-6 < D[0]  # start 0, the pose as given, stays in its own basin
+
+
+def test_rigid_turns_rejects_no_starts():
+    from registration._icp import rigid_turns
+
+    with pytest.raises(ValueError, match="n_starts must be at least 1"):
+        rigid_turns(np.eye(2), np.eye(2), n_starts=0)

@@ -6,6 +6,7 @@ import pytest
 
 from registration import CPDOptions, SerialExecutor, affine_icp, build_dynamic_tree, register_direct
 from registration._pose import PoseSpec, angle_between, rotation_angle
+from registration._tree._tasks import ALIGNED_MARGIN, POSE_MARGIN
 from registration.synthetic import base_outline, chained_family, correspondence_error
 
 FAST_CPD = CPDOptions(max_iter=60)
@@ -86,9 +87,10 @@ def test_a_turned_subject_is_registered_through_the_rotated_pose():
     res = register_direct(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
     s = res.subject(2)
     assert s.quality is not None and s.quality["pose"] == "rotated"
-    assert s.quality["pose_errors"]["rotated"] < 0.5 * s.quality["pose_errors"]["as given"]
+    margin = s.quality["pose_margin"]
+    assert s.quality["pose_errors"]["rotated"] < margin * s.quality["pose_errors"]["as given"]
     # the margin the turned start had to beat (the outline has no symmetry under the turn)
-    assert s.quality["pose_margin"] == 0.5
+    assert margin == POSE_MARGIN
     assert correspondence_error(s.warped, truth, shapes[2]) < 0.15
     # the others, given upright, keep the pose as given, the only start tried
     assert res.subject(1).quality["pose"] == "as given"
@@ -224,10 +226,16 @@ def test_a_turn_the_model_is_symmetric_under_is_not_tried(monkeypatch):
     aligned = deferred.decided()
     assert aligned.label == "aligned" and aligned.symmetry is None
     assert angle_between(rotation_angle(aligned.A), 0.0) < 5.0  # the half turn undone
+    # the pose as given again: e has to fall further than for a distinct turn
+    assert aligned.margin == ALIGNED_MARGIN < POSE_MARGIN
     tried.clear()
     kept = _tasks._register_task(replace(task, starts=(task.starts[0], deferred)))
     assert [st.label for st in tried] == ["as given", "aligned"]
     assert kept.pose == "as given" and kept.pose_errors == {"as given": 1.0, "aligned": 0.8}
+    assert kept.pose_margin == ALIGNED_MARGIN
+    errors["aligned"] = 0.5 * (ALIGNED_MARGIN + POSE_MARGIN)  # enough for a turn, not here
+    assert _tasks._register_task(replace(task, starts=(task.starts[0], deferred))).pose == (
+        "as given")
     errors["aligned"] = 0.3  # the pose as given's CPD fell short where the aligned did not
     assert _tasks._register_task(replace(task, starts=(task.starts[0], deferred))).pose == (
         "aligned")
@@ -287,6 +295,52 @@ def test_a_bar_bent_along_its_chain_is_not_registered_end_for_end():
     for k in range(1, len(fam.shapes)):
         err = correspondence_error(tree.subject(k).warped, truth[k], fam.shapes[k])
         assert err < 0.3, (fam.names[k], err, tree.subject(k).quality)
+
+
+def _turned_task(deg: float, pose: str | None = None) -> object:
+    """A task registering an asymmetric outline onto itself turned by `deg` degrees,
+    offered only the pose as given (as when the similarity's best pose is not clearly
+    better by affine D)."""
+    from registration._points import normalise
+    from registration._tree import _tasks
+
+    x = normalise(base_outline(150))[0]
+    return _tasks._RegTask(
+        subject=1, member=0, layer=2, similarity=0.01, q=x, y=x @ _rot(deg).T,
+        starts=(_tasks._Start("as given"),), cpd=FAST_CPD, prealign=True,
+        pose=PoseSpec.resolve(pose, None), spacing2=1e-4)
+
+
+def test_a_turn_rigid_icp_finds_is_registered_and_earns_its_place():
+    """Without the similarity's pose, the task still tries the turn rigid ICP ranks
+    first (`_rigid_start`) and keeps it by its e; in the "as_given" mode it does not."""
+    from dataclasses import replace
+
+    from registration._tree import _tasks
+
+    task = _turned_task(135.0)
+    kept = _tasks._register_task(task)
+    assert kept.pose == "rotated" and angle_between(kept.pose_angle, 135.0) < 5.0
+    assert kept.pose_errors["rotated"] < _tasks.POSE_MARGIN * kept.pose_errors["as given"]
+    truth = task.q @ _rot(135.0).T
+    assert np.sqrt(np.mean(np.sum((kept.warped - truth) ** 2, axis=1))) < 0.05
+    given = _tasks._register_task(replace(task, pose=PoseSpec.resolve("as_given", None)))
+    assert given.pose == "as given" and set(given.pose_errors) == {"as given"}
+
+
+def test_the_rigid_turn_is_offered_only_when_distinct_and_clearly_closer():
+    from registration._tree import _tasks
+
+    turned = _turned_task(135.0)
+    start = _tasks._rigid_start(turned.q, turned.y, turned.starts, None)
+    assert start is not None and start.label == "rotated"
+    assert angle_between(rotation_angle(start.A), 135.0) < 5.0
+    assert start.symmetry is not None and start.symmetry[1] < 1e-3  # affine D of the pose
+    # the same turn already among the starts: not offered twice
+    assert _tasks._rigid_start(turned.q, turned.y, (*turned.starts, start), None) is None
+    # given upright (a small turn): no other turn comes near the pose as given's fit
+    upright = _turned_task(8.0)
+    assert _tasks._rigid_start(upright.q, upright.y, upright.starts, None) is None
 
 
 def test_a_fit_within_the_sampling_floor_tries_no_other_start(monkeypatch):
