@@ -221,6 +221,10 @@ def test_a_turn_the_model_is_symmetric_under_is_not_tried(monkeypatch):
     turned = _tasks._Start("rotated", _rot(180.0), np.zeros(2))
     taken = _tasks._register_task(replace(task, starts=(task.starts[0], turned)))
     assert taken.pose == "rotated" and taken.pose_margin == _tasks.POSE_MARGIN
+    errors["rotated"] = 0.6  # a distinct turn wins below 0.7x the e as given (7.46)
+    assert _tasks._register_task(replace(task, starts=(task.starts[0], turned))).pose == (
+        "rotated")
+    errors["rotated"] = 0.47
     # `_starts` leaves the decision to the worker: there, from the member's shape
     deferred = replace(turned, symmetry=(_half_turn_symmetric(), 0.04, None))
     aligned = deferred.decided()
