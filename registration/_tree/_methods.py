@@ -408,7 +408,7 @@ class _Run:
         return _RegTask(
             subject=subject, member=member, layer=layer,
             similarity=float(sim.D[member, subject]), q=q, y=self.coll.normed[subject],
-            starts=_starts(sim, member, subject, self.coll.root), cpd=self.cpd,
+            starts=_starts(sim, member, subject), cpd=self.cpd,
             prealign=self.prealign, pose=self.pose, spacing2=self.coll.spacing2[subject],
             root_shape=None if member == self.coll.root else sim.shape(self.coll.root),
             symmetric=symmetric, held=held,

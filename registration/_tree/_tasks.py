@@ -144,13 +144,12 @@ class _Start:
     margin: float = POSE_MARGIN
     # what `_self_map` and `_ratio_to_pose` need besides A while it is still to be
     # decided whether the turn is a near-symmetry of the model: the member's own
-    # (normalised) shape, this pose's D, and the root's shape (None when the member is
-    # the root). `decided` decides it in the worker that runs the task, not in the
-    # process that builds the tasks (one or two affine ICPs of a shape onto itself per
-    # turned start).
-    symmetry: tuple[FloatArray, float, FloatArray | None] | None = None
+    # (normalised) shape and this pose's D. `decided` decides it in the worker that runs
+    # the task (with the task's `root_shape`), not in the process that builds the tasks
+    # (one or two affine ICPs of a shape onto itself per turned start).
+    symmetry: tuple[FloatArray, float] | None = None
 
-    def decided(self) -> _Start:
+    def decided(self, root: FloatArray | None = None) -> _Start:
         """This start once it is decided whether its turn is a near-symmetry of the model
         (`_ratio_to_pose`; itself when that is decided already). A turned registration
         then differs from the pose as given's only by the symmetry, wrong by the whole
@@ -164,16 +163,17 @@ class _Start:
         stroke that turned a little on a chain, 9e-4 against 7e-5 from either end).
 
         A turn (not a mirror: a rotation's angle is the same in the member's frame and
-        the root's, a mirror's axis is not) the root's shape is nearly symmetric under
-        is treated so too, when the member is not: the correspondences are the root's,
-        and the turn changes no fit of the root, only which deformation explains the
-        subject. A bar bent one way along its chain fits a bar bent the other way turned
-        end for end at 0.2-0.4x the e as given, while the bent member no longer fits
-        itself turned (the edges of a 65 x 22 rectangle, seed 1: 3.9x plain CPD's
-        correspondence error, two subjects end for end; bench/RESULTS.md 7.45)."""
+        the root's, a mirror's axis is not) the `root`'s shape (None when the member is
+        the root) is nearly symmetric under is treated so too, when the member is not:
+        the correspondences are the root's, and the turn changes no fit of the root, only
+        which deformation explains the subject. A bar bent one way along its chain fits
+        a bar bent the other way turned end for end at 0.2-0.4x the e as given, while the
+        bent member no longer fits itself turned (the edges of a 65 x 22 rectangle, seed
+        1: 3.9x plain CPD's correspondence error, two subjects end for end;
+        bench/RESULTS.md 7.45)."""
         if self.symmetry is None or self.A is None or self.t is None:
             return self
-        model, d, root = self.symmetry
+        model, d = self.symmetry
         settled = _self_map(model, self.A)
         if settled is not None and _ratio_to_pose(settled, d) <= SYMMETRY_D_RATIO:
             undo = _turn_between(model, settled.A, np.eye(2)).T
@@ -201,8 +201,8 @@ class _RegTask:
     prealign: bool
     pose: PoseSpec
     spacing2: float  # the subject's squared point spacing h^2
-    # the root's normalised shape when the member is another shape (for `_rigid_start`'s
-    # symmetry test, as `_starts` gives the similarity's pose)
+    # the root's normalised shape when the member is another shape: the root's symmetry
+    # test of every turned start (`_Start.decided`)
     root_shape: FloatArray | None = None
     symmetric: bool = False  # make the edge symmetric (`_symmetric_link`): the dynamic tree's
     held: bool = False  # also run CPD from the held start (`_held_start`): the dynamic tree's
@@ -381,10 +381,10 @@ def _register_task(task: _RegTask) -> _RegOutcome:
         return replace(chosen, pose_errors={chosen.pose: chosen.error}, pose_margin=None)
     starts = task.starts
     if task.pose.mode in ("rotation", "affine"):
-        turned = _rigid_start(task.q, task.y, starts, task.root_shape)
+        turned = _rigid_start(task.q, task.y, starts)
         if turned is not None:
             starts = (*starts, turned)
-    starts = tuple(st.decided() for st in starts)
+    starts = tuple(st.decided(task.root_shape) for st in starts)
     outs = [chosen, *(_register_from(task, st) for st in starts[1:])]
     # the margin reported: the kept start's, or the first other start's when none beat
     # the pose as given
@@ -401,15 +401,14 @@ def _register_task(task: _RegTask) -> _RegOutcome:
     return replace(chosen, pose_errors=errors, pose_margin=margin)
 
 
-def _rigid_start(q: FloatArray, y: FloatArray, starts: Sequence[_Start],
-                 root: FloatArray | None) -> _Start | None:
+def _rigid_start(q: FloatArray, y: FloatArray, starts: Sequence[_Start]) -> _Start | None:
     """The turn of the model `q` onto the subject `y` that rigid ICP fits best
     (:func:`~registration._icp.rigid_turns`), as a start to register from, when it is
     distinct (by more than ``POSE_DISTINCT_DEG``) from the turn rigid ICP reaches from
     the pose as given and from the turns of `starts`, and its D is below
     ``TURN_D_RATIO`` times that of the pose as given (:data:`TURN_D_RATIO`); else None.
     Affine ICP refines it into the start's map, and its D is the one the symmetry tests
-    of :meth:`_Start.decided` weigh (with the `root`'s shape, as `_starts` gives it)."""
+    of :meth:`_Start.decided` weigh, as for the similarity's pose (`_starts`)."""
     R, t, D = rigid_turns(q, y)
     angles = [rotation_angle(r) for r in R]
     others = [k for k in range(1, len(D))
@@ -423,7 +422,7 @@ def _rigid_start(q: FloatArray, y: FloatArray, starts: Sequence[_Start],
            for st in starts):
         return None
     icp = affine_icp(q, y, init=(R[best], t[best]), pose="rotation")
-    return _Start("rotated", icp.A, icp.t, symmetry=(q, float(icp.distance), root))
+    return _Start("rotated", icp.A, icp.t, symmetry=(q, float(icp.distance)))
 
 
 def _lowest_error(outs: Sequence[_RegOutcome],
@@ -452,12 +451,11 @@ def _lowest_error(outs: Sequence[_RegOutcome],
     return best
 
 
-def _starts(sim: Similarity, member: int, subject: int, root: int | None = None
-            ) -> tuple[_Start, ...]:
+def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
     """The pose as given; and the similarity's best pose when it is another pose (turned
     by more than ``POSE_DISTINCT_DEG`` or of the other handedness) that fits clearly
     better: its D below ``POSE_D_RATIO`` times the D reached from the pose as given.
-    Whether its turn is a near-symmetry of the model, or of the `root`'s shape (then the
+    Whether its turn is a near-symmetry of the model, or of the root's shape (then the
     pose as given, aligned, is tried in its place) is decided by :meth:`_Start.decided`
     where the task runs."""
     given = _Start("as given")
@@ -469,9 +467,7 @@ def _starts(sim: Similarity, member: int, subject: int, root: int | None = None
     model = sim.shape(member)
     if not _distinct(_turn_between(model, A, A_g), np.eye(2)):
         return (given,)
-    of_root = None if root is None or root == member else sim.shape(root)
-    return (given, _Start("rotated", A, sim.t[member, subject],
-                          symmetry=(model, float(d), of_root)))
+    return (given, _Start("rotated", A, sim.t[member, subject], symmetry=(model, float(d))))
 
 
 def _turn_between(points: FloatArray, A: FloatArray, B: FloatArray) -> FloatArray:

@@ -226,7 +226,7 @@ def test_a_turn_the_model_is_symmetric_under_is_not_tried(monkeypatch):
         "rotated")
     errors["rotated"] = 0.47
     # `_starts` leaves the decision to the worker: there, from the member's shape
-    deferred = replace(turned, symmetry=(_half_turn_symmetric(), 0.04, None))
+    deferred = replace(turned, symmetry=(_half_turn_symmetric(), 0.04))
     aligned = deferred.decided()
     assert aligned.label == "aligned" and aligned.symmetry is None
     assert angle_between(rotation_angle(aligned.A), 0.0) < 5.0  # the half turn undone
@@ -244,7 +244,7 @@ def test_a_turn_the_model_is_symmetric_under_is_not_tried(monkeypatch):
     assert _tasks._register_task(replace(task, starts=(task.starts[0], deferred))).pose == (
         "aligned")
     # a model without the symmetry keeps the turned start
-    plain = replace(turned, symmetry=(base_outline(120) - base_outline(120).mean(0), 0.04, None))
+    plain = replace(turned, symmetry=(base_outline(120) - base_outline(120).mean(0), 0.04))
     assert plain.decided().label == "rotated"
 
 
@@ -255,8 +255,6 @@ def test_a_turn_the_root_is_symmetric_under_is_not_tried():
     only which bend explains the subject. The pose as given, aligned, is tried in its
     place, as for a turn the member itself is symmetric under; of a turn (not a mirror)
     only, whose angle is the same in the member's frame and the root's."""
-    from dataclasses import replace
-
     from registration._points import normalise
     from registration._tree import _tasks
     from registration._tree._tasks import SYMMETRY_D_RATIO
@@ -264,14 +262,14 @@ def test_a_turn_the_root_is_symmetric_under_is_not_tried():
     root = _half_turn_symmetric()
     bent = normalise(np.c_[root[:, 0], root[:, 1] + 0.3 * root[:, 0] ** 2])[0]
     assert _symmetry_ratio(bent, _rot(180.0), 0.04) > SYMMETRY_D_RATIO  # the member lost it
-    turned = _tasks._Start("rotated", _rot(176.0), np.zeros(2), symmetry=(bent, 0.04, root))
-    aligned = turned.decided()
+    turned = _tasks._Start("rotated", _rot(176.0), np.zeros(2), symmetry=(bent, 0.04))
+    aligned = turned.decided(root)
     assert aligned.label == "aligned" and aligned.symmetry is None
     assert angle_between(rotation_angle(aligned.A), 0.0) < 5.0  # the half turn undone
     # a root without the symmetry, or the member being the root, keeps the turn
     other = normalise(base_outline(120))[0]
-    assert replace(turned, symmetry=(bent, 0.04, other)).decided().label == "rotated"
-    assert replace(turned, symmetry=(bent, 0.04, None)).decided().label == "rotated"
+    assert turned.decided(other).label == "rotated"
+    assert turned.decided(None).label == "rotated"
     # a mirror's axis is not the same in the two frames: the root is not asked (an oval,
     # mirror symmetric across its long axis; the bent member is not)
     t = np.linspace(0.0, 2.0 * np.pi, 240, endpoint=False)
@@ -279,8 +277,8 @@ def test_a_turn_the_root_is_symmetric_under_is_not_tried():
     bent_oval = normalise(np.c_[oval[:, 0], oval[:, 1] + 0.3 * oval[:, 0] ** 2])[0]
     flip = np.diag([1.0, -1.0])
     assert _tasks._self_map(oval, flip) is not None
-    mirror = _tasks._Start("rotated", flip, np.zeros(2), symmetry=(bent_oval, 0.04, oval))
-    assert mirror.decided().label == "rotated"
+    mirror = _tasks._Start("rotated", flip, np.zeros(2), symmetry=(bent_oval, 0.04))
+    assert mirror.decided(oval).label == "rotated"
 
 
 def test_a_bar_bent_along_its_chain_is_not_registered_end_for_end():
@@ -336,15 +334,15 @@ def test_the_rigid_turn_is_offered_only_when_distinct_and_clearly_closer():
     from registration._tree import _tasks
 
     turned = _turned_task(135.0)
-    start = _tasks._rigid_start(turned.q, turned.y, turned.starts, None)
+    start = _tasks._rigid_start(turned.q, turned.y, turned.starts)
     assert start is not None and start.label == "rotated"
     assert angle_between(rotation_angle(start.A), 135.0) < 5.0
     assert start.symmetry is not None and start.symmetry[1] < 1e-3  # affine D of the pose
     # the same turn already among the starts: not offered twice
-    assert _tasks._rigid_start(turned.q, turned.y, (*turned.starts, start), None) is None
+    assert _tasks._rigid_start(turned.q, turned.y, (*turned.starts, start)) is None
     # given upright (a small turn): no other turn comes near the pose as given's fit
     upright = _turned_task(8.0)
-    assert _tasks._rigid_start(upright.q, upright.y, upright.starts, None) is None
+    assert _tasks._rigid_start(upright.q, upright.y, upright.starts) is None
 
 
 def test_a_fit_within_the_sampling_floor_tries_no_other_start(monkeypatch):
