@@ -30,8 +30,9 @@ BRIDGE_TASKS_PER_SUBJECT = 8
 
 # A registration is accepted into the tree only with at least this confidence (the
 # calibrated probability that its correspondences are right; `_quality`). Measured in
-# bench/calibrate_thresholds.py: 1.1% of the registrations scored below 0.2 were good
-# (95 of 742, mostly turned, mirrored and slid ones that e alone accepts).
+# bench/calibrate_thresholds.py: 5.1% of the registrations scored below 0.2 were good
+# (355 of 3140, mostly turned, mirrored and slid ones that e alone accepts), 31% of those
+# scored 0.2-0.5.
 MIN_CONFIDENCE = 0.2
 # Refinement moves a subject when the new path confidence is higher by more than this, or
 # within it and with a lower e.
