@@ -74,8 +74,10 @@ from .._cpd import CPDOptions, CPDResult, cpd_nonrigid
 from .._cpd._estep import _posterior_max
 from .._error import registration_error
 from .._executor import Executor, owned_executor
+from .._icp._pairwise import fit_rigid
 from .._pointmap import PointTransform, jacobian_determinants
 from .._points import farthest_point_indices, sampling_irregularity
+from .._pose import rotation_angle
 from .._quality import RegistrationQuality, measure_quality
 from .._result import SubjectResult
 from .._similarity import ProgressCallback
@@ -83,7 +85,7 @@ from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
 from ._rules import MIN_CONFIDENCE
 from ._symmetric import Halfway, NoHalfway, fitted_step, halfway_back
-from ._tasks import _register_task, _RegOutcome, _RegTask
+from ._tasks import POSE_DISTINCT_DEG, _register_task, _RegOutcome, _RegTask
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -141,6 +143,16 @@ CONSENSUS_KERNEL_FACTOR = 0.25
 #: 1.25 generated gains (0.344) and the rest move by at most 0.004, but the worst runs of
 #: MPEG-7 and the random subsets lose (1.08 -> 1.10, 1.27 -> 1.30).
 CONSENSUS_MAX_E_RATIO = 1.1
+#: The consensus is not formed when the partner's registration places the root's points
+#: turned from where the chain places them by more than this many degrees (or mirrored),
+#: by the rotation that best carries the one onto the other (Procrustes on the points, in
+#: the order of the root's): the two registrations then disagree on the pose, not on a
+#: slide, and the model halfway between two poses is neither. On a near-symmetric outline
+#: e cannot refuse it: the halfway points still lie on the subject. An ellipse's edges
+#: (generated chains, seed 0) took a consensus with a partner registered turned, at 1.1x
+#: the chain's e, and the subject's error went 0.08 -> 0.67 of its radius. The same bound
+#: as a distinct pose's (``_tasks.POSE_DISTINCT_DEG``).
+CONSENSUS_MAX_TURN_DEG = POSE_DISTINCT_DEG
 #: A consensus refused by that rule is judged again once both it and the chain are
 #: finished from the root model (see `_finished_apart`): kept when its finished e is at
 #: most this multiple of the finished chain's. Ground truth (bench/RESULTS.md 7.25, 89
@@ -431,6 +443,12 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
     if not partner.min_jacobian > 0:
         info["reason"] = "the partner's registration folds"
         return None, info
+    turn = _turn_apart(chain.warped, partner.warped)
+    if turn > CONSENSUS_MAX_TURN_DEG:
+        info["reason"] = (f"the partner's registration is turned {turn:.0f} degrees from the "
+                          "chain's" if turn < 180.0 else
+                          "the partner's registration is mirrored from the chain's")
+        return None, info
     other = _stages(partner.warped, partner.error, task.y, task.cpd, task.spacing2,
                     task.model_irregularity, task.irregularity, task.stage_control)
     info["partner_polished_error"] = other.error
@@ -450,6 +468,17 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
     info["kept"] = True
     info["reason"] = f"e at most {CONSENSUS_MAX_E_RATIO:g}x the chain's"
     return halfway, info
+
+
+def _turn_apart(a: FloatArray, b: FloatArray) -> float:
+    """How far apart in pose two registrations place the same model points `a` and `b`:
+    the angle in degrees of the rotation that best carries `a` onto `b` (Procrustes), or
+    180 when a rotation-reflection carries them closer (the other handedness)."""
+    R, t = fit_rigid(a, b)
+    Rm, tm = fit_rigid(a, b, mirror=True)
+    if np.sum((a @ Rm.T + tm - b) ** 2) < np.sum((a @ R.T + t - b) ** 2):
+        return 180.0
+    return abs(rotation_angle(R))
 
 
 def _finished_apart(task: _PolishTask, chain: _Stages, halfway: _Stages,
