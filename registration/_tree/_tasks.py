@@ -85,16 +85,22 @@ SYMMETRY_MAX_DEVIATION = 0.11
 SYMMETRY_D_RATIO = 0.5
 #: A turn of the member's warped model onto the subject found by rigid ICP (a rotation,
 #: no shear or scale: `_rigid_start`) is registered too when its D is below
-#: ``TURN_D_RATIO`` times the D rigid ICP reaches from the pose as given, as the
-#: similarity's best pose is at ``POSE_D_RATIO``, and earns its place the same way.
-#: Affine ICP fits a glyph of many parallel strokes about as well at several turns, so
-#: on glyphs turned apart its best pose is often not the truth and, when it is, often
-#: above ``POSE_D_RATIO`` (書 in Noto Sans turned at random: 1 of 20 true turns offered
-#: from the root). Rigid D ranks turns by the shape alone. Over pairs of 書水心東龍 in two
-#: fonts (bench/RESULTS.md 7.46): of 1390 pairs turned apart, the true turn was offered
-#: on 1071 at 0.8 (and a wrong one on 56), while of 1590 pairs given upright a turn was
-#: offered on 48 (3%); each then has to win by CPD's e.
-TURN_D_RATIO = 0.8
+#: ``TURN_D_RATIO`` times the D rigid ICP reaches from the pose as given: whenever rigid
+#: ICP fits another turn more closely than it settles from the pose as given, and the
+#: registration from it then earns its place by CPD's e, as the similarity's best pose
+#: does (``POSE_MARGIN``). Affine ICP fits a glyph of many parallel strokes about as well
+#: at several turns, so on glyphs turned apart its best pose is often not the truth and,
+#: when it is, often above ``POSE_D_RATIO`` (書 in Noto Sans turned at random: 1 of 20
+#: true turns offered from the root). Rigid D ranks turns by the shape alone, but not by
+#: much everywhere: on 書 turned about 160 degrees rigid ICP settles from the pose as
+#: given 25 degrees off, within 8% of the true turn's D. Over pairs of 書水心東龍 in two
+#: fonts (bench/RESULTS.md 7.46, 7.47): of 1390 pairs turned apart the true turn is
+#: offered on 1153 (on 1071 below 0.8x), a wrong one on 121; of 1590 pairs given upright
+#: a turn is offered on 150 (9%). Raised from 0.8 to 1.0, the default bench's 208 upright
+#: runs came out identical but one direct CPD run (1.00 -> 0.99 of plain CPD), while
+#: turned collections went from 47 to 28 subjects wrong under direct CPD and from 14 to
+#: 10 in the tree (240 subjects).
+TURN_D_RATIO = 1.0
 
 #: The dynamic tree's edges are symmetric (see `_symmetric_link`): CPD's registration of
 #: the member's model onto the subject is moved halfway to where the subject registered

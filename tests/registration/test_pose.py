@@ -330,7 +330,7 @@ def test_a_turn_rigid_icp_finds_is_registered_and_earns_its_place():
     assert given.pose == "as given" and set(given.pose_errors) == {"as given"}
 
 
-def test_the_rigid_turn_is_offered_only_when_distinct_and_clearly_closer():
+def test_the_rigid_turn_is_offered_only_when_distinct_and_closer():
     from registration._tree import _tasks
 
     turned = _turned_task(135.0)
@@ -340,7 +340,7 @@ def test_the_rigid_turn_is_offered_only_when_distinct_and_clearly_closer():
     assert start.symmetry is not None and start.symmetry[1] < 1e-3  # affine D of the pose
     # the same turn already among the starts: not offered twice
     assert _tasks._rigid_start(turned.q, turned.y, (*turned.starts, start)) is None
-    # given upright (a small turn): no other turn comes near the pose as given's fit
+    # given upright (a small turn): no other turn fits as closely as the pose as given
     upright = _turned_task(8.0)
     assert _tasks._rigid_start(upright.q, upright.y, upright.starts) is None
 
