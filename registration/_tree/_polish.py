@@ -443,11 +443,11 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
     if not partner.min_jacobian > 0:
         info["reason"] = "the partner's registration folds"
         return None, info
-    turn = _turn_apart(chain.warped, partner.warped)
-    if turn > CONSENSUS_MAX_TURN_DEG:
-        info["reason"] = (f"the partner's registration is turned {turn:.0f} degrees from the "
-                          "chain's" if turn < 180.0 else
-                          "the partner's registration is mirrored from the chain's")
+    turn, mirrored = _turn_apart(chain.warped, partner.warped)
+    if mirrored or turn > CONSENSUS_MAX_TURN_DEG:
+        info["reason"] = ("the partner's registration is mirrored from the chain's" if mirrored
+                          else f"the partner's registration is turned {turn:.0f} degrees "
+                          "from the chain's")
         return None, info
     other = _stages(partner.warped, partner.error, task.y, task.cpd, task.spacing2,
                     task.model_irregularity, task.irregularity, task.stage_control)
@@ -470,15 +470,15 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
     return halfway, info
 
 
-def _turn_apart(a: FloatArray, b: FloatArray) -> float:
+def _turn_apart(a: FloatArray, b: FloatArray) -> tuple[float, bool]:
     """How far apart in pose two registrations place the same model points `a` and `b`:
-    the angle in degrees of the rotation that best carries `a` onto `b` (Procrustes), or
-    180 when a rotation-reflection carries them closer (the other handedness)."""
+    the angle in degrees (0-180) of the rotation that best carries `a` onto `b`
+    (Procrustes), and whether a rotation-reflection carries them closer (the other
+    handedness)."""
     R, t = fit_rigid(a, b)
     Rm, tm = fit_rigid(a, b, mirror=True)
-    if np.sum((a @ Rm.T + tm - b) ** 2) < np.sum((a @ R.T + t - b) ** 2):
-        return 180.0
-    return abs(rotation_angle(R))
+    mirrored = bool(np.sum((a @ Rm.T + tm - b) ** 2) < np.sum((a @ R.T + t - b) ** 2))
+    return abs(rotation_angle(R)), mirrored
 
 
 def _finished_apart(task: _PolishTask, chain: _Stages, halfway: _Stages,

@@ -94,7 +94,7 @@ SYMMETRY_D_RATIO = 0.5
 #: true turns offered from the root). Rigid D ranks turns by the shape alone, but not by
 #: much everywhere: on 書 turned about 160 degrees rigid ICP settles from the pose as
 #: given 25 degrees off, within 8% of the true turn's D. Over pairs of 書水心東龍 in two
-#: fonts (bench/RESULTS.md 7.46, 7.47): of 1390 pairs turned apart the true turn is
+#: fonts (bench/RESULTS.md 7.46, 7.48): of 1390 pairs turned apart the true turn is
 #: offered on 1153 (on 1071 below 0.8x), a wrong one on 121; of 1590 pairs given upright
 #: a turn is offered on 150 (9%). Raised from 0.8 to 1.0, the default bench's 208 upright
 #: runs came out identical but one direct CPD run (1.00 -> 0.99 of plain CPD), while

@@ -1382,8 +1382,9 @@ def test_the_consensus_is_not_formed_with_a_partner_registered_a_pose_apart():
         return points @ np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]).T
 
     x = normalise(base_outline(150))[0]
-    assert _turn_apart(x, turned(x, 35.0)) == pytest.approx(35.0)
-    assert _turn_apart(x, x * np.array([1.0, -1.0])) == 180.0
+    turn, mirrored = _turn_apart(x, turned(x, 35.0))
+    assert turn == pytest.approx(35.0) and not mirrored
+    assert _turn_apart(x, x * np.array([1.0, -1.0]))[1]
     h2 = mean_spacing2(x)
     partner = _register_task(_RegTask(
         subject=1, member=0, layer=2, similarity=0.0, q=x, y=x, starts=(_Start("as given"),),
