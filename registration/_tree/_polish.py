@@ -85,7 +85,7 @@ from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
 from ._rules import MIN_CONFIDENCE
 from ._symmetric import Halfway, NoHalfway, fitted_step, halfway_back
-from ._tasks import POSE_DISTINCT_DEG, _register_task, _RegOutcome, _RegTask
+from ._tasks import _distinct, _register_task, _RegOutcome, _RegTask
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -143,16 +143,6 @@ CONSENSUS_KERNEL_FACTOR = 0.25
 #: 1.25 generated gains (0.344) and the rest move by at most 0.004, but the worst runs of
 #: MPEG-7 and the random subsets lose (1.08 -> 1.10, 1.27 -> 1.30).
 CONSENSUS_MAX_E_RATIO = 1.1
-#: The consensus is not formed when the partner's registration places the root's points
-#: turned from where the chain places them by more than this many degrees (or mirrored),
-#: by the rotation that best carries the one onto the other (Procrustes on the points, in
-#: the order of the root's): the two registrations then disagree on the pose, not on a
-#: slide, and the model halfway between two poses is neither. On a near-symmetric outline
-#: e cannot refuse it: the halfway points still lie on the subject. An ellipse's edges
-#: (generated chains, seed 0) took a consensus with a partner registered turned, at 1.1x
-#: the chain's e, and the subject's error went 0.08 -> 0.67 of its radius. The same bound
-#: as a distinct pose's (``_tasks.POSE_DISTINCT_DEG``).
-CONSENSUS_MAX_TURN_DEG = POSE_DISTINCT_DEG
 #: A consensus refused by that rule is judged again once both it and the chain are
 #: finished from the root model (see `_finished_apart`): kept when its finished e is at
 #: most this multiple of the finished chain's. Ground truth (bench/RESULTS.md 7.25, 89
@@ -443,11 +433,21 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
     if not partner.min_jacobian > 0:
         info["reason"] = "the partner's registration folds"
         return None, info
-    turn, mirrored = _turn_apart(chain.warped, partner.warped)
-    if mirrored or turn > CONSENSUS_MAX_TURN_DEG:
-        info["reason"] = ("the partner's registration is mirrored from the chain's" if mirrored
-                          else f"the partner's registration is turned {turn:.0f} degrees "
-                          "from the chain's")
+    # Not formed when the partner places the root's points a distinct pose from where the
+    # chain places them (turned by more than POSE_DISTINCT_DEG, or mirrored: `_distinct`
+    # of the isometry between the two): they disagree on the pose, not on a slide, and
+    # the model halfway between two poses is neither. On a near-symmetric outline e cannot
+    # refuse it, the halfway points still lying on the subject: an ellipse's edges
+    # (generated chains, seed 0) took a consensus with a partner registered turned, at
+    # 1.1x the chain's e, and the subject's error went 0.08 -> 0.67 of its radius
+    # (bench/RESULTS.md 7.48).
+    apart = _isometry_between(chain.warped, partner.warped)
+    if _distinct(apart, np.eye(2)):
+        info["reason"] = (
+            "the partner's registration is mirrored from the chain's"
+            if np.linalg.det(apart) < 0 else
+            f"the partner's registration is turned {abs(rotation_angle(apart)):.0f} degrees "
+            "from the chain's")
         return None, info
     other = _stages(partner.warped, partner.error, task.y, task.cpd, task.spacing2,
                     task.model_irregularity, task.irregularity, task.stage_control)
@@ -470,15 +470,13 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
     return halfway, info
 
 
-def _turn_apart(a: FloatArray, b: FloatArray) -> tuple[float, bool]:
-    """How far apart in pose two registrations place the same model points `a` and `b`:
-    the angle in degrees (0-180) of the rotation that best carries `a` onto `b`
-    (Procrustes), and whether a rotation-reflection carries them closer (the other
-    handedness)."""
+def _isometry_between(a: FloatArray, b: FloatArray) -> FloatArray:
+    """The linear part of the isometry that best carries the model points `a` onto `b`
+    (the same points placed by another registration; Procrustes): the rotation, or the
+    rotation-reflection where that carries them closer."""
     R, t = fit_rigid(a, b)
     Rm, tm = fit_rigid(a, b, mirror=True)
-    mirrored = bool(np.sum((a @ Rm.T + tm - b) ** 2) < np.sum((a @ R.T + t - b) ** 2))
-    return abs(rotation_angle(R)), mirrored
+    return Rm if np.sum((a @ Rm.T + tm - b) ** 2) < np.sum((a @ R.T + t - b) ** 2) else R
 
 
 def _finished_apart(task: _PolishTask, chain: _Stages, halfway: _Stages,

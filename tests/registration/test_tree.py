@@ -1362,19 +1362,13 @@ def test_a_coarse_to_fine_trees_edges_stay_one_way():
 
 def test_the_consensus_is_not_formed_with_a_partner_registered_a_pose_apart():
     """A partner's registration that places the root's points turned (by more than
-    CONSENSUS_MAX_TURN_DEG) or mirrored from where the chain places them disagrees with it
+    POSE_DISTINCT_DEG) or mirrored from where the chain places them disagrees with it
     on the pose, not on a slide: no step is taken halfway between them, whatever e would
     say. A partner a few degrees apart goes on to the consensus."""
     from registration._points import mean_spacing2, normalise, sampling_irregularity
-    from registration._pose import PoseSpec
-    from registration._tree._polish import (
-        CONSENSUS_MAX_TURN_DEG,
-        _consensus,
-        _PolishTask,
-        _Stages,
-        _turn_apart,
-    )
-    from registration._tree._tasks import _register_task, _RegTask, _Start
+    from registration._pose import PoseSpec, rotation_angle
+    from registration._tree._polish import _consensus, _isometry_between, _PolishTask, _Stages
+    from registration._tree._tasks import POSE_DISTINCT_DEG, _register_task, _RegTask, _Start
     from registration.synthetic import base_outline
 
     def turned(points, deg):
@@ -1382,9 +1376,9 @@ def test_the_consensus_is_not_formed_with_a_partner_registered_a_pose_apart():
         return points @ np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]).T
 
     x = normalise(base_outline(150))[0]
-    turn, mirrored = _turn_apart(x, turned(x, 35.0))
-    assert turn == pytest.approx(35.0) and not mirrored
-    assert _turn_apart(x, x * np.array([1.0, -1.0]))[1]
+    apart = _isometry_between(x, turned(x, 35.0))
+    assert np.linalg.det(apart) > 0 and rotation_angle(apart) == pytest.approx(35.0)
+    assert np.linalg.det(_isometry_between(x, x * np.array([1.0, -1.0]))) < 0
     h2 = mean_spacing2(x)
     partner = _register_task(_RegTask(
         subject=1, member=0, layer=2, similarity=0.0, q=x, y=x, starts=(_Start("as given"),),
@@ -1393,13 +1387,13 @@ def test_the_consensus_is_not_formed_with_a_partner_registered_a_pose_apart():
                     correspondence=np.arange(len(x)), probability=np.ones(len(x)))
     task = _PolishTask(subject=1, start=x, error=partner.error, y=x, cpd=FAST_CPD,
                        spacing2=h2, model_irregularity=sampling_irregularity(x), model=x)
-    for deg, refused in ((CONSENSUS_MAX_TURN_DEG + 25.0, "turned"), (5.0, None)):
+    for deg, refused in ((POSE_DISTINCT_DEG + 25.0, "turned"), (5.0, None)):
         moved = replace(partner, warped=turned(partner.warped, deg))
         halfway, info = _consensus(replace(task, partner=moved), chain)
         if refused:
             assert halfway is None and not info["kept"]
             assert info["reason"] == (f"the partner's registration is turned "
-                                      f"{CONSENSUS_MAX_TURN_DEG + 25.0:.0f} degrees from the "
+                                      f"{POSE_DISTINCT_DEG + 25.0:.0f} degrees from the "
                                       "chain's")
         else:
             assert "partner_polished_error" in info
