@@ -52,8 +52,8 @@ A tree decided at a working resolution (:mod:`._resolution`) is polished once mo
 the stored points, without the consensus, every subject's edge registered again there,
 its fields fitted through the stored stage's control points, its stages' through twice
 as many (``quality["stored_polish"]``; 7.31, 7.32).
-Figures: bench/RESULTS.md, sections 0.00 (one stage), 0.000 (coarse to fine), 0.0000
-(layer 2, skipping) and 0.0000000 (the consensus); 7.4 (accelerated EM), 7.5 (the
+Figures: bench/RESULTS.md, sections 0.4 (one stage), 0.5 (coarse to fine), 0.6
+(layer 2, skipping) and 0.9 (the consensus); 7.4 (accelerated EM), 7.5 (the
 consensus's e rule), 7.7 (edges from polished parents, the halfway step), 7.11 (the
 stages' normalisation), 7.12 (the finish), 7.16 (the symmetric finish), 7.25 (a
 refused consensus judged again once finished) and 7.27 (the consensus's partner).
@@ -93,7 +93,7 @@ IntArray = NDArray[np.intp]
 #: Subjects at this tree layer or deeper are polished: every attached subject. Layer 2 is
 #: registered from the root directly, so no chain accumulated there, but its CPD stopped
 #: at its tolerance from a start far from the subject; restarted from where it stopped
-#: (sigma^2 from the residual) it keeps fitting. Ground truth (bench/RESULTS.md 0.0000):
+#: (sigma^2 from the residual) it keeps fitting. Ground truth (bench/RESULTS.md 0.6):
 #: Chui fish 0.76 -> 0.26 of plain CPD, Chinese 0.64 -> 0.44, glyph edges and skeletons
 #: within +-0.02 (their layer-2 subjects gain little).
 POLISH_MIN_LAYER = 2
@@ -106,7 +106,7 @@ POLISH_BETA_FACTORS = (1.0, 0.5)
 #: A stage with a finer kernel than the first is kept only when its e is at most this
 #: fraction of its start's. A finer kernel always lowers e a little: it fits where the
 #: subject's own points happen to lie, sliding the model's points along the outline. Over
-#: the finer stages of seven ground-truth families (bench/RESULTS.md 0.000000; geometric
+#: the finer stages of seven ground-truth families (bench/RESULTS.md 0.8; geometric
 #: mean change of the correspondence error), those that lowered e by less than a fifth
 #: worsened the correspondences on MPEG-7 (x1.21, 68 stages) and on lmfree2d / Momocs
 #: outlines of 80-120 randomly subsampled points (x1.14, 137) and did next to nothing on
@@ -120,7 +120,7 @@ POLISH_FINER_MAX_E_RATIO = 0.8
 #: from a partner, for a consensus with their chain (see `_consensus`; the root directly
 #: until bench/RESULTS.md 7.27, see `CONSENSUS_PARTNER_MIN_POINTS`). At layer 2 the chain
 #: is the root's direct registration. Ground truth, with the root as the partner
-#: (bench/RESULTS.md 0.0000000, 63 runs; tree / plain CPD before -> after): 永 skeletons
+#: (bench/RESULTS.md 0.9, 63 runs; tree / plain CPD before -> after): 永 skeletons
 #: 0.79 -> 0.74, edges 0.60 -> 0.58, Chui fish 0.26 -> 0.25, Chinese 0.44 -> 0.33,
 #: generated 0.46 -> 0.40, MPEG-7 0.75 -> 0.73, evenly sampled outlines 0.71 -> 0.68, other
 #: characters 0.78 -> 0.76; random subsets of outlines 1.12 -> 1.15. Up to five more CPD
@@ -130,7 +130,7 @@ POLISH_CONSENSUS_MIN_LAYER = 3
 #: registration, as a fraction of the tree's beta: at a quarter it reproduces the halfway
 #: points to 0.0004-0.006 of the subject's size (0.006-0.03 at the tree's own width, which
 #: cannot follow the two registrations' difference along a stroke) and the ground truth of
-#: the exact halfway start (bench/RESULTS.md 0.0000000).
+#: the exact halfway start (bench/RESULTS.md 0.9).
 CONSENSUS_KERNEL_FACTOR = 0.25
 #: The consensus is kept when its e is at most this multiple of the polished chain's. A
 #: chain's composed field has more freedom than one CPD's and slides along the subject's
@@ -414,7 +414,7 @@ def _consensus(task: _PolishTask, chain: _Stages) -> tuple[_Stages | None, dict[
     The two registrations err differently: the chain by its links' slides adding up, the
     partner's by its own links' and by the shape difference its last CPD bridges (the
     whole of it for the root); halfway, part of each cancels (measured, not assumed:
-    bench/RESULTS.md 0.0000000, 7.27). Kept when
+    bench/RESULTS.md 0.9, 7.27). Kept when
     the step and the stages do not fold, at least one stage passes its checks and the e
     reached is at most :data:`CONSENSUS_MAX_E_RATIO` times the chain's: a partner's
     registration that went wrong (as a direct one does on the large differences the tree
