@@ -88,7 +88,7 @@ MPEG7_CLASSES = ["fish", "lmfish", "flatfish", "horse", "bird", "bat", "camel", 
 WORKING_POINTS = 400  # the default working resolution
 GROUPS = ["similarity", "layers", "leaves", "refine", "polish", "direct", "full resolution",
           "polish full resolution", "direct full resolution"]
-_LAYER = re.compile(r"(similarity )?(round|layer) \d+")
+_LAYER = re.compile(r"(similarity )?(round|layer) \d+(, again from the root)?")
 
 
 def group_of(stage: str) -> str:

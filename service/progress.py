@@ -7,7 +7,9 @@ similarity stages (``similarity``, ``similarity round 2``, ...), registrations f
 others. A tree job runs, in order: ``similarity``; the tree's rounds of growth
 (``similarity round N``, ``round N`` for N = 1, 2, ...: a dynamic tree's round N tries the
 waiting subjects from the members the round before added, or from any member after a
-stall's bridges, so it can attach subjects at any depth; a static tree reports its layers,
+stall's bridges, so it can attach subjects at any depth, then ``round N, again from the
+root`` when some of its registrations lie far above the collection's e; a static tree
+reports its layers,
 ``similarity layer N``, ``layer N`` for N = 2, 3, ...; progress stored by earlier versions
 names a dynamic tree's rounds that way too); ``similarity leaves``, ``leaves``;
 ``refine``; when it compares, ``similarity direct``, ``direct`` (a static tree: after the
@@ -134,7 +136,7 @@ SIMILARITY_PART = 0.25
 MIN_FRACTION_FOR_ETA = 0.03
 
 #: A stage of the tree's growth: a dynamic tree's round, a static tree's layer.
-_LAYER = re.compile(r"(?:round|layer) (\d+)")
+_LAYER = re.compile(r"(?:round|layer) (\d+)(?:, again from the root)?")
 _PHASE_OF_STAGE = {
     "similarity": "similarity",
     "similarity leaves": "layers",  # the leaves go on with the tree's registrations

@@ -23,7 +23,7 @@ from ._collection import (
     _TreeStart,
 )
 from ._options import MethodOptions, TreeOptions, takes_options
-from ._passes import _attach_leaves, _refine_parents
+from ._passes import _again_from_root, _attach_leaves, _refine_parents
 from ._polish import POLISH_MIN_LAYER, _polish_subjects, consensus_partner
 from ._resolution import (
     at_stored_resolution,
@@ -31,12 +31,14 @@ from ._resolution import (
     coarse_collection,
 )
 from ._rules import (
+    AGAIN_E_FACTOR,
     BRIDGE_TASKS_PER_SUBJECT,
     ERROR_FACTOR,
     SPACING_FACTOR,
     _auto_error_threshold,
     _check_threshold,
     _error_limit,
+    _lower_quartile_error,
     _rejection,
     _similarity_report,
     _SimilarityRule,
@@ -143,6 +145,7 @@ def build_dynamic_tree(
     waiting = set(subjects_idx)
     tried: set[tuple[int, int]] = set()
     rejected: dict[int, list[_RegOutcome]] = {}
+    e_ref: float | None = None  # the lower quartile of the first round's e
     frontier = [root]
     # the round of growth: each tries the waiting subjects from the last round's new
     # members (from every member after a stall's bridges; a subject's layer is its depth,
@@ -196,6 +199,13 @@ def build_dynamic_tree(
             if ok:
                 accepted.setdefault(out.subject, []).append(out)
         best = {s: _lowest_error(outs) for s, outs in accepted.items()}
+        if e_ref is None:
+            e_ref = _lower_quartile_error(outcomes)
+        runs += _again_from_root(
+            coll, results, best, tried,
+            {s: max(AGAIN_E_FACTOR * e_ref, floors[s]) for s in best},
+            {s: _error_limit(tau_err, error_threshold is not None, floors[s]) for s in best},
+            fold_check, edge, nodes[root].q, executor, progress, f"round {grown - 1}")
         new_frontier = []
         for s, out in sorted(best.items()):
             res, node = _subject_from_outcome(coll, out, nodes[out.member], joined=grown)

@@ -1,5 +1,7 @@
-"""The passes after the tree stops growing: every waiting subject attached as a leaf
-through its best registration, then childless subjects moved to better parents."""
+"""The dynamic tree's passes beside its growth: a round's registrations far above the
+collection's e tried again from the root; when the tree stops growing, every waiting
+subject attached as a leaf through its best registration, then childless subjects moved
+to better parents."""
 
 from __future__ import annotations
 
@@ -19,6 +21,60 @@ from ._tasks import POSE_MARGIN, _lowest_error, _RegOutcome, _RegTask, _run_task
 # the dynamic tree's edge builder, `_Run.edge` bound to the similarity: (member, subject,
 # layer, the model as warped onto the member) -> the registration task
 EdgeTask = Callable[[int, int, int, np.ndarray], _RegTask]
+
+
+def _again_from_root(
+    coll: _Collection,
+    results: dict[int, SubjectResult],
+    best: dict[int, _RegOutcome],
+    tried: set[tuple[int, int]],
+    above: dict[int, float],
+    limits: dict[int, float],
+    fold_check: bool,
+    edge: EdgeTask,
+    root_model: np.ndarray,
+    executor: Executor | None,
+    progress: ProgressCallback | None,
+    stage: str,
+) -> int:
+    """Register again from the root every subject `s` of a round whose best accepted
+    registration (`best`, from another member) has an e above `above[s]`
+    (``AGAIN_E_FACTOR`` times the lower quartile of the first round's e, or the subject's
+    sampling floor when that is higher: below it e cannot show a closer fit), and keep
+    the root's in its place when the tree's rule accepts it (e below `limits[s]`, no
+    fold, the confidence) and its e is below ``POSE_MARGIN`` times the member's. Updates
+    `best`, the subjects' attempts in `results` and `tried`; returns how many
+    registrations it ran.
+
+    An edge can miss the turn between a member and a subject: on a glyph of parallel
+    strokes affine and rigid ICP rank several turns about alike, and none of those a
+    member offers need be the true one. The edge then fits the wrong pose as well as a
+    wrong pose fits, at 2-3x the e right registrations reach in the collection but under
+    the error threshold (``ERROR_FACTOR``, 3x), and the subjects registered from it
+    afterwards follow it. The root offers other turns, and its registration carries no
+    link. It must be clearly better, by the margin a turned start must earn against the
+    pose as given: over the larger difference the root bridges, a lower e can be a
+    slide. Ground truth: bench/RESULTS.md 7.50 (書 in a serif font turned at random,
+    seed 1: an edge at 0.0085, the quartile 0.0031, and four subjects after it wrong;
+    from the root 0.0036 and all of them right)."""
+    root = coll.root
+    tasks = [edge(root, s, 2, root_model) for s, out in sorted(best.items())
+             if out.member != root and (root, s) not in tried and out.error > above[s]]
+    for out in _run_tasks(tasks, executor, progress, f"{stage}, again from the root"):
+        s = out.subject
+        tried.add((root, s))
+        cap = limits[s]
+        why = _rejection(out, cap, fold_check)
+        if why is None and not out.error < POSE_MARGIN * best[s].error:
+            why = (f"e={out.error:.4g} not below {POSE_MARGIN:g}x the e of the registration "
+                   f"from {coll.names[best[s].member]}")
+        results[s].attempts.append(
+            Attempt(member=out.member, layer=out.layer, similarity=out.similarity,
+                    error=out.error, limit=cap, min_jacobian=out.min_jacobian,
+                    accepted=False, reason=why or "accepted candidate"))
+        if why is None:
+            best[s] = out
+    return len(tasks)
 
 
 def _refine_parents(

@@ -21,6 +21,15 @@ FloatArray = NDArray[np.float64]
 CAPTURE_D = 0.01
 SIMILAR_NEIGHBOURS = 4
 ERROR_FACTOR = 3.0
+# A round's registration from another member whose e is above this many times the lower
+# quartile of the first round's e (the base of ERROR_FACTOR) is registered again from the
+# root (`_passes._again_from_root`). Right registrations of a collection sit within
+# about twice that quartile; a pose one link took wrongly passes on to the edges after it
+# at 2-3x, under the error threshold (書 in a serif font turned at random: 0.0071-0.0085
+# against 0.0024-0.0045 for right ones, the quartile 0.003). On upright collections a
+# chain's deep edges can lie there too, and the root, bridging the whole difference, then
+# reaches no lower e: the default bench's 208 runs changed on 3 (bench/RESULTS.md 7.50).
+AGAIN_E_FACTOR = 2.0
 # A stalled tree opens bridges (`_SimilarityRule.bridge`) only while it has run fewer than
 # this many registrations per subject in all: a tree as the paper builds it runs about 2
 # (163 for the 72 subjects of the 永 edge glyphs), and shapes no member registers well
@@ -193,10 +202,15 @@ def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:
     root's similar subjects can include far ones that fail. Applied per subject together
     with a floor from the subject's own sampling (:func:`_spacing_floor`).
     """
+    return ERROR_FACTOR * _lower_quartile_error(outcomes)
+
+
+def _lower_quartile_error(outcomes: Sequence[_RegOutcome]) -> float:
+    """The lower quartile of the finite e of `outcomes` (infinite when there is none)."""
     errs = [o.error for o in outcomes if math.isfinite(o.error)]
     if not errs:
         return math.inf
-    return ERROR_FACTOR * float(np.percentile(errs, 25))
+    return float(np.percentile(errs, 25))
 
 
 def _spacing_floor(spacing2: float) -> float:
