@@ -63,15 +63,18 @@ def _again_from_root(
     for out in _run_tasks(tasks, executor, progress, f"{stage}, again from the root"):
         s = out.subject
         tried.add((root, s))
-        cap = limits[s]
-        why = _rejection(out, cap, fold_check)
-        if why is None and not out.error < POSE_MARGIN * best[s].error:
+        member, e_member = coll.names[best[s].member], best[s].error
+        why = _rejection(out, limits[s], fold_check)
+        if why is None and not out.error < POSE_MARGIN * e_member:
             why = (f"e={out.error:.4g} not below {POSE_MARGIN:g}x the e of the registration "
-                   f"from {coll.names[best[s].member]}")
+                   f"from {member} ({e_member:.4g})")
         results[s].attempts.append(
             Attempt(member=out.member, layer=out.layer, similarity=out.similarity,
-                    error=out.error, limit=cap, min_jacobian=out.min_jacobian,
-                    accepted=False, reason=why or "accepted candidate"))
+                    error=out.error, limit=limits[s], min_jacobian=out.min_jacobian,
+                    accepted=False,
+                    reason=why or (f"accepted candidate: the registration from {member} "
+                                   f"reached e={e_member:.4g}, above {above[s]:.4g}, and "
+                                   f"this one is below {POSE_MARGIN:g}x its e")))
         if why is None:
             best[s] = out
     return len(tasks)

@@ -1479,6 +1479,9 @@ def test_an_edge_far_above_the_collections_e_is_tried_again_from_the_root(family
                               floor=False)
     s = moved.subject(k)
     assert s.parent == 0 and s.layer == 2 and k in again
-    assert any(a.member == 0 and a.accepted for a in s.attempts)
+    (taken,) = [a for a in s.attempts if a.member == 0 and a.accepted]
+    # the reason names the registration it replaced and the rule
+    assert taken.reason.startswith("accepted candidate: the registration from shape-")
+    assert taken.reason.endswith("and this one is below 0.7x its e")
     np.testing.assert_allclose(moved.transform_for(k).apply(family.shapes[0]), s.warped,
                                atol=1e-6)

@@ -14,6 +14,7 @@ from service.progress import (
     FINE_EXPONENT,
     PHASE_WEIGHTS,
     STORED_POLISH_EXPONENT,
+    FractionTracker,
     Progress,
     clock,
     left,
@@ -178,6 +179,25 @@ def test_layer_stages_count_as_rounds() -> None:
         "dynamic_tree", STAGES, compare_direct=True)
     assert phase_of("similarity layer 3") == phase_of("round 2") == "layers"
     assert phase_of("similarity round") is None and phase_of("rounds 2") is None
+
+
+def test_a_rounds_registrations_again_from_the_root_advance_the_layers() -> None:
+    """``round N, again from the root`` (a round's registrations far above the
+    collection's e, tried again from the root) is part of the tree's growth: its
+    registrations advance the layers phase after the round's own, and the estimate never
+    goes back."""
+    assert phase_of("round 2, again from the root") == "layers"
+    assert phase_of("round 2, again") is None
+    stages = [*STAGES[:4], ("round 2, again from the root", 2), *STAGES[4:]]
+    plain = _fractions("dynamic_tree", STAGES, compare_direct=True)
+    again = _fractions("dynamic_tree", stages, compare_direct=True)
+    assert len(again) == len(plain) + 3
+    ends = [f for f in again if f is not None]
+    assert ends == sorted(ends)
+    tracker = FractionTracker("dynamic_tree", {"compare_direct": True}, 16)
+    seen = [tracker.update(stage, done, total) for stage, total in stages
+            for done in (0, total)]
+    assert seen == sorted(f for f in seen if f is not None)
 
 
 def test_plain_lines_give_stage_counts_subjects_and_overall() -> None:
