@@ -90,6 +90,13 @@ class PoseSpec:
     def allow_reflection(self) -> bool:
         return self.mode == "affine"
 
+    @property
+    def any_rotation(self) -> bool:
+        """Whether every turn may be tried (``"rotation"`` and ``"affine"``), not only
+        those within ``max_rotation`` of the pose as given (``"upright"``) or none
+        (``"as_given"``)."""
+        return self.mode in ("rotation", "affine")
+
     def to_dict(self) -> dict[str, object]:
         return {"pose": self.mode, "max_rotation": self.max_rotation}
 

@@ -268,7 +268,7 @@ def pairwise_affine_icp(
     for i, j in forward:
         x, y = shapes[i], shapes[j]
         scale = np.sqrt(abs(np.linalg.det(x.whiten) / np.linalg.det(y.whiten)))
-        if pose.mode in ("rotation", "affine"):
+        if pose.any_rotation:
             A_rot = np.linalg.inv(y.whiten)[None] @ rots @ x.whiten[None]
         else:  # isotropic scale from the covariances, then the rotation
             A_rot = scale * rots

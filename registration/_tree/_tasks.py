@@ -386,7 +386,7 @@ def _register_task(task: _RegTask) -> _RegOutcome:
         # as close as the sampling lets e show: no other start is tried
         return replace(chosen, pose_errors={chosen.pose: chosen.error}, pose_margin=None)
     starts = task.starts
-    if task.pose.mode in ("rotation", "affine"):
+    if task.pose.any_rotation:
         turned = _rigid_start(task.q, task.y, starts)
         if turned is not None:
             starts = (*starts, turned)

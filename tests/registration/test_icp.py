@@ -4,10 +4,7 @@ import pytest
 from registration import affine_icp, bidirectional_distance, fit_affine
 from registration.synthetic import base_outline
 
-
-def _rot(deg: float) -> np.ndarray:
-    a = np.deg2rad(deg)
-    return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+from .test_pose import rotation
 
 
 def test_eq8_recovers_exact_affine_from_pairs():
@@ -49,7 +46,7 @@ def test_eq9_hand_computed():
 def test_affine_icp_recovers_known_affine_map(angle):
     rng = np.random.default_rng(3)
     x = base_outline(240)
-    A = _rot(angle) @ np.array([[1.3, 0.25], [0.0, 0.8]])
+    A = rotation(angle) @ np.array([[1.3, 0.25], [0.0, 0.8]])
     t = np.array([4.0, -7.0])
     y = (x @ A.T + t)[rng.permutation(len(x))]
     res = affine_icp(x, y)
@@ -67,7 +64,7 @@ def test_affine_icp_recovers_known_affine_map(angle):
 def test_affine_icp_exact_on_a_point_cloud_with_180_degree_rotation():
     rng = np.random.default_rng(4)
     x = rng.normal(size=(150, 2)) * [2.0, 0.7] + rng.normal(size=(150, 2)) * 0.05
-    A = _rot(180.0) @ np.array([[0.9, 0.1], [0.0, 1.1]])
+    A = rotation(180.0) @ np.array([[0.9, 0.1], [0.0, 1.1]])
     y = (x @ A.T + [1.0, 2.0])[rng.permutation(150)]
     res = affine_icp(x, y, coarse_points=150)
     np.testing.assert_allclose(res.A, A, atol=1e-8)
@@ -158,7 +155,7 @@ def test_rigid_turns_finds_the_turn_of_a_turned_outline():
 
     outline = base_outline(200)
     outline = outline - outline.mean(axis=0)
-    turned = outline @ _rot(130.0).T + [0.2, -0.1]
+    turned = outline @ rotation(130.0).T + [0.2, -0.1]
     R, t, D = rigid_turns(outline, turned)
     assert R.shape == (4, 2, 2) and t.shape == (4, 2) and D.shape == (4,)
     assert np.allclose(np.linalg.det(R), 1.0)  # rotations: no scale, no reflection

@@ -12,7 +12,8 @@ from registration.synthetic import base_outline, chained_family, correspondence_
 FAST_CPD = CPDOptions(max_iter=60)
 
 
-def _rot(deg: float) -> np.ndarray:
+def rotation(deg: float) -> np.ndarray:
+    """The rotation matrix of `deg` degrees (counterclockwise); shared by the pose tests."""
     a = np.deg2rad(deg)
     return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
 
@@ -48,7 +49,7 @@ def test_pose_spec_refuses_bad_combinations(pose, max_rotation, match):
 
 
 def test_rotation_angle_and_difference():
-    assert rotation_angle(2.0 * _rot(75.0)) == pytest.approx(75.0)
+    assert rotation_angle(2.0 * rotation(75.0)) == pytest.approx(75.0)
     assert angle_between(170.0, -170.0) == pytest.approx(20.0)
 
 
@@ -64,7 +65,7 @@ def test_default_never_mirrors_but_affine_may():
 
 def test_as_given_stays_near_the_pose_given_and_rotation_finds_a_turn():
     x = base_outline(150)
-    turned = x @ _rot(120.0).T
+    turned = x @ rotation(120.0).T
     as_given = affine_icp(x, turned, pose="as_given")
     assert angle_between(rotation_angle(as_given.A), 0.0) < 60.0
     anywhere = affine_icp(x, turned)
@@ -82,8 +83,8 @@ def test_init_reflection_refused_outside_affine():
 def test_a_turned_subject_is_registered_through_the_rotated_pose():
     fam = chained_family(n_chains=1, chain_length=3, n_points=120, step=0.2, pose=False, seed=3)
     shapes = list(fam.shapes)
-    truth = fam.root_images[2] @ _rot(120.0).T
-    shapes[2] = shapes[2] @ _rot(120.0).T
+    truth = fam.root_images[2] @ rotation(120.0).T
+    shapes[2] = shapes[2] @ rotation(120.0).T
     res = register_direct(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
     s = res.subject(2)
     assert s.quality is not None and s.quality["pose"] == "rotated"
@@ -149,12 +150,12 @@ def test_a_turn_under_which_the_model_is_symmetric_is_recognised():
 
     sym = _half_turn_symmetric()
     # the pose's turn from the pose as given (the model as it is), whatever its stretch
-    assert _symmetry_ratio(sym, _rot(180.0) @ np.array([[1.1, 0.1], [0.0, 0.9]]), 0.04) < 0.1
-    assert _symmetry_ratio(sym, _rot(170.0), 0.04) < 0.1  # settled by ICP
-    assert _symmetry_ratio(sym, _rot(90.0), 0.04) > SYMMETRY_D_RATIO
+    assert _symmetry_ratio(sym, rotation(180.0) @ np.array([[1.1, 0.1], [0.0, 0.9]]), 0.04) < 0.1
+    assert _symmetry_ratio(sym, rotation(170.0), 0.04) < 0.1  # settled by ICP
+    assert _symmetry_ratio(sym, rotation(90.0), 0.04) > SYMMETRY_D_RATIO
     plain = normalise(base_outline(240))[0]
     for deg in (90.0, 120.0, 180.0):
-        assert _symmetry_ratio(plain, _rot(deg), 0.04) > SYMMETRY_D_RATIO
+        assert _symmetry_ratio(plain, rotation(deg), 0.04) > SYMMETRY_D_RATIO
 
 
 def _stroke(n: int = 200, seed: int = 0) -> np.ndarray:
@@ -181,17 +182,17 @@ def test_a_straight_stroke_is_symmetric_under_its_half_turn():
 
     stroke = _stroke()
     squash = np.diag([1.0, 0.3])
-    assert _deviation_from_similarity(_rot(180.0) @ squash, stroke) < 0.01
+    assert _deviation_from_similarity(rotation(180.0) @ squash, stroke) < 0.01
     t = np.linspace(0.0, 2.0 * np.pi, 120, endpoint=False)
     circle = np.c_[np.cos(t), np.sin(t)]
     # the bound is about a stretch of 1.25 between the singular values on a round outline
     assert 0.9 < _deviation_from_similarity(np.diag([1.118, 0.894]), circle) / (
         SYMMETRY_MAX_DEVIATION) < 1.1
     assert _deviation_from_similarity(np.diag([1.6, 0.6]), circle) > SYMMETRY_MAX_DEVIATION
-    assert _deviation_from_similarity(2.0 * _rot(40.0), circle) < 1e-9  # scale is free
-    turn = _turn_between(stroke, _rot(30.0) @ squash, np.eye(2))
+    assert _deviation_from_similarity(2.0 * rotation(40.0), circle) < 1e-9  # scale is free
+    turn = _turn_between(stroke, rotation(30.0) @ squash, np.eye(2))
     assert abs(rotation_angle(turn) - 30.0) < 0.05
-    assert _symmetry_ratio(stroke, _rot(180.0) @ squash, 1e-3) < SYMMETRY_D_RATIO
+    assert _symmetry_ratio(stroke, rotation(180.0) @ squash, 1e-3) < SYMMETRY_D_RATIO
 
 
 def test_a_turn_the_model_is_symmetric_under_is_not_tried(monkeypatch):
@@ -218,7 +219,7 @@ def test_a_turn_the_model_is_symmetric_under_is_not_tried(monkeypatch):
         return outcome(st.label, errors[st.label])
 
     monkeypatch.setattr(_tasks, "_register_from", register_from)
-    turned = _tasks._Start("rotated", _rot(180.0), np.zeros(2))
+    turned = _tasks._Start("rotated", rotation(180.0), np.zeros(2))
     taken = _tasks._register_task(replace(task, starts=(task.starts[0], turned)))
     assert taken.pose == "rotated" and taken.pose_margin == _tasks.POSE_MARGIN
     errors["rotated"] = 0.6  # a distinct turn wins below 0.7x the e as given (7.46)
@@ -261,8 +262,8 @@ def test_a_turn_the_root_is_symmetric_under_is_not_tried():
 
     root = _half_turn_symmetric()
     bent = normalise(np.c_[root[:, 0], root[:, 1] + 0.3 * root[:, 0] ** 2])[0]
-    assert _symmetry_ratio(bent, _rot(180.0), 0.04) > SYMMETRY_D_RATIO  # the member lost it
-    turned = _tasks._Start("rotated", _rot(176.0), np.zeros(2), symmetry=(bent, 0.04))
+    assert _symmetry_ratio(bent, rotation(180.0), 0.04) > SYMMETRY_D_RATIO  # the member lost it
+    turned = _tasks._Start("rotated", rotation(176.0), np.zeros(2), symmetry=(bent, 0.04))
     aligned = turned.decided(root)
     assert aligned.label == "aligned" and aligned.symmetry is None
     assert angle_between(rotation_angle(aligned.A), 0.0) < 5.0  # the half turn undone
@@ -308,7 +309,7 @@ def _turned_task(deg: float, pose: str | None = None) -> object:
 
     x = normalise(base_outline(150))[0]
     return _tasks._RegTask(
-        subject=1, member=0, layer=2, similarity=0.01, q=x, y=x @ _rot(deg).T,
+        subject=1, member=0, layer=2, similarity=0.01, q=x, y=x @ rotation(deg).T,
         starts=(_tasks._Start("as given"),), cpd=FAST_CPD, prealign=True,
         pose=PoseSpec.resolve(pose, None), spacing2=1e-4)
 
@@ -324,7 +325,7 @@ def test_a_turn_rigid_icp_finds_is_registered_and_earns_its_place():
     kept = _tasks._register_task(task)
     assert kept.pose == "rotated" and angle_between(kept.pose_angle, 135.0) < 5.0
     assert kept.pose_errors["rotated"] < _tasks.POSE_MARGIN * kept.pose_errors["as given"]
-    truth = task.q @ _rot(135.0).T
+    truth = task.q @ rotation(135.0).T
     assert np.sqrt(np.mean(np.sum((kept.warped - truth) ** 2, axis=1))) < 0.05
     given = _tasks._register_task(replace(task, pose=PoseSpec.resolve("as_given", None)))
     assert given.pose == "as given" and set(given.pose_errors) == {"as given"}
@@ -354,7 +355,7 @@ def test_a_fit_within_the_sampling_floor_tries_no_other_start(monkeypatch):
 
     from registration._tree import _tasks
 
-    task = _as_given_task((_tasks._Start("rotated", _rot(90.0), np.zeros(2)),))
+    task = _as_given_task((_tasks._Start("rotated", rotation(90.0), np.zeros(2)),))
     base = _tasks._register_task(replace(task, starts=task.starts[:1]))
     floor = _tasks.SPACING_FACTOR * task.spacing2
     errors = {"as given": 0.9 * floor, "rotated": 0.3 * floor}
@@ -389,16 +390,16 @@ def test_a_stroke_of_two_pixel_rows_is_symmetric_under_its_half_turn():
     x = np.arange(217.0)
     rows = (np.arange(217) // 40) % 2  # runs along one row, then the next, as pixels lie
     stroke = normalise(np.c_[x, rows.astype(float)])[0]
-    R, t = _rigid_self_fit(stroke, _rot(-172.0))
+    R, t = _rigid_self_fit(stroke, rotation(-172.0))
     assert angle_between(rotation_angle(R), 180.0) < 1.0 and np.linalg.det(R) > 0
     assert np.abs(t).max() < 0.05  # about the centroid, up to the rows' half-pixel offset
-    assert _symmetry_ratio(stroke, _rot(-172.0), 2e-3) < SYMMETRY_D_RATIO
+    assert _symmetry_ratio(stroke, rotation(-172.0), 2e-3) < SYMMETRY_D_RATIO
     # a mirror stays a mirror: the handedness of the turn is kept
-    mirror, _ = _rigid_self_fit(stroke, np.diag([1.0, -1.0]) @ _rot(10.0))
+    mirror, _ = _rigid_self_fit(stroke, np.diag([1.0, -1.0]) @ rotation(10.0))
     assert np.linalg.det(mirror) < 0
     # an outline without the symmetry stays without it
     plain = normalise(base_outline(240))[0]
-    assert _symmetry_ratio(plain, _rot(-172.0), 0.04) > SYMMETRY_D_RATIO
+    assert _symmetry_ratio(plain, rotation(-172.0), 0.04) > SYMMETRY_D_RATIO
 
 
 def test_a_turn_across_members_earns_its_place_as_within_one_task():

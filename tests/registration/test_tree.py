@@ -29,6 +29,8 @@ from registration._tree._polish import (
 )
 from registration.synthetic import chained_family, correspondence_error
 
+from .test_pose import rotation
+
 FAST_CPD = CPDOptions(max_iter=60)
 
 
@@ -1375,8 +1377,7 @@ def test_the_consensus_is_not_formed_with_a_partner_registered_a_pose_apart():
     from registration.synthetic import base_outline
 
     def turned(points, deg):
-        a = np.deg2rad(deg)
-        return points @ np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]).T
+        return points @ rotation(deg).T
 
     x = normalise(base_outline(150))[0]
     apart = _isometry_between(x, turned(x, 35.0))
