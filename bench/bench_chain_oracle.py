@@ -93,7 +93,7 @@ def families(args: argparse.Namespace) -> list[tuple[str, str, object]]:
                 if not font.exists():
                     print(f"NOTE: {font} is missing: skipping {char} {font_name}")
                     continue
-                dense = bg._glyph_points(char, font, "edges")
+                dense = bg.glyph_points(char, font, "edges")
                 runs.append(("glyph-other", f"{char} {font_name}",
                              deformation_chains(dense, seed=0)))
         return runs

@@ -303,7 +303,7 @@ CJK_FONTS = {
 }
 _DEJAVU = Path("/usr/share/fonts/truetype/dejavu")
 #: Latin-only fonts (Debian's fonts-dejavu-core): a second type family for ``glyph-latin``.
-#: They carry no CJK characters; a character a font lacks is skipped (`_has_glyph`).
+#: They carry no CJK characters; a character a font lacks is skipped (`has_glyph`).
 LATIN_FONTS = {
     "dejavu-sans": _DEJAVU / "DejaVuSans.ttf",
     "dejavu-serif": _DEJAVU / "DejaVuSerif.ttf",
@@ -322,7 +322,7 @@ DENSE_POINTS = 1200
 DENSE_SCALE = 2
 
 
-def _glyph_points(char: str, font: Path, mode: str = "edges", scale: int = 1) -> np.ndarray:
+def glyph_points(char: str, font: Path, mode: str = "edges", scale: int = 1) -> np.ndarray:
     """The edge (Canny) or skeleton pixels of `char` rendered at 256 x `scale` px (the
     library's image route, as the 永 set's points were made)."""
     from PIL import Image, ImageDraw, ImageFont
@@ -340,7 +340,7 @@ def _glyph_points(char: str, font: Path, mode: str = "edges", scale: int = 1) ->
 _NO_GLYPH = "\U0010fffd"
 
 
-def _has_glyph(char: str, font: Path) -> bool:
+def has_glyph(char: str, font: Path) -> bool:
     """Whether `font` draws `char` rather than its missing-glyph box (or nothing)."""
     from PIL import ImageFont
 
@@ -358,17 +358,17 @@ def _rendered_glyph_cases(seeds: list[int], characters: str, fonts: dict[str, Pa
     """The `characters` in the `fonts` (default :data:`OTHER_FONTS`) found here, chained as
     the 永 glyphs' (root 0), once per family of `families`: (kind, image mode, render scale,
     points a shape; None: :func:`~registration.synthetic.deformation_chains`' default).
-    A character a font lacks (:func:`_has_glyph`) is skipped, with a note."""
+    A character a font lacks (:func:`has_glyph`) is skipped, with a note."""
     cases = []
     for char in characters:
         for font_name, font in (OTHER_FONTS if fonts is None else fonts).items():
             if not font.exists():
                 continue
-            if not _has_glyph(char, font):
+            if not has_glyph(char, font):
                 print(f"NOTE: {font_name} has no glyph for {char!r}: skipping it there")
                 continue
             for kind, mode, scale, n_points in families:
-                dense = _glyph_points(char, font, mode, scale)
+                dense = glyph_points(char, font, mode, scale)
                 points = {} if n_points is None else {"n_points": n_points}
                 for seed in seeds:
                     fam = deformation_chains(dense, seed=seed, **points)
@@ -509,7 +509,7 @@ def small_step_cases(designs: list[str], characters: str,
     for char in characters:
         for font_name, font in fonts.items():
             if font.exists():
-                sources.append((f"{char} {font_name}", _glyph_points(char, font)))
+                sources.append((f"{char} {font_name}", glyph_points(char, font)))
     cases = []
     for name, dense in sources:
         fam = deformation_chains(dense, seed=0, step=SMALL_STEP)

@@ -124,9 +124,9 @@ def pairs_rendered(turned: bool) -> Iterator[Pair]:
 
     rng = np.random.default_rng(7)
     for char, font in itertools.product(bg.OTHER_CHARACTERS, bg.OTHER_FONTS.values()):
-        if not font.exists() or not bg._has_glyph(char, font):
+        if not font.exists() or not bg.has_glyph(char, font):
             continue
-        fam = deformation_chains(bg._glyph_points(char, font), seed=2)
+        fam = deformation_chains(bg.glyph_points(char, font), seed=2)
         for root in (0, 3):
             truths = fam.root_images(root)
             for k in range(len(fam.shapes)):
