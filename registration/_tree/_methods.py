@@ -201,11 +201,13 @@ def build_dynamic_tree(
         best = {s: _lowest_error(outs) for s, outs in accepted.items()}
         if e_ref is None:
             e_ref = _lower_quartile_error(outcomes)
-        runs += _again_from_root(
-            coll, results, best, tried,
-            {s: max(AGAIN_E_FACTOR * e_ref, floors[s]) for s in best},
-            {s: _error_limit(tau_err, error_threshold is not None, floors[s]) for s in best},
-            fold_check, edge, nodes[root].q, executor, progress, f"round {grown - 1}")
+        if run.prealign and run.pose.any_rotation:  # an edge can miss a turn only there
+            runs += _again_from_root(
+                coll, results, best, tried,
+                {s: max(AGAIN_E_FACTOR * e_ref, floors[s]) for s in best},
+                {s: _error_limit(tau_err, error_threshold is not None, floors[s])
+                 for s in best},
+                fold_check, edge, nodes[root].q, executor, progress, f"round {grown - 1}")
         new_frontier = []
         for s, out in sorted(best.items()):
             res, node = _subject_from_outcome(coll, out, nodes[out.member], joined=grown)

@@ -1411,7 +1411,8 @@ _REGISTER_TASK = _tasks_module._register_task
 _RUN_TASKS = _passes_module._run_tasks
 
 
-def _again_run(family, monkeypatch, factor, root_scale=1.0, subject=None, floor=True):
+def _again_run(family, monkeypatch, factor, root_scale=1.0, subject=None, floor=True,
+               **options):
     """The dynamic tree on `family` as it grows (no refinement, no polish) with
     ``AGAIN_E_FACTOR`` set to `factor`, and without the subjects' sampling floors unless
     `floor`; the root's registrations of `subject` (every subject when None) have their e
@@ -1440,14 +1441,15 @@ def _again_run(family, monkeypatch, factor, root_scale=1.0, subject=None, floor=
     if not floor:
         monkeypatch.setattr(_methods, "_spacing_floor", lambda spacing2: 0.0)
     res = build_dynamic_tree(family.shapes[:8], 0, cpd=FAST_CPD, polish=False,
-                             refine=False, executor=SerialExecutor())
+                             refine=False, executor=SerialExecutor(), **options)
     return res, again
 
 
 def test_an_edge_far_above_the_collections_e_is_tried_again_from_the_root(family,
                                                                           monkeypatch):
     """A round's registration from another member whose e is above AGAIN_E_FACTOR times
-    the lower quartile of the first round's e is registered again from the root, and the
+    the lower quartile of the first round's e (and above the subject's sampling floor),
+    where any turn may be tried, is registered again from the root, and the
     root's replaces it only below POSE_MARGIN times its e (bench/RESULTS.md 7.50): the
     attempt is recorded either way, with why it was not taken."""
     from registration._tree._rules import AGAIN_E_FACTOR
@@ -1465,6 +1467,10 @@ def test_an_edge_far_above_the_collections_e_is_tried_again_from_the_root(family
     # (unless the root was tried already, in the first round)
     members = [s.index for s in res.subjects if s.parent not in (None, 0) and not s.leaf]
     assert len(again) >= 3 and set(again) <= set(members)
+    # an edge can miss a turn only where every turn may be tried: not for upright
+    # collections, nor without the pre-alignment
+    for options in ({"pose": "upright"}, {"pose": "as_given"}, {"prealign": False}):
+        assert _again_run(family, monkeypatch, 0.0, floor=False, **options)[1] == []
     assert all(any(a.member == 0 for a in res.subject(k).attempts) for k in members)
     for k in again:
         s = res.subject(k)
