@@ -89,7 +89,13 @@ def build_dynamic_tree(
     max_candidates : int
         When several members are similar to a waiting subject, the `max_candidates`
         most similar (smallest D) members not yet tried for it are tried in one layer
-        and the accepted registration with the smallest e is kept.
+        and the accepted registration with the smallest e is kept. Where every turn may
+        be tried (``pose="rotation"`` or ``"affine"``), a kept registration from another
+        member whose e is above twice the lower quartile of the first layer's e (and
+        above the subject's sampling floor) is registered from the root too, and the
+        root's is kept instead when accepted at below 0.7x its e: an edge that missed
+        the turn between a member and a subject fits the wrong pose at 2-3x the e right
+        ones reach, under the error threshold (bench/RESULTS.md 7.50).
     fold_check : bool
         Also reject registrations whose displacement field folds the model (Jacobian
         determinant <= 0 at a model point): e can be small while correspondences are wrong.

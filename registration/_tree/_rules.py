@@ -22,13 +22,15 @@ CAPTURE_D = 0.01
 SIMILAR_NEIGHBOURS = 4
 ERROR_FACTOR = 3.0
 # A round's registration from another member whose e is above this many times the lower
-# quartile of the first round's e (the base of ERROR_FACTOR) is registered again from the
-# root (`_passes._again_from_root`). Right registrations of a collection sit within
-# about twice that quartile; a pose one link took wrongly passes on to the edges after it
-# at 2-3x, under the error threshold (書 in a serif font turned at random: 0.0071-0.0085
-# against 0.0024-0.0045 for right ones, the quartile 0.003). On upright collections a
-# chain's deep edges can lie there too, and the root, bridging the whole difference, then
-# reaches no lower e: the default bench's 208 runs changed on 3 (bench/RESULTS.md 7.50).
+# quartile of the first round's e (the base of ERROR_FACTOR; and above the subject's
+# sampling floor) is registered again from the root, where any turn may be tried
+# (`_passes._again_from_root`). An edge that missed the turn between a member and a
+# subject lies at 2-3x (書 in a serif font turned at random: 0.0069-0.0085 against
+# 0.0024-0.0045 for right ones, the quartile 0.0031), under the error threshold. Right
+# edges lie there too, on collections of large differences (MPEG-7: 1.07x the time, no run
+# changed) and on glyphs turned apart (書 in Noto Sans: right ones up to 1.6x, wrong ones
+# from 1.6x): the root, bridging the whole difference, then rarely reaches the 0.7x margin
+# (the default bench: 206 of 208 runs identical; bench/RESULTS.md 7.50).
 AGAIN_E_FACTOR = 2.0
 # A stalled tree opens bridges (`_SimilarityRule.bridge`) only while it has run fewer than
 # this many registrations per subject in all: a tree as the paper builds it runs about 2
