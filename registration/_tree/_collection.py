@@ -14,7 +14,7 @@ from .._candidates import candidate_pairs
 from .._executor import Executor
 from .._points import Normalization, mean_spacing2, normalise
 from .._pose import PoseSpec
-from .._result import SubjectResult
+from .._result import Attempt, SubjectResult
 from .._similarity import ProgressCallback, Similarity
 from .._transform import ChainTransform
 from ._rules import _SimilarityRule
@@ -76,6 +76,13 @@ class _Node:
     # the round of the tree's growth in which it joined (the root 1): the layer it would
     # have if every round grew from the one before, which a stalled tree's bridges do not
     joined: int = 1
+
+
+def _attempt(out: _RegOutcome, limit: float, reason: str, accepted: bool = False) -> Attempt:
+    """The record of the registration `out` among a subject's attempts, held to `limit`."""
+    return Attempt(member=out.member, layer=out.layer, similarity=out.similarity,
+                   error=out.error, limit=limit, min_jacobian=out.min_jacobian,
+                   accepted=accepted, reason=reason)
 
 
 def _subject_from_outcome(

@@ -17,6 +17,7 @@ from .._result import Attempt, CollectionResult, SubjectResult
 from .._similarity import ProgressCallback, Similarity
 from . import _tasks
 from ._collection import (
+    _attempt,
     _Collection,
     _ensure_frontier,
     _subject_from_outcome,
@@ -196,12 +197,7 @@ def build_dynamic_tree(
             reason = rejection or "accepted candidate"
             if not ok:
                 rejected.setdefault(out.subject, []).append(out)
-            results[out.subject].attempts.append(
-                Attempt(member=out.member, layer=out.layer, similarity=out.similarity,
-                        error=out.error, limit=limit, min_jacobian=out.min_jacobian,
-                        accepted=False,
-                        reason=reason)
-            )
+            results[out.subject].attempts.append(_attempt(out, limit, reason))
             if ok:
                 accepted.setdefault(out.subject, []).append(out)
         best = {s: _lowest_error(outs) for s, outs in accepted.items()}

@@ -12,9 +12,9 @@ from dataclasses import replace
 import numpy as np
 
 from .._executor import Executor
-from .._result import Attempt, SubjectResult
+from .._result import SubjectResult
 from .._similarity import ProgressCallback, Similarity
-from ._collection import _Collection, _Node, _subject_from_outcome
+from ._collection import _attempt, _Collection, _Node, _subject_from_outcome
 from ._rules import REFINE_TIE, _error_limit, _rejection, _SimilarityRule
 from ._tasks import POSE_MARGIN, _lowest_error, _RegOutcome, _RegTask, _run_tasks
 
@@ -68,13 +68,10 @@ def _again_from_root(
         if why is None and not out.error < POSE_MARGIN * e_member:
             why = (f"e={out.error:.4g} not below {POSE_MARGIN:g}x the e of the registration "
                    f"from {member} ({e_member:.4g})")
-        results[s].attempts.append(
-            Attempt(member=out.member, layer=out.layer, similarity=out.similarity,
-                    error=out.error, limit=limits[s], min_jacobian=out.min_jacobian,
-                    accepted=False,
-                    reason=why or (f"accepted candidate: the registration from {member} "
-                                   f"reached e={e_member:.4g}, above {above[s]:.4g}, and "
-                                   f"this one is below {POSE_MARGIN:g}x its e")))
+        results[s].attempts.append(_attempt(
+            out, limits[s], why or (f"accepted candidate: the registration from {member} "
+                                    f"reached e={e_member:.4g}, above {above[s]:.4g}, and "
+                                    f"this one is below {POSE_MARGIN:g}x its e")))
         if why is None:
             best[s] = out
     return len(tasks)
@@ -140,12 +137,10 @@ def _refine_parents(
             # a turn earns its place by the margin, as across members (`_lowest_error`)
             better = better and out.error < POSE_MARGIN * old.error
         accepted = ok and better
-        old.attempts.append(Attempt(
-            member=out.member, layer=out.layer, similarity=out.similarity, error=out.error,
-            limit=limit, min_jacobian=out.min_jacobian, accepted=accepted,
-            reason=("refined: moved here, more similar and a better registration" if accepted
-                    else "refinement not taken: not better than the registration it had"),
-        ))
+        old.attempts.append(_attempt(
+            out, limit, "refined: moved here, more similar and a better registration"
+            if accepted else "refinement not taken: not better than the registration it had",
+            accepted=accepted))
         if not accepted:
             continue
         res, node = _subject_from_outcome(coll, out, parent, joined=nodes[s].joined)
