@@ -70,6 +70,13 @@ Families (collections with exact ground truth):
   CPD by the mean error and the subjects registered wrong (error above
   ``GROSS_ERROR``).
 
+- ``ink-spread`` (only when named in ``--only``): glyph-other's characters and fonts,
+  each printed with 0-6 px of extra ink about the outline, one print a step (root: the
+  lightest), 400 random edge pixels a print; the true image of a root point is the
+  heavier print's edge pixel nearest it (extra ink moves the outline along its normal).
+  Not a deformation: the two sides of a stroke move apart. Kept out of the default run
+  (bench/RESULTS.md 7.51).
+
 "far" subjects are those more than half the family's chain length away from the root
 along the generation (warp steps; for the Chui series, deformation levels): steps 4-6 of
 a glyph chain for root 0. For the mid-chain root the distance is counted along the
@@ -322,16 +329,19 @@ DENSE_POINTS = 1200
 DENSE_SCALE = 2
 
 
-def glyph_points(char: str, font: Path, mode: str = "edges", scale: int = 1) -> np.ndarray:
+def glyph_points(char: str, font: Path, mode: str = "edges", scale: int = 1,
+                 ink: int = 0) -> np.ndarray:
     """The edge (Canny) or skeleton pixels of `char` rendered at 256 x `scale` px (the
-    library's image route, as the 永 set's points were made)."""
+    library's image route, as the 永 set's points were made); `ink` px of extra ink
+    about the outline (PIL's stroke width: a heavier print of the same glyph)."""
     from PIL import Image, ImageDraw, ImageFont
 
     from registration.images import points_from_image
 
     img = Image.new("L", (300 * scale, 300 * scale), 255)
     ImageDraw.Draw(img).text((22 * scale, 0), char,
-                             font=ImageFont.truetype(str(font), 256 * scale), fill=0)
+                             font=ImageFont.truetype(str(font), 256 * scale), fill=0,
+                             stroke_width=ink, stroke_fill=0)
     return points_from_image(img, mode=mode)
 
 
@@ -466,6 +476,57 @@ def turned_summary(cases: list[Case], rows_by_case: list[list[dict[str, Any]]]) 
         print(f"  {case.label:40s} " + "   ".join(cells))
     print("  ALL" + " " * 38 + "   ".join(
         f"{m} wrong {g} + unattached {u} of {n}" for m, (g, u, n) in totals.items()))
+
+
+#: Extra ink of the ``ink-spread`` family's prints, px about the outline at 256 px (the
+#: strokes of the Noto fonts' regular weights are about 20 px wide there).
+INK_WIDTHS = (0, 1, 2, 3, 4, 5, 6)
+#: A root point whose nearest edge pixel of a heavier print lies further than this (px)
+#: from that print's ink width off it has no true image there (strokes merged, a counter
+#: closed up; up to 15 % of 書's points at 6 px, 0-2 % at 1-3 px).
+INK_TRUTH_TOLERANCE = 1.5
+
+
+def ink_spread_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
+                     fonts: dict[str, Path] | None = None, n_points: int = 400) -> list[Case]:
+    """``ink-spread``: each character printed with more and more ink, one print a step
+    (:data:`INK_WIDTHS`; root: the lightest), their edge pixels sampled at random, 400 a
+    print (seeded by `seeds`). Extra ink moves the outline along its normal, so the true
+    image of a root point on a heavier print is that print's edge pixel nearest it (the
+    sampled subject lies on the same pixels); see :data:`INK_TRUTH_TOLERANCE` for the
+    points without one.
+
+    Not a deformation: the two sides of a stroke move apart, which no coherent field (CPD's)
+    follows, and the prints of one glyph differ by little else. The tree gains nothing over
+    plain CPD here and loses where its polish fits the samples (bench/RESULTS.md 7.51)."""
+    from scipy.spatial import cKDTree
+
+    cases = []
+    for char in characters:
+        for font_name, font in (OTHER_FONTS if fonts is None else fonts).items():
+            if not font.exists():
+                continue
+            if not has_glyph(char, font):
+                print(f"NOTE: {font_name} has no glyph for {char!r}: skipping it there")
+                continue
+            dense = [glyph_points(char, font, ink=w) for w in INK_WIDTHS]
+            for seed in seeds:
+                rng = np.random.default_rng([seed, 11])
+                shapes = [d[rng.choice(len(d), min(n_points, len(d)), replace=False)]
+                          for d in dense]
+                truth = []
+                for w, d in zip(INK_WIDTHS, dense, strict=True):
+                    dist, j = cKDTree(d).query(shapes[0])
+                    t = d[j].astype(np.float64)
+                    t[np.abs(dist - w) > INK_TRUTH_TOLERANCE] = np.nan
+                    truth.append(t)
+                steps = list(range(len(INK_WIDTHS)))
+                cases.append(Case(
+                    kind="ink-spread", label=f"ink-spread {char} {font_name} seed {seed}",
+                    seed=seed, shapes=shapes, names=[f"ink{w}" for w in INK_WIDTHS], root=0,
+                    truth=truth, depth=steps, distance=steps, far_from=max(steps) // 2 + 1,
+                ))
+    return cases
 
 
 def other_glyph_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
@@ -953,8 +1014,8 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
                     "generated mpeg7 outline outline-random outline-arc glyph-other dense-edge "
-                    "dense-skel small-step glyph-latin glyph-stroke; glyph-turned runs only "
-                    "when named)")
+                    "dense-skel small-step glyph-latin glyph-stroke; glyph-turned and "
+                    "ink-spread run only when named)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
@@ -1036,6 +1097,8 @@ def main() -> None:
         cases += stroke_glyph_cases(seeds[:2], STROKE_CHARACTERS, {f: FONTS[f] for f in fonts})
     if args.only and "glyph-turned" in args.only:  # only when named
         cases += turned_glyph_cases(seeds[:1], args.characters, {f: FONTS[f] for f in fonts})
+    if args.only and "ink-spread" in args.only:  # only when named
+        cases += ink_spread_cases(seeds, args.characters, {f: FONTS[f] for f in fonts})
     if args.only:
         cases = [c for c in cases if c.kind in args.only]
     print(f"{len(cases)} runs x 3 methods, default options (the library picks its executor); "
