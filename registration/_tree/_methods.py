@@ -187,8 +187,10 @@ def build_dynamic_tree(
             break
         runs += len(tasks)
         outcomes = _run_tasks(tasks, executor, progress, f"round {grown - 1}")
+        if e_ref is None:  # the first round's: the root's registrations of its nearest
+            e_ref = _lower_quartile_error(outcomes)
         if tau_err is None:
-            tau_err = _auto_error_threshold(outcomes)
+            tau_err = _auto_error_threshold(e_ref)
         accepted: dict[int, list[_RegOutcome]] = {}
         for out in outcomes:
             limit = _error_limit(tau_err, error_threshold is not None, floors[out.subject])
@@ -201,8 +203,6 @@ def build_dynamic_tree(
             if ok:
                 accepted.setdefault(out.subject, []).append(out)
         best = {s: _lowest_error(outs) for s, outs in accepted.items()}
-        if e_ref is None:
-            e_ref = _lower_quartile_error(outcomes)
         if run.prealign and run.pose.any_rotation:  # an edge can miss a turn only there
             runs += _again_from_root(
                 coll, results, best, tried,

@@ -194,8 +194,9 @@ def _bridge_limits(
     return {int(k): float(raise_to[k]) for k in np.flatnonzero((best > 0) & np.isfinite(best))}
 
 
-def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:
-    """``ERROR_FACTOR`` times the lower quartile of the second layer's e.
+def _auto_error_threshold(lower_quartile: float) -> float:
+    """``ERROR_FACTOR`` times `lower_quartile`, the lower quartile of the second layer's
+    e (:func:`_lower_quartile_error` of the first round's registrations).
 
     Those are registrations of the root to the subjects similar to it. The best of them
     measure what "registered" means for this collection (its point density, noise and
@@ -205,7 +206,7 @@ def _auto_error_threshold(outcomes: Sequence[_RegOutcome]) -> float:
     root's similar subjects can include far ones that fail. Applied per subject together
     with a floor from the subject's own sampling (:func:`_spacing_floor`).
     """
-    return ERROR_FACTOR * _lower_quartile_error(outcomes)
+    return ERROR_FACTOR * lower_quartile
 
 
 def _lower_quartile_error(outcomes: Sequence[_RegOutcome]) -> float:
