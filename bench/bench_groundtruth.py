@@ -94,7 +94,7 @@ import csv
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -370,6 +370,26 @@ def _rendered_glyph_cases(seeds: list[int], characters: str, fonts: dict[str, Pa
     points a shape; None: :func:`~registration.synthetic.deformation_chains`' default).
     A character a font lacks (:func:`has_glyph`) is skipped, with a note."""
     cases = []
+    for char, font_name, font in _drawn(characters, fonts):
+        for kind, mode, scale, n_points in families:
+            dense = glyph_points(char, font, mode, scale)
+            points = {} if n_points is None else {"n_points": n_points}
+            for seed in seeds:
+                fam = deformation_chains(dense, seed=seed, **points)
+                cases.append(Case(
+                    kind=kind, label=f"{kind} {char} {font_name} seed {seed}",
+                    seed=seed, shapes=fam.shapes, names=fam.names, root=0,
+                    truth=fam.root_images(0), depth=fam.depth, distance=fam.depth,
+                    far_from=max(fam.depth) // 2 + 1,
+                ))
+    return cases
+
+
+def _drawn(characters: str, fonts: dict[str, Path] | None
+           ) -> Iterator[tuple[str, str, Path]]:
+    """(character, font name, font) for each of the `characters` in each of the `fonts`
+    (default :data:`OTHER_FONTS`) installed here that draws it; one it lacks is skipped,
+    with a note."""
     for char in characters:
         for font_name, font in (OTHER_FONTS if fonts is None else fonts).items():
             if not font.exists():
@@ -377,18 +397,7 @@ def _rendered_glyph_cases(seeds: list[int], characters: str, fonts: dict[str, Pa
             if not has_glyph(char, font):
                 print(f"NOTE: {font_name} has no glyph for {char!r}: skipping it there")
                 continue
-            for kind, mode, scale, n_points in families:
-                dense = glyph_points(char, font, mode, scale)
-                points = {} if n_points is None else {"n_points": n_points}
-                for seed in seeds:
-                    fam = deformation_chains(dense, seed=seed, **points)
-                    cases.append(Case(
-                        kind=kind, label=f"{kind} {char} {font_name} seed {seed}",
-                        seed=seed, shapes=fam.shapes, names=fam.names, root=0,
-                        truth=fam.root_images(0), depth=fam.depth, distance=fam.depth,
-                        far_from=max(fam.depth) // 2 + 1,
-                    ))
-    return cases
+            yield char, font_name, font
 
 
 #: Latin glyphs for the ``glyph-latin`` family: letters of one contour and of several,
@@ -499,33 +508,25 @@ def ink_spread_cases(seeds: list[int], characters: str = OTHER_CHARACTERS,
     Not a deformation: the two sides of a stroke move apart, which no coherent field (CPD's)
     follows, and the prints of one glyph differ by little else. The tree gains nothing over
     plain CPD here and loses where its polish fits the samples (bench/RESULTS.md 7.51)."""
-    from scipy.spatial import cKDTree
-
     cases = []
-    for char in characters:
-        for font_name, font in (OTHER_FONTS if fonts is None else fonts).items():
-            if not font.exists():
-                continue
-            if not has_glyph(char, font):
-                print(f"NOTE: {font_name} has no glyph for {char!r}: skipping it there")
-                continue
-            dense = [glyph_points(char, font, ink=w) for w in INK_WIDTHS]
-            for seed in seeds:
-                rng = np.random.default_rng([seed, 11])
-                shapes = [d[rng.choice(len(d), min(n_points, len(d)), replace=False)]
-                          for d in dense]
-                truth = []
-                for w, d in zip(INK_WIDTHS, dense, strict=True):
-                    dist, j = cKDTree(d).query(shapes[0])
-                    t = d[j].astype(np.float64)
-                    t[np.abs(dist - w) > INK_TRUTH_TOLERANCE] = np.nan
-                    truth.append(t)
-                steps = list(range(len(INK_WIDTHS)))
-                cases.append(Case(
-                    kind="ink-spread", label=f"ink-spread {char} {font_name} seed {seed}",
-                    seed=seed, shapes=shapes, names=[f"ink{w}" for w in INK_WIDTHS], root=0,
-                    truth=truth, depth=steps, distance=steps, far_from=max(steps) // 2 + 1,
-                ))
+    for char, font_name, font in _drawn(characters, fonts):
+        dense = [glyph_points(char, font, ink=w) for w in INK_WIDTHS]
+        for seed in seeds:
+            rng = np.random.default_rng([seed, 11])
+            shapes = [d[rng.choice(len(d), min(n_points, len(d)), replace=False)]
+                      for d in dense]
+            truth = []
+            for w, d in zip(INK_WIDTHS, dense, strict=True):
+                dist, j = cKDTree(d).query(shapes[0])
+                t = d[j].astype(np.float64)
+                t[np.abs(dist - w) > INK_TRUTH_TOLERANCE] = np.nan
+                truth.append(t)
+            steps = list(range(len(INK_WIDTHS)))
+            cases.append(Case(
+                kind="ink-spread", label=f"ink-spread {char} {font_name} seed {seed}",
+                seed=seed, shapes=shapes, names=[f"ink{w}" for w in INK_WIDTHS], root=0,
+                truth=truth, depth=steps, distance=steps, far_from=max(steps) // 2 + 1,
+            ))
     return cases
 
 

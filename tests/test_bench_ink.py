@@ -8,22 +8,15 @@ that construction, checked here on one Latin glyph in whichever font the machine
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
-
 
 @pytest.fixture()
-def bg(monkeypatch: pytest.MonkeyPatch):  # the module, from bench/
-    monkeypatch.syspath_prepend(str(BENCH))
-    import bench_groundtruth as module
-
-    yield module
-    sys.modules.pop("bench_groundtruth", None)
+def bg(bench_module) -> ModuleType:  # bench/bench_groundtruth.py
+    return bench_module("bench_groundtruth")
 
 
 def test_ink_spread_truth(bg) -> None:

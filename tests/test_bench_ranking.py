@@ -7,22 +7,15 @@ order read the order the rows were gathered in.
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
-
 
 @pytest.fixture()
-def ranking(monkeypatch: pytest.MonkeyPatch):  # the module, from bench/
-    monkeypatch.syspath_prepend(str(BENCH))
-    import ranking as module
-
-    yield module
-    sys.modules.pop("ranking", None)
+def ranking(bench_module) -> ModuleType:  # bench/ranking.py
+    return bench_module("ranking")
 
 
 def test_auc_counts_ties_half_and_ignores_the_rows_order(ranking) -> None:
