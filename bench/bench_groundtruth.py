@@ -568,10 +568,8 @@ def small_step_cases(designs: list[str], characters: str,
         path = GLYPHS / "points" / f"{design}_edge.txt"
         if path.exists():
             sources.append((f"永 {design}", np.loadtxt(path)))
-    for char in characters:
-        for font_name, font in fonts.items():
-            if font.exists():
-                sources.append((f"{char} {font_name}", glyph_points(char, font)))
+    for char, font_name, font in _drawn(characters, fonts):
+        sources.append((f"{char} {font_name}", glyph_points(char, font)))
     cases = []
     for name, dense in sources:
         fam = deformation_chains(dense, seed=0, step=SMALL_STEP)

@@ -5,20 +5,19 @@ estimate of the time left.
 The library reports progress per stage, each with its own count: pairs of shapes for the
 similarity stages (``similarity``, ``similarity round 2``, ...), registrations for the
 others. A tree job runs, in order: ``similarity``; the tree's rounds of growth
-(``similarity round N``, ``round N`` for N = 1, 2, ...: a dynamic tree's round N tries the
-waiting subjects from the members the round before added, or from any member after a
-stall's bridges, so it can attach subjects at any depth, then ``round N, again from the
-root`` when some of its registrations lie far above the collection's e; a static tree
-reports its layers,
-``similarity layer N``, ``layer N`` for N = 2, 3, ...; progress stored by earlier versions
-names a dynamic tree's rounds that way too); ``similarity leaves``, ``leaves``;
-``refine``; when it compares, ``similarity direct``, ``direct`` (a static tree: after the
-tree's stages, as it has no polish); ``polish``; and when it decides at a working
-resolution below its shapes' (coarse to fine), ``full resolution``, ``polish full
-resolution`` (the dynamic tree's) and ``direct full resolution``, which count subjects.
-Stages with nothing to do are not reported. A ``grouping`` job runs ``fields``
-(instances), ``alignment`` (alignments to the median field) and ``pairs`` (pairs aligned
-to each other).
+(``similarity round N``, ``round N`` for N = 1, 2, ...: a dynamic tree's round N tries
+the waiting subjects from the members the round before added, or from any member after a
+stall's bridges, so it can attach subjects at any depth, then
+``round N, again from the root`` when some of its registrations lie far above the
+collection's e; a static tree reports its layers, ``similarity layer N``, ``layer N``
+for N = 2, 3, ...; progress stored by earlier versions names a dynamic tree's rounds
+that way too); ``similarity leaves``, ``leaves``; ``refine``; when it compares,
+``similarity direct``, ``direct`` (a static tree: after the tree's stages, as it has no
+polish); ``polish``; and when it decides at a working resolution below its shapes'
+(coarse to fine), ``full resolution``, ``polish full resolution`` (the dynamic tree's)
+and ``direct full resolution``, which count subjects. Stages with nothing to do are not
+reported. A ``grouping`` job runs ``fields`` (instances), ``alignment`` (alignments to
+the median field) and ``pairs`` (pairs aligned to each other).
 
 The overall percentage places the stage within the whole run with the share of time each
 phase took in measured runs (:data:`PHASE_WEIGHTS`, bench/bench_progress.py, bench/RESULTS.md
