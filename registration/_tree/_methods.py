@@ -192,8 +192,10 @@ def build_dynamic_tree(
         if tau_err is None:
             tau_err = _auto_error_threshold(e_ref)
         accepted: dict[int, list[_RegOutcome]] = {}
+        limits = {out.subject: _error_limit(tau_err, error_threshold is not None,
+                                            floors[out.subject]) for out in outcomes}
         for out in outcomes:
-            limit = _error_limit(tau_err, error_threshold is not None, floors[out.subject])
+            limit = limits[out.subject]
             rejection = _rejection(out, limit, fold_check)
             ok = rejection is None
             reason = rejection or "accepted candidate"
@@ -206,9 +208,7 @@ def build_dynamic_tree(
         if run.prealign and run.pose.any_rotation:  # an edge can miss a turn only there
             runs += _again_from_root(
                 coll, results, best, tried,
-                {s: max(AGAIN_E_FACTOR * e_ref, floors[s]) for s in best},
-                {s: _error_limit(tau_err, error_threshold is not None, floors[s])
-                 for s in best},
+                {s: max(AGAIN_E_FACTOR * e_ref, floors[s]) for s in best}, limits,
                 fold_check, edge, nodes[root].q, executor, progress, f"round {grown - 1}")
         new_frontier = []
         for s, out in sorted(best.items()):
