@@ -83,7 +83,7 @@ from .._result import SubjectResult
 from .._similarity import ProgressCallback
 from .._transform import AffineTransform, ChainTransform
 from ._collection import _Collection
-from ._rules import MIN_CONFIDENCE
+from ._rules import MIN_CONFIDENCE, _spacing_floor
 from ._symmetric import Halfway, NoHalfway, fitted_step, halfway_back
 from ._tasks import _distinct, _register_task, _RegOutcome, _RegTask
 
@@ -116,6 +116,19 @@ POLISH_BETA_FACTORS = (1.0, 0.5)
 #: (worst run 1.28 -> 1.12) and those outlines from 1.16 to 1.12; every other family
 #: moves by at most 0.015.
 POLISH_FINER_MAX_E_RATIO = 0.8
+#: At layer 2 the chain is one CPD from the root, and the whole polish (stages, finish,
+#: symmetric finish) only goes on fitting that one registration (:data:`POLISH_MIN_LAYER`);
+#: there is no slide of a chain for it to relax. When the edge's e is at or above the
+#: subject's sampling floor (``SPACING_FACTOR`` h^2, the e two independent samplings of
+#: one outline leave), its residual can be the samples' noise alone, and the polish is
+#: kept only when it lowers that e to at most this fraction, the finer stages' margin.
+#: Prints of one type (each subject one small warp from the root, bench/RESULTS.md 7.53)
+#: sit at 0.5-1 h^2 and are polished to 0.83-0.97x the e with their correspondences
+#: 1.1-1.3x worse. Below the floor the two samplings coincide (the same points moved, as
+#: in the Chui series), so what is left is deformation: a Chui fish edge CPD left at
+#: 0.17 h^2 (correspondence error 0.15) is polished to 0.91x the e and 0.09. Only at
+#: the working resolution: the stored resolution's polish registers every edge again.
+SINGLE_EDGE_MAX_E_RATIO = POLISH_FINER_MAX_E_RATIO
 #: Subjects at this layer or deeper (two links or more from the root) are also registered
 #: from a partner, for a consensus with their chain (see `_consensus`; the root directly
 #: until bench/RESULTS.md 7.27, see `CONSENSUS_PARTNER_MIN_POINTS`). At layer 2 the chain
@@ -244,6 +257,9 @@ class _PolishTask:
     subject_control: IntArray | None = None
     # the model indices the polish's stages (`_stages`) fit their fields with
     stage_control: IntArray | None = None
+    # the subject's chain is one CPD from the root (layer 2, at the working resolution):
+    # the polish must lower its e to SINGLE_EDGE_MAX_E_RATIO of it to be kept
+    single_edge: bool = False
 
     @cached_property
     def irregularity(self) -> float:
@@ -281,6 +297,9 @@ class _PolishOutcome:
     from_parent: dict[str, Any] | None = None
     finish: dict[str, Any] | None = None  # what the finish found (see `_finish`)
     symmetric: dict[str, Any] | None = None  # what the symmetric finish found (`_symmetric`)
+    # a single edge's polish not kept (`single_edge`): the e it reached, and why; recorded
+    # in the subject's ``quality["polish_not_kept"]`` (``"polish"`` stays a kept polish's)
+    refused: dict[str, Any] | None = None
 
 
 def _model_frame(cur: FloatArray, y: FloatArray, model_irregularity: float,
@@ -783,6 +802,18 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
     if finish is None:
         best, finish = _finish(task, best)
     best, symmetric = _symmetric(task, best)
+    if (task.single_edge and best.steps and task.error >= _spacing_floor(task.spacing2)
+            and not best.error <= SINGLE_EDGE_MAX_E_RATIO * task.error):
+        return _PolishOutcome(
+            subject=task.subject, warped=task.start, error=task.error,
+            correspondence=best.correspondence, probability=best.probability, steps=(),
+            quality=(), refused={
+                "error_before": task.error, "error": best.error,
+                "floor": _spacing_floor(task.spacing2),
+                "reason": f"e {task.error:.3g} -> {best.error:.3g}, not below "
+                          f"{SINGLE_EDGE_MAX_E_RATIO:g}x the e of one CPD from the root, "
+                          f"which is at the sampling floor or above "
+                          f"({_spacing_floor(task.spacing2):.3g})"})
     return _PolishOutcome(subject=task.subject, warped=best.warped, error=best.error,
                           correspondence=best.correspondence, probability=best.probability,
                           steps=best.steps, quality=best.quality, consensus=info,
@@ -916,6 +947,11 @@ def _polish_subjects(
                     results[out.subject] = _polished(coll, old, out, parent,
                                                      stored is not None)
                     moved.add(out.subject)
+                elif out.refused is not None:
+                    old = results[out.subject]
+                    results[out.subject] = replace(
+                        old, quality={**(old.quality or {}), "polish_not_kept": out.refused},
+                        reason=f"{old.reason}; polish not kept: {out.refused['reason']}")
                 done += 1
                 if progress is not None:
                     progress(stage, done, len(todo))
@@ -965,4 +1001,5 @@ def _polish_subject_task(
         else None,
         from_parent=from_parent, edge_affine=edge_affine,
         edge_within_chain_e=stored is None, control=control,
-        subject_control=subject_control, stage_control=stage_control)
+        subject_control=subject_control, stage_control=stage_control,
+        single_edge=stored is None and r.layer == 2)

@@ -25,9 +25,15 @@ from registration._tree._polish import (
     POLISH_BETA_FACTORS,
     POLISH_CONSENSUS_MIN_LAYER,
     POLISH_FROM_PARENT_MIN_LAYER,
+    SINGLE_EDGE_MAX_E_RATIO,
     consensus_partner,
 )
-from registration.synthetic import chained_family, correspondence_error
+from registration.synthetic import (
+    base_outline,
+    chained_family,
+    correspondence_error,
+    deformation_chains,
+)
 
 from .test_pose import rotation
 
@@ -344,8 +350,6 @@ def test_every_chain_reproduces_its_registration_with_leaves_and_refinement():
     # leaves reuse registrations made while the tree grew; a member that refinement
     # moved afterwards used to leave its leaf with a chain through the new path and a
     # warped model from the old one (this family and threshold did, before the fix)
-    from registration.synthetic import base_outline, deformation_chains
-
     fam = deformation_chains(base_outline(1500), n_chains=3, chain_length=4, n_points=120,
                              step=0.15, seed=0)
     res = build_dynamic_tree(fam.shapes, 0, error_threshold=2e-3, cpd=FAST_CPD,
@@ -514,6 +518,39 @@ def test_polish_moves_halfway_between_the_edges_two_registrations():
         assert len(s.transform.steps) == len(parent.transform.steps) + 1 + p["steps"]
         assert p["steps"] >= 2  # at least the step halfway and one stage from there
         assert np.allclose(s.transform.apply(fam.shapes[0]), s.warped, atol=1e-8)
+
+
+def test_a_single_edges_polish_is_kept_only_when_it_lowers_e_by_the_set_fraction(family):
+    """At layer 2 the polish only goes on fitting one CPD from the root: prints of one type
+    (each subject one small warp from the root, its e at the sampling floor) keep their
+    edge's registration, with the refused polish's e and reason recorded; large
+    single-edge differences (the chained family's layer 2) are polished on."""
+    prints = deformation_chains(base_outline(1500), n_chains=6, chain_length=1, step=0.04,
+                                rotation_deg=1.0, n_points=150, seed=0)
+    refused = 0
+    for shapes in (prints.shapes, family.shapes[:8]):
+        res = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+        edge = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, polish=False,
+                                  executor=SerialExecutor())
+        for s in res.subjects:
+            if s.layer != 2:
+                continue
+            before, q = edge.subject(s.index), s.quality or {}
+            if "polish" in q:
+                assert "polish_not_kept" not in q
+            elif "polish_not_kept" in q:
+                refused += shapes is prints.shapes
+                record = q["polish_not_kept"]
+                assert record["error_before"] == s.error == before.error >= record["floor"]
+                assert record["error"] > SINGLE_EDGE_MAX_E_RATIO * before.error
+                np.testing.assert_array_equal(s.warped, before.warped)
+                assert len(s.transform.steps) == len(before.transform.steps)
+                assert np.allclose(s.transform.apply(shapes[0]), s.warped, atol=1e-8)
+                assert s.reason.endswith(f"polish not kept: {record['reason']}")
+                assert s.disagreement is None
+        if shapes is not prints.shapes:  # large differences: the single edges polished
+            assert any("polish" in (s.quality or {}) for s in res.subjects if s.layer == 2)
+    assert refused >= 3
 
 
 def test_a_rejected_polish_stage_is_skipped_not_the_end(family, monkeypatch):
@@ -1374,7 +1411,6 @@ def test_the_consensus_is_not_formed_with_a_partner_registered_a_pose_apart():
     from registration._pose import PoseSpec, rotation_angle
     from registration._tree._polish import _consensus, _isometry_between, _PolishTask, _Stages
     from registration._tree._tasks import POSE_DISTINCT_DEG, _register_task, _RegTask, _Start
-    from registration.synthetic import base_outline
 
     def turned(points, deg):
         return points @ rotation(deg).T
