@@ -999,15 +999,16 @@ def summary(cases: list[Case], reports: list[dict[str, Any]],
 
 
 def library_fingerprint() -> str:
-    """A short hash of the library's source, so runs of a changing library can be told
-    apart."""
+    """A short hash of the library's source (every module of its subpackages, and the
+    compiled E-step's C source), so runs of a changing library can be told apart."""
     import hashlib
 
     import registration
 
+    root = Path(registration.__file__).parent
     h = hashlib.sha1()
-    for f in sorted(Path(registration.__file__).parent.glob("*.py")):
-        h.update(f.name.encode() + f.read_bytes())
+    for f in sorted([*root.rglob("*.py"), *root.rglob("*.c")]):
+        h.update(f.relative_to(root).as_posix().encode() + f.read_bytes())
     return h.hexdigest()[:12]
 
 
