@@ -8,22 +8,11 @@ that construction, checked here on one Latin glyph in whichever font the machine
 
 from __future__ import annotations
 
-from types import ModuleType
-
 import numpy as np
-import pytest
 
 
-@pytest.fixture()
-def bg(bench_module) -> ModuleType:  # bench/bench_groundtruth.py
-    return bench_module("bench_groundtruth")
-
-
-def test_ink_spread_truth(bg) -> None:
-    font = next((f for f in bg.FONTS.values() if f.exists() and bg.has_glyph("a", f)), None)
-    if font is None:
-        pytest.skip("no font of the bench's draws 'a' here")
-    cases = bg.ink_spread_cases([0], "a", {"font": font}, n_points=150)
+def test_ink_spread_truth(bg, latin_font) -> None:
+    cases = bg.ink_spread_cases([0], "a", {"font": latin_font}, n_points=150)
     assert len(cases) == 1
     case = cases[0]
     widths = bg.INK_WIDTHS

@@ -3,22 +3,11 @@ one small warp of the root's shape, drawn independently: a star, not a chain."""
 
 from __future__ import annotations
 
-from types import ModuleType
-
 import numpy as np
-import pytest
 
 
-@pytest.fixture()
-def bg(bench_module) -> ModuleType:  # bench/bench_groundtruth.py
-    return bench_module("bench_groundtruth")
-
-
-def test_one_type_is_a_star_of_small_warps(bg) -> None:
-    font = next((f for f in bg.FONTS.values() if f.exists() and bg.has_glyph("a", f)), None)
-    if font is None:
-        pytest.skip("no font of the bench's draws 'a' here")
-    cases = bg.one_type_cases([], "a", {"font": font}, [0, 1])
+def test_one_type_is_a_star_of_small_warps(bg, latin_font) -> None:
+    cases = bg.one_type_cases([], "a", {"font": latin_font}, [0, 1])
     assert [c.label for c in cases] == ["one-type a font seed 0", "one-type a font seed 1"]
     for case in cases:
         assert case.kind == "one-type" and case.root == 0
