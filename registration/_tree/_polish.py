@@ -22,6 +22,10 @@ warp does not fold, its e is no larger than its start's, and its own confidence 
 where the last kept one (or the chain) left the points. A chain's composed field has more
 freedom than one CPD's, so its e can be lower than a wide stage's while its points have
 slid: there the finer stage, from the chain, still lowers e and the correspondence error.
+At layer 2, where the chain is one CPD from the root and its e already at the sampling
+floor or above, the whole polish (the finishes below included) must lower that e by a
+fifth too, or the edge's own registration stays (``SINGLE_EDGE_MAX_E_RATIO``; recorded
+in ``quality["polish_not_kept"]``).
 
 Subjects are polished a tree level at a time, parents first. At layer >=
 ``POLISH_FROM_PARENT_MIN_LAYER`` a subject whose parent's polish moved it also registers
