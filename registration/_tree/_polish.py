@@ -806,18 +806,17 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
     if finish is None:
         best, finish = _finish(task, best)
     best, symmetric = _symmetric(task, best)
-    if (task.single_edge and best.steps and task.error >= _spacing_floor(task.spacing2)
+    floor = _spacing_floor(task.spacing2)
+    if (task.single_edge and best.steps and task.error >= floor
             and not best.error <= SINGLE_EDGE_MAX_E_RATIO * task.error):
         return _PolishOutcome(
             subject=task.subject, warped=task.start, error=task.error,
             correspondence=best.correspondence, probability=best.probability, steps=(),
             quality=(), refused={
-                "error_before": task.error, "error": best.error,
-                "floor": _spacing_floor(task.spacing2),
+                "error_before": task.error, "error": best.error, "floor": floor,
                 "reason": f"e {task.error:.3g} -> {best.error:.3g}, not below "
                           f"{SINGLE_EDGE_MAX_E_RATIO:g}x the e of one CPD from the root, "
-                          f"which is at the sampling floor or above "
-                          f"({_spacing_floor(task.spacing2):.3g})"})
+                          f"which is at the sampling floor or above ({floor:.3g})"})
     return _PolishOutcome(subject=task.subject, warped=best.warped, error=best.error,
                           correspondence=best.correspondence, probability=best.probability,
                           steps=best.steps, quality=best.quality, consensus=info,
