@@ -133,6 +133,18 @@ POLISH_FINER_MAX_E_RATIO = 0.8
 #: 0.17 h^2 (correspondence error 0.15) is polished to 0.91x the e and 0.09. Only at
 #: the working resolution: the stored resolution's polish registers every edge again.
 SINGLE_EDGE_MAX_E_RATIO = POLISH_FINER_MAX_E_RATIO
+#: Below the sampling floor, a single edge's polish that lowers e by less than
+#: :data:`SINGLE_EDGE_MAX_E_RATIO` is kept only when it moves the model's points by at
+#: least this many of the subject's spacings h (RMS). The floor is set for independent,
+#: irregular samplings; evenly spaced ones (a farthest-point subsample, as the working
+#: resolution of a large shape is) leave an e near h^2 / 12 between two samplings of one
+#: outline, under the floor, so there a residual below it can still be noise. A move
+#: shorter than the spacing only exchanges which of the subject's samples a point sits
+#: nearest, which the samples cannot decide; a longer one that lowers e leaves a wrong
+#: minimum. Ground truth (bench/RESULTS.md 7.54): 1200-point prints of one type, at the
+#: 400-point working resolution, e 0.12-0.17 h^2, polished 0.80-0.96x the e with moves of
+#: 0.10-0.59 h, correspondences 1.14x plain CPD's; the Chui fish edge above moved 1.10 h.
+SINGLE_EDGE_MIN_MOVE = 1.0
 #: Subjects at this layer or deeper (two links or more from the root) are also registered
 #: from a partner, for a consensus with their chain (see `_consensus`; the root directly
 #: until bench/RESULTS.md 7.27, see `CONSENSUS_PARTNER_MIN_POINTS`). At layer 2 the chain
@@ -770,6 +782,29 @@ def _extends(chain: _Stages, more: _Stages) -> _Stages:
                    quality=(*chain.quality, *more.quality))
 
 
+def _single_edge_refusal(task: _PolishTask, best: _Stages) -> dict[str, Any] | None:
+    """Why a single edge's polish (`best`, from the edge's registration `task.start`) is
+    not kept, as recorded in ``quality["polish_not_kept"]``; None: it is kept. It is kept
+    when it lowers e to at most :data:`SINGLE_EDGE_MAX_E_RATIO` of the edge's, or, the
+    edge's e below the sampling floor, when it moves the model's points at least
+    :data:`SINGLE_EDGE_MIN_MOVE` spacings."""
+    if best.error <= SINGLE_EDGE_MAX_E_RATIO * task.error:
+        return None
+    floor = _spacing_floor(task.spacing2)
+    move = float(np.sqrt(np.mean(np.sum((best.warped - task.start) ** 2, axis=1))
+                         / task.spacing2))
+    record = {"error_before": task.error, "error": best.error, "floor": floor, "move": move}
+    lowered = (f"e {task.error:.3g} -> {best.error:.3g}, not below "
+               f"{SINGLE_EDGE_MAX_E_RATIO:g}x the e of one CPD from the root")
+    if task.error >= floor:
+        return {**record, "reason": f"{lowered}, which is at the sampling floor or above "
+                                    f"({floor:.3g})"}
+    if move < SINGLE_EDGE_MIN_MOVE:
+        return {**record, "reason": f"{lowered}, and the points moved {move:.2g} of the "
+                                    f"subject's spacing, less than {SINGLE_EDGE_MIN_MOVE:g}"}
+    return None
+
+
 def _polish_task(task: _PolishTask) -> _PolishOutcome:
     chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2,
                     task.model_irregularity, task.irregularity, task.stage_control)
@@ -806,17 +841,13 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
     if finish is None:
         best, finish = _finish(task, best)
     best, symmetric = _symmetric(task, best)
-    floor = _spacing_floor(task.spacing2)
-    if (task.single_edge and best.steps and task.error >= floor
-            and not best.error <= SINGLE_EDGE_MAX_E_RATIO * task.error):
-        return _PolishOutcome(
-            subject=task.subject, warped=task.start, error=task.error,
-            correspondence=best.correspondence, probability=best.probability, steps=(),
-            quality=(), refused={
-                "error_before": task.error, "error": best.error, "floor": floor,
-                "reason": f"e {task.error:.3g} -> {best.error:.3g}, not below "
-                          f"{SINGLE_EDGE_MAX_E_RATIO:g}x the e of one CPD from the root, "
-                          f"which is at the sampling floor or above ({floor:.3g})"})
+    if task.single_edge and best.steps:
+        refused = _single_edge_refusal(task, best)
+        if refused is not None:
+            return _PolishOutcome(
+                subject=task.subject, warped=task.start, error=task.error,
+                correspondence=best.correspondence, probability=best.probability, steps=(),
+                quality=(), refused=refused)
     return _PolishOutcome(subject=task.subject, warped=best.warped, error=best.error,
                           correspondence=best.correspondence, probability=best.probability,
                           steps=best.steps, quality=best.quality, consensus=info,
@@ -924,6 +955,9 @@ def _polish_subjects(
         s for s, r in sorted(results.items())
         if r.warped is not None and r.layer is not None and r.layer >= min_layer
         and r.error is not None and r.transform is not None and r.confidence is not None
+        # a single edge whose polish the working resolution did not keep stays the
+        # stored CPD's: the decision is the working resolution's, as every decision is
+        and not (stored is not None and "polish_not_kept" in (r.quality or {}))
     ]
     if not todo:
         return

@@ -26,6 +26,8 @@ from registration._tree._polish import (
     POLISH_CONSENSUS_MIN_LAYER,
     POLISH_FROM_PARENT_MIN_LAYER,
     SINGLE_EDGE_MAX_E_RATIO,
+    SINGLE_EDGE_MIN_MOVE,
+    _single_edge_refusal,
     consensus_partner,
 )
 from registration.synthetic import (
@@ -541,7 +543,9 @@ def test_a_single_edges_polish_is_kept_only_when_it_lowers_e_by_the_set_fraction
             elif "polish_not_kept" in q:
                 refused += shapes is prints.shapes
                 record = q["polish_not_kept"]
-                assert record["error_before"] == s.error == before.error >= record["floor"]
+                assert record["error_before"] == s.error == before.error
+                assert (record["error_before"] >= record["floor"]
+                        or record["move"] < SINGLE_EDGE_MIN_MOVE)
                 assert record["error"] > SINGLE_EDGE_MAX_E_RATIO * before.error
                 np.testing.assert_array_equal(s.warped, before.warped)
                 assert len(s.transform.steps) == len(before.transform.steps)
@@ -551,6 +555,53 @@ def test_a_single_edges_polish_is_kept_only_when_it_lowers_e_by_the_set_fraction
         if shapes is not prints.shapes:  # large differences: the single edges polished
             assert any("polish" in (s.quality or {}) for s in res.subjects if s.layer == 2)
     assert refused >= 3
+
+
+def test_the_single_edge_rule_below_the_floor_asks_for_a_move_of_a_spacing():
+    """A single edge's polish that lowers e by the set fraction is kept; one that does
+    not is refused at or above the sampling floor (0.5 h^2), and below it unless it moved
+    the model's points at least SINGLE_EDGE_MIN_MOVE spacings (RMS)."""
+    from types import SimpleNamespace
+
+    start = np.zeros((10, 2))
+    h2 = 0.01  # floor 0.005
+
+    def refusal(e_edge: float, e_polished: float, move: float) -> dict | None:
+        task = SimpleNamespace(error=e_edge, spacing2=h2, start=start)
+        warped = start + np.array([move * math.sqrt(h2), 0.0])
+        return _single_edge_refusal(task, SimpleNamespace(error=e_polished, warped=warped))
+
+    assert refusal(0.01, SINGLE_EDGE_MAX_E_RATIO * 0.01, 0.1) is None
+    at_floor = refusal(0.01, 0.009, 3.0)
+    assert at_floor is not None and "sampling floor or above" in at_floor["reason"]
+    assert at_floor["floor"] == pytest.approx(0.005) and at_floor["move"] == pytest.approx(3.0)
+    small = refusal(0.004, 0.0036, 0.5)
+    assert small is not None and "moved 0.5 of the subject's spacing" in small["reason"]
+    assert refusal(0.004, 0.0036, SINGLE_EDGE_MIN_MOVE) is None
+
+
+def test_evenly_sampled_prints_keep_their_single_edge_and_so_does_the_stored_pass():
+    """A large shape's working resolution is a farthest-point subsample, evenly spaced:
+    two samplings of one outline then leave an e well under the floor, and the polish of
+    a print one small warp from the root moves the points less than a spacing. It is not
+    kept, and the stored resolution follows that decision: the subject is the stored
+    CPD's, not polished again there."""
+    prints = deformation_chains(base_outline(1500), n_chains=6, chain_length=1, step=0.04,
+                                rotation_deg=1.0, n_points=300, seed=0)
+    res = build_dynamic_tree(prints.shapes, 0, cpd=FAST_CPD, executor=SerialExecutor(),
+                             working_points=100)
+    refused = [s for s in res.subjects if "polish_not_kept" in (s.quality or {})]
+    assert len(refused) >= 3
+    for s in refused:
+        record = s.quality["polish_not_kept"]
+        assert s.layer == 2 and "polish" not in s.quality
+        assert record["error_before"] < record["floor"]
+        assert record["move"] < SINGLE_EDGE_MIN_MOVE
+        assert "stored_polish" not in s.quality
+        assert np.allclose(s.transform.apply(prints.shapes[0]), s.warped, atol=1e-8)
+    for s in res.subjects:
+        if s.layer is not None and s.layer >= 2 and s.index not in {r.index for r in refused}:
+            assert "stored_polish" in (s.quality or {})
 
 
 def test_a_rejected_polish_stage_is_skipped_not_the_end(family, monkeypatch):
