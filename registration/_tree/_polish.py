@@ -25,7 +25,8 @@ slid: there the finer stage, from the chain, still lowers e and the corresponden
 At layer 2, where the chain is one CPD from the root and its e already at the sampling
 floor or above, the whole polish (the finishes below included) must lower that e by a
 fifth too, or the edge's own registration stays (``SINGLE_EDGE_MAX_E_RATIO``; recorded
-in ``quality["polish_not_kept"]``).
+in ``quality["polish_not_kept"]``); below the floor, so must one that moves the points
+less than a spacing (``SINGLE_EDGE_MIN_MOVE``).
 
 Subjects are polished a tree level at a time, parents first. At layer >=
 ``POLISH_FROM_PARENT_MIN_LAYER`` a subject whose parent's polish moved it also registers
@@ -130,8 +131,9 @@ POLISH_FINER_MAX_E_RATIO = 0.8
 #: sit at 0.5-1 h^2 and are polished to 0.83-0.97x the e with their correspondences
 #: 1.1-1.3x worse. Below the floor the two samplings coincide (the same points moved, as
 #: in the Chui series), so what is left is deformation: a Chui fish edge CPD left at
-#: 0.17 h^2 (correspondence error 0.15) is polished to 0.91x the e and 0.09. Only at
-#: the working resolution: the stored resolution's polish registers every edge again.
+#: 0.17 h^2 (correspondence error 0.15) is polished to 0.91x the e and 0.09. Below the
+#: floor see :data:`SINGLE_EDGE_MIN_MOVE`. Decided at the working resolution; a single
+#: edge whose polish is not kept there is not polished at the stored resolution either.
 SINGLE_EDGE_MAX_E_RATIO = POLISH_FINER_MAX_E_RATIO
 #: Below the sampling floor, a single edge's polish that lowers e by less than
 #: :data:`SINGLE_EDGE_MAX_E_RATIO` is kept only when it moves the model's points by at

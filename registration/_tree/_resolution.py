@@ -413,6 +413,10 @@ def _polish_stored(full: _Collection, subjects: list[SubjectResult], cpd: CPDOpt
     (:data:`POLISH_STAGE_CONTROL_POINTS`). Recorded in ``quality["stored_polish"]``; the
     confidence stays the one the decisions were taken with.
 
+    A single edge whose polish the working resolution did not keep
+    (``quality["polish_not_kept"]``) is not polished here either: it stays the stored
+    CPD's (bench/RESULTS.md 7.54).
+
     Unlike the working resolution's polish, every subject registers its edge again (at
     layer 2 from the root's own points, deeper from the parent as polished here, whether
     or not the parent's polish moved it) and goes on to the halfway registration whatever
