@@ -56,6 +56,9 @@ Families (collections with exact ground truth):
   a single warp of 0.04 of the size from the root (two thirds of small-step's step), drawn
   independently (seeds 0-1): prints of one type or block, a star rather than a chain, so
   none is far.
+- ``one-type-dense``: the same prints of 書水心 drawn twice as large, at 1200 points a
+  print: full-size scans, decided at the working resolution and registered again at the
+  stored one (bench/RESULTS.md 7.54).
 - ``glyph-latin``: Latin letters and digits (agR&5QOCDGSe0) from the same Noto fonts,
   chained as glyph-other (root 0, seed 0): glyphs of a few smooth closed contours, round
   ones among them, where the points barely show where a point lies along a contour
@@ -607,14 +610,32 @@ def one_type_cases(designs: list[str], characters: str, fonts: dict[str, Path],
     and every one sits one step from it (root 0, the sources of ``small-step``). Plain CPD
     from the root is one registration across the smallest difference there is; the tree
     can only match it or fit the samples' noise (bench/RESULTS.md 7.53)."""
+    return _star_cases("one-type", _small_sources(designs, characters, fonts), seeds)
+
+
+def dense_one_type_cases(characters: str, fonts: dict[str, Path],
+                         seeds: list[int]) -> list[Case]:
+    """``one-type-dense``: ``one-type``'s prints at full size, the `characters` drawn in
+    `fonts` at :data:`DENSE_SCALE` times the size and sampled at :data:`DENSE_POINTS`
+    points a print, so that the tree is decided on 400-point subsamples and registered
+    again at the stored resolution: the path of uploaded scans (bench/RESULTS.md 7.54)."""
+    sources = [(f"{char} {font_name}", glyph_points(char, font, scale=DENSE_SCALE))
+               for char, font_name, font in _drawn(characters, fonts)]
+    return _star_cases("one-type-dense", sources, seeds, DENSE_POINTS)
+
+
+def _star_cases(kind: str, sources: list[tuple[str, np.ndarray]], seeds: list[int],
+                n_points: int = 400) -> list[Case]:
+    """A collection of ``ONE_TYPE_SUBJECTS`` prints of each source per seed, each one
+    small warp of the root's shape drawn independently, `n_points` points a shape."""
     cases = []
-    for name, dense in _small_sources(designs, characters, fonts):
+    for name, dense in sources:
         for seed in seeds:
             fam = deformation_chains(dense, n_chains=ONE_TYPE_SUBJECTS, chain_length=1,
                                      step=ONE_TYPE_STEP, rotation_deg=ONE_TYPE_ROTATION,
-                                     seed=seed)
+                                     seed=seed, n_points=n_points)
             cases.append(Case(
-                kind="one-type", label=f"one-type {name} seed {seed}", seed=seed,
+                kind=kind, label=f"{kind} {name} seed {seed}", seed=seed,
                 shapes=fam.shapes, names=fam.names, root=0, truth=fam.root_images(0),
                 depth=fam.depth, distance=fam.depth, far_from=2,  # none is far
             ))
@@ -1055,8 +1076,8 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
                     "generated mpeg7 outline outline-random outline-arc glyph-other dense-edge "
-                    "dense-skel small-step one-type glyph-latin glyph-stroke; glyph-turned and "
-                    "ink-spread run only when named)")
+                    "dense-skel small-step one-type one-type-dense glyph-latin glyph-stroke; "
+                    "glyph-turned and ink-spread run only when named)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
@@ -1135,6 +1156,9 @@ def main() -> None:
     if not args.quick or (args.only and "one-type" in args.only):
         cases += one_type_cases(designs, args.characters[:3], {f: FONTS[f] for f in fonts},
                                 seeds)
+    if not args.quick or (args.only and "one-type-dense" in args.only):
+        cases += dense_one_type_cases(args.characters[:3], {f: FONTS[f] for f in fonts},
+                                      seeds)
     if not args.quick or (args.only and "glyph-latin" in args.only):
         cases += latin_glyph_cases(seeds[:1], args.latin, {f: FONTS[f] for f in fonts})
     if not args.quick or (args.only and "glyph-stroke" in args.only):

@@ -25,3 +25,15 @@ def test_one_type_is_a_star_of_small_warps(bg, latin_font) -> None:
             assert not np.allclose(shape, root)  # its own sample of the warped glyph
     # the two seeds draw different prints
     assert not np.allclose(cases[0].truth[1], cases[1].truth[1])
+
+
+def test_one_type_dense_is_the_same_star_at_full_size(bg, latin_font) -> None:
+    cases = bg.dense_one_type_cases("a", {"font": latin_font}, [0])
+    assert [c.label for c in cases] == ["one-type-dense a font seed 0"]
+    (case,) = cases
+    assert case.kind == "one-type-dense" and case.root == 0
+    assert case.depth == [0] + [1] * bg.ONE_TYPE_SUBJECTS
+    # above the library's working resolution: decided on subsamples, registered again on
+    # the stored points
+    assert all(len(s) == bg.DENSE_POINTS for s in case.shapes)
+    assert bg.DENSE_POINTS > 400

@@ -15,7 +15,7 @@ from .._executor import Executor
 from .._result import SubjectResult
 from .._similarity import ProgressCallback, Similarity
 from ._collection import _attempt, _Collection, _Node, _subject_from_outcome
-from ._rules import REFINE_TIE, _error_limit, _rejection, _SimilarityRule
+from ._rules import REFINE_MAX_D_RATIO, REFINE_TIE, _error_limit, _rejection, _SimilarityRule
 from ._tasks import POSE_MARGIN, _lowest_error, _RegOutcome, _RegTask, _run_tasks
 
 # the dynamic tree's edge builder, `_Run.edge` bound to the similarity: (member, subject,
@@ -98,8 +98,9 @@ def _refine_parents(
     registration; a member that joined later can be more similar to it (a smaller D:
     a smaller deformation for CPD to bridge). For every subject without children, the
     most similar such member not yet tried (and not the subject itself or below it) is
-    tried; the subject moves when the new registration passes the tree's rule and is
-    better: a higher path confidence, or one within ``REFINE_TIE`` with a lower e.
+    tried, when its D is at most ``REFINE_MAX_D_RATIO`` times the parent's; the subject
+    moves when the new registration passes the tree's rule and is better: a higher path
+    confidence, or one within ``REFINE_TIE`` with a lower e.
     """
     parents = {r.parent for r in results.values() if r.parent is not None}
     tasks: list[_RegTask] = []
@@ -111,7 +112,7 @@ def _refine_parents(
             (float(sim.D[m, s]), m) for m, node in nodes.items()
             if m != s and node.joined >= nodes[s].joined and (m, s) not in tried
             and s not in node.chain.path and np.isfinite(sim.D[m, s])
-            and sim.D[m, s] < d_parent and sim_rule.similar(sim, m, s)
+            and sim.D[m, s] <= REFINE_MAX_D_RATIO * d_parent and sim_rule.similar(sim, m, s)
         )
         if not later:
             continue

@@ -30,6 +30,7 @@ from registration._tree._polish import (
     _single_edge_refusal,
     consensus_partner,
 )
+from registration._tree._rules import REFINE_MAX_D_RATIO
 from registration.synthetic import (
     base_outline,
     chained_family,
@@ -319,6 +320,26 @@ def test_tree_paths_stay_consistent_after_refinement(dynamic, family):
                                    s.warped, atol=1e-6 * 500)
     refined = [a for s in dynamic.subjects for a in s.attempts if "refine" in a.reason]
     assert all(a.accepted == a.reason.startswith("refined:") for a in refined)
+
+
+def test_refinement_tries_only_a_member_clearly_more_similar_than_the_parent(monkeypatch):
+    """Among prints of one type (independent small warps of the root) a sibling is at
+    about the root's D from a subject; refinement tries a member only when its D is at
+    most REFINE_MAX_D_RATIO times the parent's. Without the margin it tries near ties."""
+    prints = deformation_chains(base_outline(1500), n_chains=10, chain_length=1, step=0.04,
+                                rotation_deg=1.0, n_points=150, seed=0)
+    before = build_dynamic_tree(prints.shapes, 0, cpd=FAST_CPD, refine=False,
+                                executor=SerialExecutor())
+
+    def d_ratios() -> list[float]:
+        res = build_dynamic_tree(prints.shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+        assert res.similarity is not None
+        return [a.similarity / res.similarity[before.subject(s.index).parent, s.index]
+                for s in res.subjects for a in s.attempts if "refine" in a.reason]
+
+    assert all(r <= REFINE_MAX_D_RATIO + 1e-12 for r in d_ratios())
+    monkeypatch.setattr(_passes_module, "REFINE_MAX_D_RATIO", 1.0)
+    assert any(r > REFINE_MAX_D_RATIO for r in d_ratios())
 
 
 def test_refinement_can_be_turned_off(family):
