@@ -16,7 +16,19 @@ from .._result import SubjectResult
 from .._similarity import ProgressCallback, Similarity
 from ._collection import _attempt, _Collection, _Node, _subject_from_outcome
 from ._rules import REFINE_MAX_D_RATIO, REFINE_TIE, _error_limit, _rejection, _SimilarityRule
-from ._tasks import POSE_MARGIN, _lowest_error, _RegOutcome, _RegTask, _run_tasks
+from ._tasks import (
+    POSE_DISTINCT_DEG,
+    POSE_MARGIN,
+    _lowest_error,
+    _RegOutcome,
+    _RegTask,
+    _run_tasks,
+)
+
+#: How far apart (RMS, in the subject's RMS radius) two registrations of a subject put the
+#: model's points when they differ by a turn of ``POSE_DISTINCT_DEG``: the distance a
+#: refinement among near ties by D must move it (`_refine_parents`).
+REFINE_APART = 2.0 * math.sin(math.radians(POSE_DISTINCT_DEG) / 2.0)
 
 # the dynamic tree's edge builder, `_Run.edge` bound to the similarity: (member, subject,
 # layer, the model as warped onto the member) -> the registration task
@@ -98,9 +110,13 @@ def _refine_parents(
     registration; a member that joined later can be more similar to it (a smaller D:
     a smaller deformation for CPD to bridge). For every subject without children, the
     most similar such member not yet tried (and not the subject itself or below it) is
-    tried, when its D is at most ``REFINE_MAX_D_RATIO`` times the parent's; the subject
-    moves when the new registration passes the tree's rule and is better: a higher path
-    confidence, or one within ``REFINE_TIE`` with a lower e.
+    tried; the subject moves when the new registration passes the tree's rule and is
+    better: a higher path confidence, or one within ``REFINE_TIE`` with a lower e. A
+    member whose D is above ``REFINE_MAX_D_RATIO`` times the parent's is a near tie by
+    D: the subject moves there only when the new registration puts the model in another
+    pose than the one it had (the two further apart than a turn of ``POSE_DISTINCT_DEG``
+    moves the points): then one of the two is wrong, and the rule above picks the other.
+    Otherwise the two agree, and the move would only add a link.
     """
     parents = {r.parent for r in results.values() if r.parent is not None}
     tasks: list[_RegTask] = []
@@ -112,7 +128,7 @@ def _refine_parents(
             (float(sim.D[m, s]), m) for m, node in nodes.items()
             if m != s and node.joined >= nodes[s].joined and (m, s) not in tried
             and s not in node.chain.path and np.isfinite(sim.D[m, s])
-            and sim.D[m, s] <= REFINE_MAX_D_RATIO * d_parent and sim_rule.similar(sim, m, s)
+            and sim.D[m, s] < d_parent and sim_rule.similar(sim, m, s)
         )
         if not later:
             continue
@@ -137,11 +153,20 @@ def _refine_parents(
         if out.pose == "rotated" and (old.quality or {}).get("pose") != "rotated":
             # a turn earns its place by the margin, as across members (`_lowest_error`)
             better = better and out.error < POSE_MARGIN * old.error
+        why = "refinement not taken: not better than the registration it had"
+        assert old.parent is not None
+        ratio = float(sim.D[out.member, s]) / float(sim.D[old.parent, s])
+        if ok and better and not ratio <= REFINE_MAX_D_RATIO:
+            apart = float(np.sqrt(np.mean(np.sum((out.warped - nodes[s].q) ** 2, axis=1))))
+            if apart < REFINE_APART:
+                better = False
+                why = (f"refinement not taken: D {ratio:.2f}x the parent's, above "
+                       f"{REFINE_MAX_D_RATIO:g}x, and the registration {apart:.2g} of the "
+                       f"subject's size from the one it had, the same pose")
         accepted = ok and better
         old.attempts.append(_attempt(
             out, limit, "refined: moved here, more similar and a better registration"
-            if accepted else "refinement not taken: not better than the registration it had",
-            accepted=accepted))
+            if accepted else why, accepted=accepted))
         if not accepted:
             continue
         res, node = _subject_from_outcome(coll, out, parent, joined=nodes[s].joined)

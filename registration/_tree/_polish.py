@@ -803,7 +803,8 @@ def _single_edge_refusal(task: _PolishTask, best: _Stages) -> dict[str, Any] | N
                                     f"({floor:.3g})"}
     if move < SINGLE_EDGE_MIN_MOVE:
         return {**record, "reason": f"{lowered}, and the points moved {move:.2g} of the "
-                                    f"subject's spacing, less than {SINGLE_EDGE_MIN_MOVE:g}"}
+                                    f"subject's point spacing (RMS), less than "
+                                    f"{SINGLE_EDGE_MIN_MOVE:g} spacing"}
     return None
 
 

@@ -49,14 +49,16 @@ MIN_CONFIDENCE = 0.2
 # Refinement moves a subject when the new path confidence is higher by more than this, or
 # within it and with a lower e.
 REFINE_TIE = 0.02
-# Refinement tries a later member only when it is clearly more similar to the subject
-# than its parent: D at most this fraction of the parent's (the margin the polish's finer
-# stages must earn on e). The move adds a link, whose error the subject inherits; a
+# Refinement moves a subject to a later member only when it is clearly more similar to the
+# subject than its parent, D at most this fraction of the parent's (the margin the polish's
+# finer stages must earn on e), or when the new registration is in another pose
+# (`_passes.REFINE_APART`). The move adds a link, whose error the subject inherits; a
 # member barely more similar leaves CPD about the same deformation to bridge. Among prints
 # of one type (each an independent small warp from the root) the sibling nearest by D is
 # a pick by noise: 50 of the 57 moves on the bench's one-type family had D at 0.8-1.0x
 # the root's, and their correspondences went 1.3-1.4x worse; on the chain families the
-# moves above 0.8x were no better than staying (bench/RESULTS.md 7.54).
+# moves above 0.8x were no better than staying. On subjects turned at random, two such
+# moves had put a subject in wrong pose right (bench/RESULTS.md 7.54).
 REFINE_MAX_D_RATIO = 0.8
 
 
