@@ -155,14 +155,15 @@ def _refine_parents(
             better = better and out.error < POSE_MARGIN * old.error
         why = "refinement not taken: not better than the registration it had"
         assert old.parent is not None
-        ratio = float(sim.D[out.member, s]) / float(sim.D[old.parent, s])
-        if ok and better and not ratio <= REFINE_MAX_D_RATIO:
+        d_member, d_parent = float(sim.D[out.member, s]), float(sim.D[old.parent, s])
+        if ok and better and not d_member <= REFINE_MAX_D_RATIO * d_parent:
             apart = float(np.sqrt(np.mean(np.sum((out.warped - nodes[s].q) ** 2, axis=1))))
             if apart < REFINE_APART:
                 better = False
-                why = (f"refinement not taken: D {ratio:.2f}x the parent's, above "
-                       f"{REFINE_MAX_D_RATIO:g}x, and the registration {apart:.2g} of the "
-                       f"subject's size from the one it had, the same pose")
+                why = (f"refinement not taken: D {d_member:.3g}, above "
+                       f"{REFINE_MAX_D_RATIO:g}x the parent's ({d_parent:.3g}), and the "
+                       f"registration {apart:.2g} of the subject's size from the one it "
+                       f"had, the same pose")
         accepted = ok and better
         old.attempts.append(_attempt(
             out, limit, "refined: moved here, more similar and a better registration"

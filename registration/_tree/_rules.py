@@ -58,7 +58,7 @@ REFINE_TIE = 0.02
 # a pick by noise: 50 of the 57 moves on the bench's one-type family had D at 0.8-1.0x
 # the root's, and their correspondences went 1.3-1.4x worse; on the chain families the
 # moves above 0.8x were no better than staying. On subjects turned at random, two such
-# moves had put a subject in wrong pose right (bench/RESULTS.md 7.54).
+# moves had put a subject in a wrong pose right (bench/RESULTS.md 7.54).
 REFINE_MAX_D_RATIO = 0.8
 
 
