@@ -276,7 +276,7 @@ class _PolishTask:
     # the model indices the polish's stages (`_stages`) fit their fields with
     stage_control: IntArray | None = None
     # the subject's chain is one CPD from the root (layer 2, at the working resolution):
-    # the polish must lower its e to SINGLE_EDGE_MAX_E_RATIO of it to be kept
+    # the polish is kept only as `_single_edge_refusal` allows
     single_edge: bool = False
 
     @cached_property
