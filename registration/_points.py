@@ -200,6 +200,12 @@ def nearest_distances(points: FloatArray) -> FloatArray:
     return np.asarray(d[:, 1], dtype=np.float64)
 
 
+def rms_distance(a: FloatArray, b: FloatArray) -> float:
+    """RMS distance between corresponding points of two (n, 2) sets (row k of `a` with
+    row k of `b`), in their units: how far apart two registrations put a model's points."""
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+
+
 def mean_spacing2(points: FloatArray) -> float:
     """Mean squared nearest-neighbour spacing h^2 of a shape's points."""
     return float(np.mean(nearest_distances(points) ** 2))

@@ -12,6 +12,7 @@ from dataclasses import replace
 import numpy as np
 
 from .._executor import Executor
+from .._points import rms_distance
 from .._result import SubjectResult
 from .._similarity import ProgressCallback, Similarity
 from ._collection import _attempt, _Collection, _Node, _subject_from_outcome
@@ -157,7 +158,7 @@ def _refine_parents(
         assert old.parent is not None
         d_member, d_parent = float(sim.D[out.member, s]), float(sim.D[old.parent, s])
         if ok and better and not d_member <= REFINE_MAX_D_RATIO * d_parent:
-            apart = float(np.sqrt(np.mean(np.sum((out.warped - nodes[s].q) ** 2, axis=1))))
+            apart = rms_distance(out.warped, nodes[s].q)
             if apart < REFINE_APART:
                 better = False
                 why = (f"refinement not taken: D {d_member:.3g}, above "

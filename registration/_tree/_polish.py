@@ -81,7 +81,7 @@ from .._error import registration_error
 from .._executor import Executor, owned_executor
 from .._icp._pairwise import fit_rigid
 from .._pointmap import PointTransform, jacobian_determinants
-from .._points import farthest_point_indices, sampling_irregularity
+from .._points import farthest_point_indices, rms_distance, sampling_irregularity
 from .._pose import rotation_angle
 from .._quality import RegistrationQuality, measure_quality
 from .._result import SubjectResult
@@ -762,8 +762,7 @@ def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any
     # how far apart the forward and the backward registration put the model's points:
     # twice the step's move (RMS, in the subject's RMS radius, as the normalised
     # coordinates are); the subject's `disagreement` (bench/RESULTS.md 7.38)
-    info["disagreement"] = 2.0 * float(np.sqrt(np.mean(np.sum((moved - best.warped) ** 2,
-                                                               axis=1))))
+    info["disagreement"] = 2.0 * rms_distance(moved, best.warped)
     return _finished(task, best, step, moved, info,
                      lambda e: _posterior_max(moved, task.y, max(0.5 * e, task.spacing2), o.w))
 
@@ -793,8 +792,7 @@ def _single_edge_refusal(task: _PolishTask, best: _Stages) -> dict[str, Any] | N
     if best.error <= SINGLE_EDGE_MAX_E_RATIO * task.error:
         return None
     floor = _spacing_floor(task.spacing2)
-    move = float(np.sqrt(np.mean(np.sum((best.warped - task.start) ** 2, axis=1))
-                         / task.spacing2))
+    move = rms_distance(best.warped, task.start) / math.sqrt(task.spacing2)
     record = {"error_before": task.error, "error": best.error, "floor": floor, "move": move}
     lowered = (f"e {task.error:.3g} -> {best.error:.3g}, not below "
                f"{SINGLE_EDGE_MAX_E_RATIO:g}x the e of one CPD from the root")
