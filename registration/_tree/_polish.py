@@ -303,7 +303,7 @@ class _PolishOutcome:
     subject: int
     warped: FloatArray
     error: float
-    correspondence: IntArray
+    correspondence: IntArray  # of `warped` (empty when `refused`: the edge's own stay)
     probability: FloatArray
     steps: tuple[PointTransform, ...]  # the transform's steps after the chain (none: rejected)
     quality: tuple[RegistrationQuality, ...]  # of each CPD stage among them
@@ -845,10 +845,13 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
     if task.single_edge and best.steps:
         refused = _single_edge_refusal(task, best)
         if refused is not None:
+            # nothing registered: the subject keeps its edge's registration, whose
+            # correspondences it already has
             return _PolishOutcome(
                 subject=task.subject, warped=task.start, error=task.error,
-                correspondence=best.correspondence, probability=best.probability, steps=(),
-                quality=(), refused=refused)
+                correspondence=np.empty(0, dtype=np.intp),
+                probability=np.empty(0, dtype=np.float64), steps=(), quality=(),
+                refused=refused)
     return _PolishOutcome(subject=task.subject, warped=best.warped, error=best.error,
                           correspondence=best.correspondence, probability=best.probability,
                           steps=best.steps, quality=best.quality, consensus=info,
