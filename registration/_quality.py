@@ -239,6 +239,12 @@ def _tangents_and_spacing(points: FloatArray) -> tuple[FloatArray, float]:
     return np.c_[np.cos(angle), np.sin(angle)], h
 
 
+def outline_tangents(points: FloatArray) -> FloatArray:
+    """Each point's unit tangent: the principal direction of its ``TANGENT_NEIGHBOURS``
+    nearest points, itself included (its sign arbitrary)."""
+    return _tangents_and_spacing(points)[0]
+
+
 def points_across(points: FloatArray) -> NDArray[np.bool_]:
     """Whether each point has other points of the set across it: within 45 degrees of
     its normal (either side, any distance) and more than ``ACROSS_MIN_SPACINGS`` point

@@ -254,7 +254,9 @@ def build_dynamic_tree(
             assert r.warped is not None and r.layer is not None
             return edge(m, s, r.layer + 1, coll.norms[m].apply(r.warped))
 
-        _polish_subjects(coll, results, cpd, executor, progress, partner=partner)
+        # the step towards plain CPD at the resolution the result is reported at
+        _polish_subjects(coll, results, cpd, executor, progress, partner=partner,
+                         along_plain=run.coll is run.full)
     return run.finish(
         "dynamic_tree", [results[s] for s in subjects_idx], sim, sim_rule,
         compare_direct=options["compare_direct"],

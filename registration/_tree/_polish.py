@@ -57,6 +57,9 @@ A tree decided at a working resolution (:mod:`._resolution`) is polished once mo
 the stored points, without the consensus, every subject's edge registered again there,
 its fields fitted through the stored stage's control points, its stages' through twice
 as many (``quality["stored_polish"]``; 7.31, 7.32).
+Once every subject is polished, each whose polish was kept moves its points a fifth of
+the way to plain CPD's along the subject's outline, where plain CPD fits the subject
+about as closely (`_along_plain`, at the resolution the result is reported at; 7.56).
 Figures: bench/RESULTS.md, sections 0.4 (one stage), 0.5 (coarse to fine), 0.6
 (layer 2, skipping) and 0.9 (the consensus); 7.4 (accelerated EM), 7.5 (the
 consensus's e rule), 7.7 (edges from polished parents, the halfway step), 7.11 (the
@@ -74,6 +77,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from .._cpd import CPDOptions, CPDResult, cpd_nonrigid
 from .._cpd._estep import _posterior_max
@@ -83,7 +87,7 @@ from .._icp._pairwise import fit_rigid
 from .._pointmap import PointTransform, jacobian_determinants
 from .._points import farthest_point_indices, rms_distance, sampling_irregularity
 from .._pose import rotation_angle
-from .._quality import RegistrationQuality, measure_quality
+from .._quality import RegistrationQuality, measure_quality, outline_tangents
 from .._result import SubjectResult
 from .._similarity import ProgressCallback
 from .._transform import AffineTransform, ChainTransform
@@ -220,6 +224,20 @@ FINISH_LMBDA_FACTOR = 2.0
 #: the consensus (:data:`CONSENSUS_MAX_E_RATIO`), it undoes part of a slide the subject's
 #: own sampling let the chain settle into, at an e that may be a little higher.
 FINISH_MAX_E_RATIO = 1.1
+#: The last step of the polish (`_along_plain`): how far each model point moves, along
+#: the subject's outline, towards where plain CPD from the root puts it; only when the
+#: polished e is above ``ALONG_PLAIN_MIN_E_RATIO`` times plain CPD's, and only on shapes
+#: of at least ``ALONG_PLAIN_MIN_POINTS`` points (as :data:`CONSENSUS_PARTNER_MIN_POINTS`).
+#: Along the outline neither e nor CPD's data term sees where a point lies; there the
+#: tree's registration and plain CPD's are two estimates of one correspondence, each with
+#: its own slide (the tree's gathered link by link, plain CPD's from bridging the whole
+#: difference at once), and moving the tree's part of the way to plain CPD's averages
+#: part of the two slides out. Where plain CPD's e is more than twice the tree's, plain
+#: CPD has not fitted the subject and its place along the outline says nothing. Measured
+#: on the default ground-truth bench's families (bench/RESULTS.md 7.56).
+ALONG_PLAIN_WEIGHT = 0.2
+ALONG_PLAIN_MIN_E_RATIO = 0.5
+ALONG_PLAIN_MIN_POINTS = 150
 #: The progress stage of the polish at the stored resolution (see :class:`AtStored`); it
 #: counts subjects, as ``full resolution``.
 STORED_STAGE = "polish full resolution"
@@ -278,6 +296,9 @@ class _PolishTask:
     # the subject's chain is one CPD from the root (layer 2, at the working resolution):
     # the polish is kept only as `_single_edge_refusal` allows
     single_edge: bool = False
+    # end with the step towards plain CPD (`_along_plain`): at the resolution the result
+    # is reported at, once (not at a working resolution a stored one follows)
+    along_plain: bool = True
 
     @cached_property
     def irregularity(self) -> float:
@@ -315,6 +336,10 @@ class _PolishOutcome:
     from_parent: dict[str, Any] | None = None
     finish: dict[str, Any] | None = None  # what the finish found (see `_finish`)
     symmetric: dict[str, Any] | None = None  # what the symmetric finish found (`_symmetric`)
+    along_plain: dict[str, Any] | None = None  # what the step towards plain CPD found
+    # the registration with that step, when kept: applied once every subject is polished
+    # (`_polish_subjects`), so that no child's polish starts from it
+    along_stages: _Stages | None = None
     # a single edge's polish not kept (`single_edge`): the e it reached, and why; recorded
     # in the subject's ``quality["polish_not_kept"]`` (``"polish"`` stays a kept polish's)
     refused: dict[str, Any] | None = None
@@ -767,6 +792,46 @@ def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any
                      lambda e: _posterior_max(moved, task.y, max(0.5 * e, task.spacing2), o.w))
 
 
+def _along_plain(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
+    """The polish's last step: each of the model's points moved along the subject's
+    outline :data:`ALONG_PLAIN_WEIGHT` of the way to where plain CPD puts it (the paper's
+    CPD of the root model onto the subject, no pre-alignment; its field fitted with the
+    `control` points when given): the component of the difference along the outline's
+    direction at the point's nearest subject point (:func:`~registration._quality.
+    outline_tangents`), the step CPD's field through the polished points to there
+    (:func:`_step_onto`).
+
+    Tried only on shapes of at least :data:`ALONG_PLAIN_MIN_POINTS` points and when the
+    polished e is above :data:`ALONG_PLAIN_MIN_E_RATIO` times plain CPD's (plain CPD fits
+    the subject across the outline about as closely as the tree: the two differ along
+    it, where nothing measures which is right); kept by the finish's rule (`_finished`).
+    Else `best` is returned as it is."""
+    o = task.cpd
+    info: dict[str, Any] = {"kept": False, "error_before": best.error}
+    if min(len(task.model), len(task.y)) < ALONG_PLAIN_MIN_POINTS:
+        info["reason"] = f"fewer than {ALONG_PLAIN_MIN_POINTS} points"
+        return best, info
+    plain = cpd_nonrigid(task.model, task.y, **o.keywords(), control=task.control)
+    e_plain = registration_error(plain.warped, task.y)
+    info["plain_error"] = e_plain
+    if not best.error > ALONG_PLAIN_MIN_E_RATIO * e_plain:
+        info["reason"] = (f"plain CPD's e ({e_plain:.3g}) above "
+                          f"{1 / ALONG_PLAIN_MIN_E_RATIO:g}x the polished e: it did not fit "
+                          "the subject")
+        return best, info
+    tangent = outline_tangents(task.y)[cKDTree(task.y).query(best.warped)[1]]
+    along = np.einsum("ni,ni->n", np.asarray(plain.warped) - best.warped, tangent)
+    found = _step_onto(best.warped,
+                       best.warped + ALONG_PLAIN_WEIGHT * along[:, None] * tangent, o,
+                       task.control)
+    if found is None:
+        info["reason"] = "the step to it folds"
+        return best, info
+    step, moved = found
+    return _finished(task, best, step, moved, info,
+                     lambda e: _posterior_max(moved, task.y, max(0.5 * e, task.spacing2), o.w))
+
+
 def affine_lead(steps: tuple[PointTransform, ...]) -> int:
     """How many of an edge's `steps` are its affine pre-alignment: the affine steps it
     starts with, its last step (the edge's CPD) never counted."""
@@ -852,11 +917,16 @@ def _polish_task(task: _PolishTask) -> _PolishOutcome:
                 correspondence=np.empty(0, dtype=np.intp),
                 probability=np.empty(0, dtype=np.float64), steps=(), quality=(),
                 refused=refused)
+    along, along_stages = None, None
+    if task.along_plain and (best.steps or edge is not None):
+        after, along = _along_plain(task, best)
+        along_stages = after if along["kept"] else None
     return _PolishOutcome(subject=task.subject, warped=best.warped, error=best.error,
                           correspondence=best.correspondence, probability=best.probability,
                           steps=best.steps, quality=best.quality, consensus=info,
                           edge_steps=() if edge is None else edge.steps, edge_quality=edge_q,
-                          from_parent=edge_info, finish=finish, symmetric=symmetric)
+                          from_parent=edge_info, finish=finish, symmetric=symmetric,
+                          along_plain=along, along_stages=along_stages)
 
 
 def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
@@ -923,6 +993,8 @@ def _polished(coll: _Collection, old: SubjectResult, out: _PolishOutcome,
         polish["symmetric"] = out.symmetric
         if out.symmetric["kept"]:
             reason += "; moved halfway to the subject's registration back onto the root"
+    if out.along_plain is not None:
+        polish["along_plain"] = out.along_plain  # applied later (`_moved_along_plain`)
     if stored:
         confidence = old.confidence
     return replace(
@@ -942,6 +1014,7 @@ def _polish_subjects(
     min_layer: int = POLISH_MIN_LAYER,
     partner: Callable[[int], _RegTask | _RegOutcome] | None = None,
     stored: AtStored | None = None,
+    along_plain: bool = True,
 ) -> None:
     """Polish every attached subject at layer >= `min_layer` in place (see the module doc),
     a tree level at a time, parents first: a subject at layer >=
@@ -954,7 +1027,9 @@ def _polish_subjects(
 
     `stored`: the polish at the stored resolution (see :class:`AtStored`); None: the
     working resolution's, the edges' affine steps read off the chains in `results`,
-    which must then be the tree's as built."""
+    which must then be the tree's as built. `along_plain`: every polished subject ends
+    with the step towards plain CPD (`_along_plain`), applied once all are polished; off
+    at a working resolution that a stored one follows (the step is taken there)."""
     todo = [
         s for s, r in sorted(results.items())
         if r.warped is not None and r.layer is not None and r.layer >= min_layer
@@ -971,6 +1046,8 @@ def _polish_subjects(
     for s in todo:
         levels.setdefault(len(results[s].path), []).append(s)
     moved: set[int] = set()  # subjects whose polish moved them
+    # each subject's registration with the step towards plain CPD, applied last
+    along: dict[int, _Stages] = {}
     model_irregularity = sampling_irregularity(coll.normed[coll.root])
     done = 0
     with owned_executor(executor, 8 * len(todo)) as ex:
@@ -978,7 +1055,7 @@ def _polish_subjects(
             progress(stage, 0, len(todo))
         for level in sorted(levels):
             tasks = [_polish_subject_task(coll, results, built, moved, s, cpd, partner,
-                                          model_irregularity, stored)
+                                          model_irregularity, stored, along_plain)
                      for s in levels[level]]
             for _, out in ex.map_unordered(_polish_task, tasks):
                 if out.steps or out.edge_steps:
@@ -988,6 +1065,8 @@ def _polish_subjects(
                     results[out.subject] = _polished(coll, old, out, parent,
                                                      stored is not None)
                     moved.add(out.subject)
+                    if out.along_stages is not None:
+                        along[out.subject] = out.along_stages
                 elif out.refused is not None:
                     old = results[out.subject]
                     results[out.subject] = replace(
@@ -996,6 +1075,27 @@ def _polish_subjects(
                 done += 1
                 if progress is not None:
                     progress(stage, done, len(todo))
+    for s, moved_along in along.items():
+        results[s] = _moved_along_plain(coll, results[s], moved_along, stored is not None)
+
+
+def _moved_along_plain(coll: _Collection, r: SubjectResult, moved: _Stages,
+                       stored: bool) -> SubjectResult:
+    """`r`, polished, with the polish's step towards plain CPD (`_along_plain`; `moved`:
+    the polished registration with it) appended to its transform."""
+    record = "stored_polish" if stored else "polish"
+    assert r.transform is not None
+    quality = dict(r.quality or {})
+    polish = quality.get(record, {})
+    # the polish's steps in the chain (`_resolution._polish_steps`) include this one
+    quality[record] = {**polish, "error": moved.error, "steps": polish.get("steps", 0) + 1}
+    return replace(
+        r, error=moved.error, warped=coll.norms[r.index].invert(moved.warped),
+        correspondence=moved.correspondence, probability=moved.probability,
+        transform=replace(r.transform, steps=(*r.transform.steps, moved.steps[-1])),
+        quality=quality,
+        reason=(f"{r.reason}; moved {ALONG_PLAIN_WEIGHT:g} of the way to plain CPD's points "
+                f"along the outline (e {r.error:.3g} -> {moved.error:.3g})"))
 
 
 def _polish_subject_task(
@@ -1008,6 +1108,7 @@ def _polish_subject_task(
     partner: Callable[[int], _RegTask | _RegOutcome] | None,
     model_irregularity: float,
     stored: AtStored | None = None,
+    along_plain: bool = True,
 ) -> _PolishTask:
     r = results[s]
     assert r.warped is not None and r.layer is not None and r.error is not None
@@ -1043,4 +1144,4 @@ def _polish_subject_task(
         from_parent=from_parent, edge_affine=edge_affine,
         edge_within_chain_e=stored is None, control=control,
         subject_control=subject_control, stage_control=stage_control,
-        single_edge=stored is None and r.layer == 2)
+        single_edge=stored is None and r.layer == 2, along_plain=along_plain)

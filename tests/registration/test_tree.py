@@ -1606,3 +1606,105 @@ def test_an_edge_far_above_the_collections_e_is_tried_again_from_the_root(family
     assert taken.reason.endswith("and this one is below 0.7x its e")
     np.testing.assert_allclose(moved.transform_for(k).apply(family.shapes[0]), s.warped,
                                atol=1e-6)
+
+
+def test_the_step_towards_plain_cpd_needs_shapes_of_enough_points(family):
+    """At fewer than ALONG_PLAIN_MIN_POINTS points (the family's 100) no plain CPD is run
+    and the polished registration stands, with the reason."""
+    from registration._tree import _polish as polish_module
+
+    task, best = _finish_setting(family)
+    assert len(task.y) < polish_module.ALONG_PLAIN_MIN_POINTS
+    out, info = polish_module._along_plain(task, best)
+    assert out is best and not info["kept"]
+    assert info["reason"] == f"fewer than {polish_module.ALONG_PLAIN_MIN_POINTS} points"
+
+
+def test_the_step_towards_plain_cpd_is_not_taken_when_plain_cpd_fits_worse(family,
+                                                                           monkeypatch):
+    """Plain CPD's e far above the polished e (here: the ratio set so that any is): the
+    polished registration stands, and the reason gives plain CPD's e."""
+    from registration._tree import _polish as polish_module
+
+    monkeypatch.setattr(polish_module, "ALONG_PLAIN_MIN_POINTS", 0)
+    monkeypatch.setattr(polish_module, "ALONG_PLAIN_MIN_E_RATIO", 1e9)
+    task, best = _finish_setting(family)
+    out, info = polish_module._along_plain(task, best)
+    assert out is best and not info["kept"]
+    assert info["plain_error"] > 0 and "did not fit the subject" in info["reason"]
+
+
+def test_the_step_towards_plain_cpd_moves_the_points_along_the_outline():
+    """Each polished point moves ALONG_PLAIN_WEIGHT of the way to plain CPD's point, along
+    the subject's outline at its nearest subject point: its move across the outline is
+    small beside its move along it, and the move along it is about the weight times the
+    difference along it (the step is a smooth field through the points, not exact). A
+    chain of 300-point shapes, where plain CPD's e is within twice the polished e."""
+    from scipy.spatial import cKDTree
+
+    from registration._quality import outline_tangents
+    from registration._tree import _polish as polish_module
+
+    dense = chained_family(n_chains=1, chain_length=4, n_points=300, step=0.15, seed=2)
+    task, best = _finish_setting(dense, 3)
+    assert len(task.y) >= polish_module.ALONG_PLAIN_MIN_POINTS
+    plain = np.asarray(cpd_nonrigid(task.model, task.y, **task.cpd.keywords()).warped)
+    out, info = polish_module._along_plain(task, best)
+    assert info["kept"], info
+    assert best.error > polish_module.ALONG_PLAIN_MIN_E_RATIO * info["plain_error"]
+    tangent = outline_tangents(task.y)[cKDTree(task.y).query(best.warped)[1]]
+    normal = tangent[:, ::-1] * np.array([1.0, -1.0])
+    move = out.warped - best.warped
+    wanted = polish_module.ALONG_PLAIN_WEIGHT * np.einsum("ni,ni->n", plain - best.warped,
+                                                          tangent)
+    along = np.einsum("ni,ni->n", move, tangent)
+    across = np.einsum("ni,ni->n", move, normal)
+    assert np.sqrt(np.mean(across**2)) < 0.5 * np.sqrt(np.mean(along**2))
+    assert np.corrcoef(along, wanted)[0, 1] > 0.8
+    assert 0.5 < np.sum(along * wanted) / np.sum(wanted * wanted) < 1.5
+    assert out.steps[:-1] == best.steps and len(out.quality) == len(best.quality) + 1
+    assert np.allclose(out.steps[-1].apply(best.warped), out.warped, atol=1e-12)
+    assert out.error == info["error"]
+
+
+def test_the_tree_records_the_step_towards_plain_cpd(dynamic):
+    """Every polished subject records what the step towards plain CPD found (here the
+    family's 100 points: not tried, and why)."""
+    polished = [s for s in dynamic.subjects if (s.quality or {}).get("polish")]
+    assert polished
+    for s in polished:
+        rec = s.quality["polish"]["along_plain"]
+        assert rec["kept"] is False and rec["reason"].startswith("fewer than")
+
+
+def test_a_subject_moved_towards_plain_cpd_keeps_its_transform_and_children():
+    """On 300-point outlines (three bumps, chained by smooth warps) the step towards plain
+    CPD is kept for some subjects: applied after every subject is polished, it is the last
+    step of the subject's transform (which still carries the root's points onto the
+    reported ones), its reason and record say so, and a child's transform does not contain
+    it (no child's polish started from it)."""
+    from registration.synthetic import deformation_chains
+
+    t = np.linspace(0, 2 * np.pi, 2000, endpoint=False)
+    r = 1 + 0.15 * np.cos(3 * t)
+    fam = deformation_chains(np.c_[r * np.cos(t), 0.7 * r * np.sin(t)], n_chains=2,
+                             chain_length=3, seed=2, n_points=300)
+    tree = build_dynamic_tree(fam.shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+    moved = [s for s in tree.subjects
+             if ((s.quality or {}).get("polish") or {}).get("along_plain", {}).get("kept")]
+    assert moved, [((s.quality or {}).get("polish") or {}).get("along_plain")
+                   for s in tree.subjects]
+    for s in tree.subjects:
+        if s.warped is not None and s.transform is not None:
+            assert np.allclose(s.transform.apply(fam.shapes[0]), s.warped, atol=1e-6)
+    children = 0
+    for s in moved:
+        assert "of the way to plain CPD's points along the outline" in s.reason
+        assert s.quality["polish"]["error"] == s.error
+        assert s.quality["polish"]["steps"] >= 1  # this one counted among the polish's
+        last = s.transform.steps[-1]
+        for child in tree.subjects:
+            if child.parent == s.index and child.transform is not None:
+                children += 1
+                assert all(step is not last for step in child.transform.steps)
+    assert children
