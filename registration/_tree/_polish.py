@@ -1082,15 +1082,21 @@ def _polish_subjects(
 def _moved_along_plain(coll: _Collection, r: SubjectResult, moved: _Stages,
                        stored: bool) -> SubjectResult:
     """`r`, polished, with the polish's step towards plain CPD (`_along_plain`; `moved`:
-    the polished registration with it) appended to its transform."""
+    the polished registration with it) appended to its transform; its checks join the
+    polish's (the confidence too, but at the stored resolution, as `_polished`)."""
     record = "stored_polish" if stored else "polish"
-    assert r.transform is not None
+    assert r.transform is not None and r.confidence is not None
+    q = moved.quality[-1]
     quality = dict(r.quality or {})
     polish = quality.get(record, {})
     # the polish's steps in the chain (`_resolution._polish_steps`) include this one
-    quality[record] = {**polish, "error": moved.error, "steps": polish.get("steps", 0) + 1}
+    quality[record] = {
+        **polish, "error": moved.error, "steps": polish.get("steps", 0) + 1,
+        "confidence": min(polish.get("confidence", q.confidence), q.confidence),
+        "min_jacobian": min(polish.get("min_jacobian", q.min_jacobian), q.min_jacobian)}
     return replace(
         r, error=moved.error, warped=coll.norms[r.index].invert(moved.warped),
+        confidence=r.confidence if stored else min(r.confidence, q.confidence),
         correspondence=moved.correspondence, probability=moved.probability,
         transform=replace(r.transform, steps=(*r.transform.steps, moved.steps[-1])),
         quality=quality,

@@ -1702,6 +1702,7 @@ def test_a_subject_moved_towards_plain_cpd_keeps_its_transform_and_children():
         assert "of the way to plain CPD's points along the outline" in s.reason
         assert s.quality["polish"]["error"] == s.error
         assert s.quality["polish"]["steps"] >= 1  # this one counted among the polish's
+        assert s.confidence <= s.quality["polish"]["confidence"]  # its checks joined them
         last = s.transform.steps[-1]
         for child in tree.subjects:
             if child.parent == s.index and child.transform is not None:
