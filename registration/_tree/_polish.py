@@ -794,8 +794,9 @@ def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any
 
 def _along_plain(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any]]:
     """The polish's last step: each of the model's points moved along the subject's
-    outline :data:`ALONG_PLAIN_WEIGHT` of the way to where plain CPD puts it (the paper's
-    CPD of the root model onto the subject, no pre-alignment; its field fitted with the
+    outline :data:`ALONG_PLAIN_WEIGHT` of the way to where plain CPD puts it (one CPD of
+    the root model onto the subject from the pose as given, as the paper's baseline, but
+    with the tree's CPD options, its weighted mixture included; its field fitted with the
     `control` points when given): the component of the difference along the outline's
     direction at the point's nearest subject point (:func:`~registration._quality.
     outline_tangents`), the step CPD's field through the polished points to there
