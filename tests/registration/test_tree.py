@@ -1671,6 +1671,41 @@ def test_the_step_towards_plain_cpd_moves_the_points_along_the_outline():
     assert out.error == info["error"]
 
 
+def test_a_refused_step_towards_plain_cpd_is_tried_at_half_the_weight(monkeypatch):
+    """When the finish's rule refuses the full step, it is tried once more at
+    ALONG_PLAIN_BACKTRACK of the weight: the points then move about half as far along the
+    outline, and the record keeps what the full step reached and why it was refused."""
+    from scipy.spatial import cKDTree
+
+    from registration._quality import outline_tangents
+    from registration._tree import _polish as polish_module
+
+    real = polish_module._finished
+
+    def refuse_the_full_step(task, best, step, moved, info, correspondence):
+        if info["weight"] == polish_module.ALONG_PLAIN_WEIGHT:
+            info["error"] = 1.0
+            info["reason"] = "refused here"
+            return best, info
+        return real(task, best, step, moved, info, correspondence)
+
+    dense = chained_family(n_chains=1, chain_length=4, n_points=300, step=0.15, seed=2)
+    task, best = _finish_setting(dense, 3)
+    full, full_info = polish_module._along_plain(task, best)
+    assert full_info["kept"] and "full_step" not in full_info
+    monkeypatch.setattr(polish_module, "_finished", refuse_the_full_step)
+    half, info = polish_module._along_plain(task, best)
+    weight = polish_module.ALONG_PLAIN_BACKTRACK * polish_module.ALONG_PLAIN_WEIGHT
+    assert info["kept"] and info["weight"] == weight
+    assert info["full_step"] == {"error": 1.0, "reason": "refused here"}
+    tangent = outline_tangents(task.y)[cKDTree(task.y).query(best.warped)[1]]
+    along_full = np.einsum("ni,ni->n", full.warped - best.warped, tangent)
+    along_half = np.einsum("ni,ni->n", half.warped - best.warped, tangent)
+    ratio = np.sum(along_half * along_full) / np.sum(along_full * along_full)
+    assert ratio == pytest.approx(polish_module.ALONG_PLAIN_BACKTRACK, abs=0.1)
+    assert half.steps[:-1] == best.steps and half.error == info["error"]
+
+
 def test_the_tree_records_the_step_towards_plain_cpd(dynamic):
     """Every polished subject records what the step towards plain CPD found, on shapes of
     any size (here the family's 100 points): plain CPD's e, and the step not taken, with
