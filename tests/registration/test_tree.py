@@ -493,7 +493,8 @@ def test_polish_replaces_deep_registrations_only_when_checks_pass(family):
             assert "halfway to the subject's registration back onto the root" in s.reason
         if along["kept"]:
             assert along["error"] == s.error <= FINISH_MAX_E_RATIO * symmetric_e
-            assert "of the way to plain CPD's points along the outline" in s.reason
+            assert (f"moved {along['weight']:g} of the way to plain CPD's points along the "
+                    "outline") in s.reason
         else:
             assert s.error == symmetric_e
         assert p["error_before"] == before.error and polished_e <= before.error
