@@ -802,12 +802,15 @@ def _symmetric(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, Any
     # coordinates are); the subject's `disagreement` (bench/RESULTS.md 7.38)
     info["disagreement"] = 2.0 * rms_distance(moved, best.warped)
     return _finished(task, best, step, moved, info,
-                     lambda e: _posterior_max(moved, task.y, max(0.5 * e, task.spacing2), o.w))
+                     partial(_stepped_correspondence, moved, task.y, task.spacing2, o.w))
 
 
-def _along_correspondence(moved: FloatArray, y: FloatArray, spacing2: float, w: float,
-                          e: float) -> tuple[NDArray[Any], NDArray[Any]]:
-    """The correspondences of the step towards plain CPD that reached e (as the finish's)."""
+def _stepped_correspondence(moved: FloatArray, y: FloatArray, spacing2: float, w: float,
+                            e: float) -> tuple[NDArray[Any], NDArray[Any]]:
+    """The correspondences of the points a step (the symmetric finish's, the step towards
+    plain CPD) moved to `moved` on the subject `y`, where they reached e: CPD's most
+    probable ones at a variance of half e (at least the subject's h^2), outlier weight
+    `w`."""
     return _posterior_max(moved, y, max(0.5 * e, spacing2), w)
 
 
@@ -850,8 +853,8 @@ def _along_plain(task: _PolishTask, best: _Stages) -> tuple[_Stages, dict[str, A
             continue
         step, moved = found
         out, info = _finished(task, best, step, moved, info,
-                              partial(_along_correspondence, moved, task.y, task.spacing2,
-                                      o.w))
+                              partial(_stepped_correspondence, moved, task.y,
+                                      task.spacing2, o.w))
         if info["kept"]:
             return out, info
     return best, info
