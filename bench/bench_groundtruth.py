@@ -24,6 +24,17 @@ Families (collections with exact ground truth):
 - ``chui-fish`` / ``chui-chinese``: the Chui & Rangarajan deformation series
   (``../shared/data/chui_rangarajan``): per trial, the model X (root) and that trial's
   targets of deformation levels 1-5;
+- ``chui-noise`` / ``chui-outlier`` / ``chui-occlusion``: the same benchmark's other
+  series, fish and Chinese character together (per trial, the model and that trial's
+  targets of every level): each target a new affine and warp of the model, with noise on
+  its points (levels 1-6), up to twice as many outliers as points scattered over its box
+  (1-5), or up to half of its points cut away (1-6). The truth is each target's clean
+  image of a model point; occluded points have none, outliers are nobody's. Degraded
+  shapes rather than deformed ones: e (eq. 10) counts every point both ways, so it
+  rewards a registration that covers outliers or squeezes the model into what is left
+  (bench/RESULTS.md 7.58); CPD's own mixture has an outlier term. ``chui-rot`` (only when
+  named, with the turned families: no plain-CPD baseline): the series turned by up to
+  180 degrees.
 - ``generated``: :func:`registration.synthetic.chained_family` with its defaults (root 0).
 - ``mpeg7`` / ``outline`` / ``outline-random`` / ``outline-arc``: shape classes no default
   was tuned on,
@@ -201,33 +212,61 @@ def glyph_cases(kind: str, designs: list[str], seeds: list[int], mid_root: bool)
     return cases
 
 
-def chui_cases(kind: str, trials: list[int]) -> list[Case]:
-    files = [CHUI / f"{kind}_def_{lvl}.npz" for lvl in range(1, 6)]
+#: The Chui & Rangarajan series besides ``def``, and their levels: each level's target is a
+#: new deformation of the model (an affine and a warp) with the series' degradation.
+CHUI_SERIES = {"def": 5, "noise": 6, "outlier": 5, "occlusion": 6, "rot": 6}
+
+
+def chui_cases(kind: str, trials: list[int], series: str = "def") -> list[Case]:
+    """Per trial, the model X (the root) and that trial's targets of every level of
+    `series`. The truth of model row ``gt[j]`` (the row of that level's ``X``, which the
+    occlusion series lists in another order at each level) is row j of the clean target:
+    ``Y_clean``
+    has ``Y``'s rows in the deformation, noise and occlusion series (occluded model points
+    have no image: NaN), and only the inlier rows of ``Y``, in order, in the outlier
+    series (rows with ``gt == -1`` are the outliers)."""
+    levels = range(1, CHUI_SERIES[series] + 1)
+    files = [CHUI / f"{kind}_{series}_{lvl}.npz" for lvl in levels]
     data = [np.load(f) for f in files]
+    family = f"chui-{kind}" if series == "def" else f"chui-{series}"
     cases = []
     for t in trials:
         model = np.asarray(data[0]["X"][t], dtype=np.float64)
         shapes, names, truth = [model], ["model"], [model.copy()]
-        for lvl, d in enumerate(data, start=1):
-            if not np.array_equal(d["X"][t], model):
-                raise SystemExit(f"{files[lvl - 1].name}: trial {t} has a different model X")
+        for lvl, d in zip(levels, data, strict=True):
+            name = files[lvl - 1].name
+            # the occlusion series lists the model's rows in another order at each level
+            rows = {tuple(p): i for i, p in enumerate(model)}
+            order = np.array([rows.get(tuple(p), -1) for p in d["X"][t]])
+            if len(rows) != len(model) or (order < 0).any() or len(set(order)) != len(model):
+                raise SystemExit(f"{name}: trial {t} has a different model X")
             y, y_clean, gt = d["Y"][t], d["Y_clean"][t], d["gt_index_into_X"]
-            # row j of Y is the image of model row gt[j] (-1: outlier); in the deformation
-            # series Y_clean has Y's rows (no outliers, no noise): check, do not assume
-            if y_clean.shape != y.shape or gt.shape[0] != y.shape[0]:
-                raise SystemExit(f"{files[lvl - 1].name}: Y_clean rows do not match Y rows")
-            image = np.full_like(model, np.nan)
             inl = gt >= 0
+            if gt.shape[0] != y.shape[0]:
+                raise SystemExit(f"{name}: gt_index_into_X has {gt.shape[0]} rows, Y {y.shape[0]}")
+            if y_clean.shape == y.shape:
+                clean = y_clean[inl]
+            elif y_clean.shape[0] == int(inl.sum()):
+                clean = y_clean
+                if series != "noise" and not np.allclose(y[inl], clean):
+                    raise SystemExit(f"{name}: Y_clean is not Y's inlier rows")
+            else:
+                raise SystemExit(f"{name}: Y_clean has {y_clean.shape[0]} rows; Y has "
+                                 f"{y.shape[0]}, {int(inl.sum())} of them inliers")
+            image = np.full_like(model, np.nan)
             if len(np.unique(gt[inl])) != int(inl.sum()):
-                raise SystemExit(f"{files[lvl - 1].name}: a model point has two images")
-            image[gt[inl]] = y_clean[inl]
+                raise SystemExit(f"{name}: a model point has two images")
+            image[order[gt[inl]]] = clean
             shapes.append(np.asarray(y, dtype=np.float64))
-            names.append(f"def{lvl}")
+            names.append(f"{series}{lvl}")
             truth.append(image)
-        depth = list(range(6))
+        depth = list(range(len(shapes)))
         cases.append(Case(
-            kind=f"chui-{kind}", label=f"chui-{kind} trial {t}", seed=t, shapes=shapes,
-            names=names, root=0, truth=truth, depth=depth, distance=depth, far_from=3,
+            kind=family, label=f"{family} {kind} trial {t}" if series != "def"
+            else f"chui-{kind} trial {t}", seed=t, shapes=shapes, names=names, root=0,
+            # a degraded series' levels are no distance from the root: no far half
+            truth=truth, depth=depth, distance=depth,
+            far_from=3 if series == "def" else len(shapes),
         ))
     return cases
 
@@ -447,7 +486,7 @@ def stroke_glyph_cases(seeds: list[int], characters: str = STROKE_CHARACTERS,
 
 
 #: Families whose subjects lie at any angle: no plain-CPD baseline, kept out of the targets.
-TURNED_KINDS = frozenset({"glyph-turned"})
+TURNED_KINDS = frozenset({"glyph-turned", "chui-rot"})
 #: A subject registered wrong (the wrong pose: a turn, a mirror, a slide by a stroke): its
 #: RMS ground-truth error above this fraction of its RMS radius.
 GROSS_ERROR = 0.5
@@ -1075,9 +1114,10 @@ def main() -> None:
                     help="Chui & Rangarajan trials per series (default 3)")
     ap.add_argument("--only", nargs="*", default=None,
                     help="family kinds to run (yong-edge yong-skel chui-fish chui-chinese "
-                    "generated mpeg7 outline outline-random outline-arc glyph-other dense-edge "
-                    "dense-skel small-step one-type one-type-dense glyph-latin glyph-stroke; "
-                    "glyph-turned and ink-spread run only when named)")
+                    "chui-noise chui-outlier chui-occlusion generated mpeg7 outline "
+                    "outline-random outline-arc glyph-other dense-edge dense-skel small-step "
+                    "one-type one-type-dense glyph-latin glyph-stroke; "
+                    "glyph-turned, chui-rot and ink-spread run only when named)")
     ap.add_argument("--compare", default=None, metavar="KEY=VALUE,...",
                     help="also run the dynamic tree with these options (e.g. polish=False) "
                     "as method 'variant' and print it beside the default tree")
@@ -1132,6 +1172,15 @@ def main() -> None:
             cases += chui_cases(kind, trials)
     elif DATA.is_dir():
         print(f"NOTE: {CHUI} lacks the def series: skipping the Chui & Rangarajan families")
+    for series, levels in CHUI_SERIES.items():
+        if series == "def" or (series == "rot" and not (args.only and "chui-rot" in args.only)):
+            continue  # chui-rot only when named
+        if all((CHUI / f"{k}_{series}_{lvl}.npz").exists() for k in ("fish", "chinese")
+               for lvl in range(1, levels + 1)):
+            for kind in ("fish", "chinese"):
+                cases += chui_cases(kind, trials, series)
+        elif DATA.is_dir():
+            print(f"NOTE: {CHUI} lacks the {series} series: skipping chui-{series}")
     cases += generated_cases(seeds)
     if not args.quick or (args.only and {"mpeg7", *OUTLINE_SAMPLINGS} & set(args.only)):
         sources = outline_sources()
