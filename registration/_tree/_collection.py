@@ -117,7 +117,7 @@ def _subject_from_outcome(
         leaf=leaf,
         quality={**out.quality.to_dict(), "pose": out.pose, "pose_angle": out.pose_angle,
                  "pose_errors": dict(out.pose_errors), "pose_margin": out.pose_margin,
-                 **edge},
+                 "pose_compared_by": out.pose_compared_by, **edge},
     )
     return res, _Node(q=out.warped, chain=chain, layer=layer, confidence=confidence,
                       joined=joined)

@@ -129,6 +129,12 @@ class Quality(_Open):
         "within the sampling floor. The other start is 'rotated', or 'aligned' (the pose as "
         "given, aligned by affine ICP) when the model is nearly symmetric under the turn (a "
         "turned O, S or straight stroke), which would only be wrong by the whole turn.")
+    pose_compared_by: Literal["e", "subject"] | None = Field(
+        default=None, description="What the starts' registrations were compared by: 'e', "
+        "or 'subject' (the mean squared distance from each subject point to the nearest "
+        "model point alone) when the pose as given left part of the model with no "
+        "counterpart on the subject (the subject is part of the model: occluded, cut off), "
+        "where e would favour a turn that squeezes the whole model onto the part.")
     symmetric_edge: bool | None = Field(
         default=None, description="The dynamic tree's edge was made symmetric: CPD's "
         "registration moved halfway to the subject's registered back onto the member.")

@@ -1,0 +1,84 @@
+"""Shapes with points the other has no counterpart for: outliers on the subject, or a
+subject that is only part of the model (`registration._error.unmatched_side`).
+
+e (eq. 10) counts every point both ways, so there it falls most by pulling the model
+over the subject's outliers, or by squeezing the whole model onto the part: the tree
+compares the poses of the second by how closely each covers the subject's own points
+(`_tasks._pose_term`).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from registration import CPDOptions, build_dynamic_tree, registration_error
+from registration._error import UNMATCHED_RATIO, directed_errors, unmatched_side
+from registration._executor import SerialExecutor
+from registration._points import mean_spacing2
+from registration._tree._tasks import _pose_term
+from registration.synthetic import base_outline, deformation_chains
+
+FAST_CPD = CPDOptions(max_iter=60)
+
+
+def _with_outliers(shape: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """`shape` with `count` points scattered uniformly over its box, in a random order."""
+    rng = np.random.default_rng(seed)
+    lo, hi = shape.min(axis=0), shape.max(axis=0)
+    out = np.concatenate([shape, rng.uniform(lo, hi, size=(count, 2))])
+    return out[rng.permutation(len(out))]
+
+
+def test_directed_errors_are_the_two_halves_of_e() -> None:
+    rng = np.random.default_rng(0)
+    q, y = rng.normal(size=(40, 2)), rng.normal(size=(25, 2))
+    to_subject, to_model = directed_errors(q, y)
+    assert (40 * to_subject + 25 * to_model) / 65 == pytest.approx(registration_error(q, y))
+    assert directed_errors(y, q) == pytest.approx((to_model, to_subject))
+
+
+def test_unmatched_side_tells_outliers_from_a_part_from_a_whole() -> None:
+    outline = base_outline(120)
+    h2 = mean_spacing2(outline)
+    assert unmatched_side(outline, outline, h2) is None
+    # a whole shape moved by less than its spacing: under the floor, whatever the ratio
+    assert unmatched_side(outline + 0.3 * np.sqrt(h2), outline, h2) is None
+    noisy = _with_outliers(outline, 120, seed=1)
+    assert unmatched_side(outline, noisy, mean_spacing2(noisy)) == "subject"
+    part = outline[:60]  # half the outline, cut off
+    assert unmatched_side(outline, part, mean_spacing2(part)) == "model"
+    # the ratio is the rule: the two halves of e and UNMATCHED_RATIO
+    to_subject, to_model = directed_errors(outline, part)
+    assert to_subject > UNMATCHED_RATIO * to_model
+
+
+def test_the_pose_term_is_the_subjects_half_of_e_only_for_a_part() -> None:
+    outline = base_outline(120)
+    part = outline[:60]
+    other = SimpleNamespace(warped=outline[::-1] * 1.1, error=0.5)
+    given = SimpleNamespace(warped=outline, error=registration_error(outline, part))
+    task = SimpleNamespace(y=part, spacing2=mean_spacing2(part))
+    term, name = _pose_term(given, task)  # type: ignore[arg-type]
+    assert name == "subject"
+    assert term(other) == pytest.approx(directed_errors(other.warped, part)[1])
+    whole = SimpleNamespace(y=outline, spacing2=mean_spacing2(outline))
+    term, name = _pose_term(given, whole)  # type: ignore[arg-type]
+    assert name == "e" and term(other) == 0.5
+
+
+def test_a_part_of_the_model_is_registered_as_given_not_squeezed_by_a_turn() -> None:
+    """A subject that is three fifths of a deformed root: its poses are compared by how
+    closely each covers its points, recorded in its quality."""
+    fam = deformation_chains(base_outline(1500), n_chains=1, chain_length=1, step=0.08,
+                             n_points=200, seed=0)
+    part = fam.shapes[1][np.argsort(fam.shapes[1][:, 0])[:120]]  # the left three fifths
+    res = build_dynamic_tree([fam.shapes[0], part], 0, cpd=FAST_CPD,
+                             executor=SerialExecutor())
+    s = res.subject(1)
+    assert s.quality["pose_compared_by"] == "subject"
+    assert s.quality["pose"] == "as given"
+    (doc,) = [d for d in res.to_dict()["subjects"] if d["index"] == 1]
+    assert doc["quality"]["pose_compared_by"] == "subject"
