@@ -398,11 +398,13 @@ def _register_task(task: _RegTask) -> _RegOutcome:
     # the margin reported: the kept start's, or the first other start's when none beat
     # the pose as given
     margin = starts[1].margin if len(starts) > 1 else None
-    term, compared_by = _pose_term(chosen, task)
+    # with one start there is nothing to compare: reported as "e", the default
+    term, compared_by = _pose_term(chosen, task) if len(starts) > 1 else (None, "e")
     for st, other in zip(starts[1:], outs[1:], strict=True):
         if not other.min_jacobian > 0:
             continue
         folded = not chosen.min_jacobian > 0
+        assert term is not None
         if term(other) < st.margin * term(chosen) or (folded and other.error <= chosen.error):
             chosen, margin = other, st.margin
     errors: dict[str, float] = {}
