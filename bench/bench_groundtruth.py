@@ -221,10 +221,9 @@ def chui_cases(kind: str, trials: list[int], series: str = "def") -> list[Case]:
     """Per trial, the model X (the root) and that trial's targets of every level of
     `series`. The truth of model row ``gt[j]`` (the row of that level's ``X``, which the
     occlusion series lists in another order at each level) is row j of the clean target:
-    ``Y_clean``
-    has ``Y``'s rows in the deformation, noise and occlusion series (occluded model points
-    have no image: NaN), and only the inlier rows of ``Y``, in order, in the outlier
-    series (rows with ``gt == -1`` are the outliers)."""
+    ``Y_clean`` has ``Y``'s rows in the deformation, noise and occlusion series (occluded
+    model points have no image: NaN), and only the inlier rows of ``Y``, in order, in the
+    outlier series (rows with ``gt == -1`` are the outliers)."""
     levels = range(1, CHUI_SERIES[series] + 1)
     files = [CHUI / f"{kind}_{series}_{lvl}.npz" for lvl in levels]
     data = [np.load(f) for f in files]
@@ -233,10 +232,10 @@ def chui_cases(kind: str, trials: list[int], series: str = "def") -> list[Case]:
     for t in trials:
         model = np.asarray(data[0]["X"][t], dtype=np.float64)
         shapes, names, truth = [model], ["model"], [model.copy()]
+        rows = {tuple(p): i for i, p in enumerate(model)}
         for lvl, d in zip(levels, data, strict=True):
             name = files[lvl - 1].name
             # the occlusion series lists the model's rows in another order at each level
-            rows = {tuple(p): i for i, p in enumerate(model)}
             order = np.array([rows.get(tuple(p), -1) for p in d["X"][t]])
             if len(rows) != len(model) or (order < 0).any() or len(set(order)) != len(model):
                 raise SystemExit(f"{name}: trial {t} has a different model X")
