@@ -28,13 +28,30 @@ DENSE_MAX_PAIRS = 1 << 22
 #: the 24 subjects with outliers lie above 2 one way, on the occlusion series 11 of the
 #: 30 occluded ones the other (bench/RESULTS.md 7.58). The tree acts on the second: it
 #: compares poses by the subject's half when the model has the unmatched points
-#: (`_tree._tasks._pose_term`). Nothing acts on the first: not polishing such subjects
-#: helped the outlier series (1.57x -> 1.09x plain CPD) but also caught real MPEG-7
-#: outlines whose chain had not yet reached a leg or a wing (ratios 2.2-4.9 there,
-#: 2.2-22 on the outliers), which the polish fits (7.58).
+#: (`_tree._tasks._pose_term`). On the first it acts only when the subject's points
+#: without counterpart are scattered (`scattered_extra`): the ratio alone also catches
+#: real MPEG-7 outlines whose chain had not yet reached a leg or a wing (ratios 2.2-4.9
+#: there, 2.2-22 on the outliers), which the polish fits (7.58, 7.59).
 UNMATCHED_RATIO = 2.0
 
-__all__ = ["UNMATCHED_RATIO", "directed_errors", "registration_error", "unmatched_side"]
+#: The subject's points without counterpart (`scattered_extra`) are those farther than
+#: this many of its spacings h from the registered model.
+EXTRA_SPACINGS = 2.0
+#: Those points are scattered (outliers, specks) rather than a piece of outline the model
+#: has not reached (a leg, a wing, an extra stroke) when the median, over each of them,
+#: of the ratio of the smaller to the larger principal variance of it and its
+#: :data:`SCATTER_NEIGHBOURS` nearest among them is above this. A piece of outline is
+#: near a line at the scale of five of its samples whatever its shape, so its ratios sit
+#: near 0; points strewn at random give a median of 0.26 (uniform points in the plane).
+#: Measured (bench/RESULTS.md 7.59): the subjects whose registration left such points on
+#: real MPEG-7 outlines (400 points; legs, wings and fins the chain had not reached) at
+#: 0.012-0.094, the Chui & Rangarajan outlier series' fish at 0.19-0.37 and Chinese
+#: character at 0.08-0.25 (its strokes the model missed mixed in with the outliers).
+SCATTER_MIN = 0.15
+SCATTER_NEIGHBOURS = 4
+
+__all__ = ["EXTRA_SPACINGS", "SCATTER_MIN", "SCATTER_NEIGHBOURS", "UNMATCHED_RATIO",
+           "directed_errors", "registration_error", "scattered_extra", "unmatched_side"]
 
 
 def registration_error(q: ArrayLike, y: ArrayLike) -> float:
@@ -108,3 +125,27 @@ def unmatched_side(q: ArrayLike, y: ArrayLike, spacing2: float) -> str | None:
     if to_subject > UNMATCHED_RATIO * to_model:
         return "model"
     return None
+
+
+def scattered_extra(q: ArrayLike, y: ArrayLike, spacing2: float) -> float | None:
+    """How scattered the subject `y`'s points without counterpart on the registered model
+    `q` are, when the subject has such points (:func:`unmatched_side` ``"subject"``): the
+    median over the points farther than :data:`EXTRA_SPACINGS` spacings from `q` of the
+    ratio of the smaller to the larger principal variance of each and its
+    :data:`SCATTER_NEIGHBOURS` nearest among them (0: on a line; 1: spread evenly; above
+    :data:`SCATTER_MIN`: scattered, as outliers are). None when the subject has no such
+    points, or too few of them to tell (fewer than ``SCATTER_NEIGHBOURS + 1``).
+    `spacing2`: the subject's mean squared point spacing h^2."""
+    forward, backward = _nearest_squared(q, y)
+    to_subject, to_model = float(forward.mean()), float(backward.mean())
+    if max(to_subject, to_model) <= spacing2 or not to_model > UNMATCHED_RATIO * to_subject:
+        return None
+    extra = np.asarray(y, dtype=np.float64)[backward > EXTRA_SPACINGS ** 2 * spacing2]
+    k = SCATTER_NEIGHBOURS + 1
+    if len(extra) < k:
+        return None
+    _, idx = cKDTree(extra).query(extra, k=k)
+    local = extra[idx] - extra[idx].mean(axis=1, keepdims=True)  # (n, k, 2)
+    cov = np.einsum("nki,nkj->nij", local, local)
+    low, high = np.linalg.eigvalsh(cov).T
+    return float(np.median(low / np.maximum(high, np.finfo(float).tiny)))

@@ -16,7 +16,14 @@ from .._points import rms_distance
 from .._result import SubjectResult
 from .._similarity import ProgressCallback, Similarity
 from ._collection import _attempt, _Collection, _Node, _subject_from_outcome
-from ._rules import REFINE_MAX_D_RATIO, REFINE_TIE, _error_limit, _rejection, _SimilarityRule
+from ._rules import (
+    REFINE_MAX_D_RATIO,
+    REFINE_TIE,
+    _error_limit,
+    _rejection,
+    _scattered,
+    _SimilarityRule,
+)
 from ._tasks import (
     POSE_DISTINCT_DEG,
     POSE_MARGIN,
@@ -234,6 +241,11 @@ def _attach_leaves(
         # the lowest e: every candidate registers the same subject, so e compares like
         # with like; a local fold does not disqualify (a leaf is never a parent)
         best = _lowest_error(pool, key=lambda o: (o.error, -nodes[o.member].confidence))
+        direct = [o for o in pool if o.member == coll.root]
+        if _scattered(best) and direct:
+            # e cannot compare registrations onto scattered points (it falls most where
+            # the model is pulled over them): the fewest links, the root's own
+            best = _lowest_error(direct)
         parent = nodes[best.member]
         res, _ = _subject_from_outcome(coll, best, parent, joined=parent.joined, leaf=True)
         why = next((a.reason for a in reversed(r.attempts) if a.member == best.member), None)

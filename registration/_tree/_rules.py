@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._error import SCATTER_MIN
 from .._similarity import Similarity
 from ._tasks import SPACING_FACTOR, _RegOutcome
 
@@ -252,13 +253,30 @@ def _error_limit(tau_err: float, explicit: bool, floor: float) -> float:
     return tau_err if explicit else max(tau_err, floor)
 
 
+def _scattered(out: _RegOutcome) -> bool:
+    """Whether the subject's points without counterpart on the registration `out` are
+    scattered (:func:`~registration._error.scattered_extra` above
+    :data:`~registration._error.SCATTER_MIN`: outliers, specks), so that its e, which
+    falls most where the model is pulled over them, does not tell a good registration
+    from a bad one."""
+    return out.scattered is not None and out.scattered > SCATTER_MIN
+
+
 def _rejection(out: _RegOutcome, limit: float, fold_check: bool) -> str | None:
     """Why the tree's rule refuses a registration (None: it accepts it): a fold, e at or
-    above `limit`, or a confidence below ``MIN_CONFIDENCE``, checked in that order."""
+    above `limit`, a confidence below ``MIN_CONFIDENCE``, or scattered points on the
+    subject without counterpart (`_scattered`), checked in that order. A subject with
+    outliers is so attached as a leaf, never a parent: each child of it would inherit
+    a registration pulled over its outliers (bench/RESULTS.md 7.59)."""
     if fold_check and not out.min_jacobian > 0:
         return "folded (Jacobian determinant <= 0)"
     if not out.error < limit:
         return f"e={out.error:.4g} >= error threshold {limit:.4g}"
     if not out.quality.confidence >= MIN_CONFIDENCE:
         return f"confidence {out.quality.confidence:.2f} < {MIN_CONFIDENCE}"
+    if _scattered(out):
+        assert out.scattered is not None
+        return (f"the subject has points scattered off the registered model (outliers; "
+                f"scatter {out.scattered:.2f} > {SCATTER_MIN:g}), which its e pulls the "
+                "model over")
     return None

@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 
 from .._cpd import CPDOptions, CPDResult, cpd_nonrigid
 from .._cpd._estep import _posterior_max
-from .._error import directed_errors, registration_error, unmatched_side
+from .._error import directed_errors, registration_error, scattered_extra, unmatched_side
 from .._executor import Executor, owned_executor
 from .._icp import AffineICPResult, affine_icp, rigid_turns
 from .._icp._pairwise import _refine, fit_rigid
@@ -245,6 +245,9 @@ class _RegOutcome:
     # what the starts' registrations were compared by (`_pose_term`): "e", or "subject"
     # (the subject's half of e alone: the subject is part of the model)
     pose_compared_by: str = "e"
+    # how scattered the subject's points without counterpart on the registration are
+    # (:func:`~registration._error.scattered_extra`; None: it has none, or too few)
+    scattered: float | None = None
 
 
 @dataclass(frozen=True)
@@ -381,7 +384,15 @@ def _register_task(task: _RegTask) -> _RegOutcome:
     aligned by affine ICP in its place (`_Start.decided`). No other start is tried when
     the pose as given's registration does not fold and its e is within the sampling
     floor (``SPACING_FACTOR`` times the subject's h^2): e cannot show a closer fit.
+    The registration kept records how scattered the subject's points without
+    counterpart on it are (``scattered``), for the tree's acceptance rule.
     """
+    out = _register_posed(task)
+    return replace(out, scattered=scattered_extra(out.warped, task.y, task.spacing2))
+
+
+def _register_posed(task: _RegTask) -> _RegOutcome:
+    """`_register_task`'s registration, from the start it keeps."""
     if not task.prealign:
         return _register_from(task, None)
     chosen = _register_from(task, task.starts[0])
