@@ -40,13 +40,15 @@ EXTRA_SPACINGS = 2.0
 #: Those points are scattered (outliers, specks) rather than a piece of outline the model
 #: has not reached (a leg, a wing, an extra stroke) when the median, over each of them,
 #: of the ratio of the smaller to the larger principal variance of it and its
-#: :data:`SCATTER_NEIGHBOURS` nearest among them is above this. A piece of outline is
-#: near a line at the scale of five of its samples whatever its shape, so its ratios sit
-#: near 0; points strewn at random give a median of 0.26 (uniform points in the plane).
-#: Measured (bench/RESULTS.md 7.59): the subjects whose registration left such points on
-#: real MPEG-7 outlines (400 points; legs, wings and fins the chain had not reached) at
-#: 0.012-0.094, the Chui & Rangarajan outlier series' fish at 0.19-0.37 and Chinese
-#: character at 0.08-0.25 (its strokes the model missed mixed in with the outliers).
+#: :data:`SCATTER_NEIGHBOURS` nearest points of the subject is above this. A piece of
+#: outline is near a line at the scale of five of its samples whatever its shape, so its
+#: ratios sit near 0; points strewn at random give a median of 0.26 (uniform points in
+#: the plane). The neighbours are the subject's, not only those without counterpart: a
+#: sparse, irregular sample of an outline (80-120 random points) leaves single points
+#: off the model along its gaps, whose nearest such points lie across the shape, while
+#: their nearest points of the subject lie along the outline. Measured (bench/RESULTS.md
+#: 7.59): on the Chui & Rangarajan outlier series 0.23-0.37 (fish) and 0.17-0.45
+#: (Chinese character).
 SCATTER_MIN = 0.15
 SCATTER_NEIGHBOURS = 4
 
@@ -132,20 +134,21 @@ def scattered_extra(q: ArrayLike, y: ArrayLike, spacing2: float) -> float | None
     `q` are, when the subject has such points (:func:`unmatched_side` ``"subject"``): the
     median over the points farther than :data:`EXTRA_SPACINGS` spacings from `q` of the
     ratio of the smaller to the larger principal variance of each and its
-    :data:`SCATTER_NEIGHBOURS` nearest among them (0: on a line; 1: spread evenly; above
-    :data:`SCATTER_MIN`: scattered, as outliers are). None when the subject has no such
+    :data:`SCATTER_NEIGHBOURS` nearest points of `y` (0: on a line; 1: spread evenly;
+    above :data:`SCATTER_MIN`: scattered, as outliers are). None when the subject has no such
     points, or too few of them to tell (fewer than ``SCATTER_NEIGHBOURS + 1``).
     `spacing2`: the subject's mean squared point spacing h^2."""
     forward, backward = _nearest_squared(q, y)
     to_subject, to_model = float(forward.mean()), float(backward.mean())
     if max(to_subject, to_model) <= spacing2 or not to_model > UNMATCHED_RATIO * to_subject:
         return None
-    extra = np.asarray(y, dtype=np.float64)[backward > EXTRA_SPACINGS ** 2 * spacing2]
+    ya = np.asarray(y, dtype=np.float64)
+    extra = ya[backward > EXTRA_SPACINGS ** 2 * spacing2]
     k = SCATTER_NEIGHBOURS + 1
     if len(extra) < k:
         return None
-    _, idx = cKDTree(extra).query(extra, k=k)
-    local = extra[idx] - extra[idx].mean(axis=1, keepdims=True)  # (n, k, 2)
+    _, idx = cKDTree(ya).query(extra, k=k)
+    local = ya[idx] - ya[idx].mean(axis=1, keepdims=True)  # (n, k, 2)
     cov = np.einsum("nki,nkj->nij", local, local)
     low, high = np.linalg.eigvalsh(cov).T
     return float(np.median(low / np.maximum(high, np.finfo(float).tiny)))

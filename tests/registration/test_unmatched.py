@@ -105,6 +105,17 @@ def test_scattered_extra_tells_outliers_from_a_piece_of_outline_not_reached() ->
     assert unmatched_side(reached, outline, mean_spacing2(outline)) == "subject"
     curve = scattered_extra(reached, outline, mean_spacing2(outline))
     assert curve is not None and curve < SCATTER_MIN / 3
+    # two random subsets of one outline (80 and 120 points): the gaps leave single
+    # points off the model, along the outline, their nearest subject points beside them
+    # (among the off points alone their neighbours lie across the shape: 0.21-0.22 here)
+    dense = base_outline(400)
+    for seed in (1, 5):
+        rng = np.random.default_rng(seed)
+        model = dense[np.sort(rng.choice(400, 80, replace=False))]
+        subject = dense[np.sort(rng.choice(400, 120, replace=False))]
+        assert unmatched_side(model, subject, mean_spacing2(subject)) == "subject"
+        sparse = scattered_extra(model, subject, mean_spacing2(subject))
+        assert sparse is not None and sparse < SCATTER_MIN / 3
     # too few points without counterpart to tell
     assert scattered_extra(outline, _with_outliers(outline, 3, seed=3),
                            mean_spacing2(outline)) is None
