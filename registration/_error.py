@@ -40,15 +40,18 @@ EXTRA_SPACINGS = 2.0
 #: Those points are scattered (outliers, specks) rather than a piece of outline the model
 #: has not reached (a leg, a wing, an extra stroke) when the median, over each of them,
 #: of the ratio of the smaller to the larger principal variance of it and its
-#: :data:`SCATTER_NEIGHBOURS` nearest points of the subject is above this. A piece of
-#: outline is near a line at the scale of five of its samples whatever its shape, so its
-#: ratios sit near 0; points strewn at random give a median of 0.26 (uniform points in
-#: the plane). The neighbours are the subject's, not only those without counterpart: a
-#: sparse, irregular sample of an outline (80-120 random points) leaves single points
-#: off the model along its gaps, whose nearest such points lie across the shape, while
-#: their nearest points of the subject lie along the outline. Measured (bench/RESULTS.md
-#: 7.59): on the Chui & Rangarajan outlier series 0.23-0.37 (fish) and 0.17-0.45
-#: (Chinese character).
+#: :data:`SCATTER_NEIGHBOURS` nearest is above this, both with its nearest among those
+#: points and with its nearest points of the subject. A piece of outline is near a line
+#: at the scale of five of its samples whatever its shape, so its ratios sit near 0;
+#: points strewn at random give a median of 0.26 (uniform points in the plane). Each
+#: reading alone misreads one kind of outline (bench/RESULTS.md 7.59): among the off
+#: points alone, a sparse random sample of an outline (80-120 points) leaves single
+#: points off the model along its gaps, whose nearest such points lie across the shape
+#: (0.21-0.27); among all the subject's points, a thin fin's two sides are each other's
+#: neighbours (an MPEG-7 fish at 0.26). Measured on the Chui & Rangarajan outlier
+#: series: 0.11-0.37 and 0.23-0.37 (fish), 0.08-0.25 and 0.17-0.45 (Chinese
+#: character); on MPEG-7 legs, wings and fins the chain had not reached 0.012-0.094
+#: among the off points.
 SCATTER_MIN = 0.15
 SCATTER_NEIGHBOURS = 4
 
@@ -134,7 +137,8 @@ def scattered_extra(q: ArrayLike, y: ArrayLike, spacing2: float) -> float | None
     `q` are, when the subject has such points (:func:`unmatched_side` ``"subject"``): the
     median over the points farther than :data:`EXTRA_SPACINGS` spacings from `q` of the
     ratio of the smaller to the larger principal variance of each and its
-    :data:`SCATTER_NEIGHBOURS` nearest points of `y` (0: on a line; 1: spread evenly;
+    :data:`SCATTER_NEIGHBOURS` nearest, the lower of that median with the nearest among
+    those points and with the nearest points of `y` (0: on a line; 1: spread evenly;
     above :data:`SCATTER_MIN`: scattered, as outliers are). None when the subject has no such
     points, or too few of them to tell (fewer than ``SCATTER_NEIGHBOURS + 1``).
     `spacing2`: the subject's mean squared point spacing h^2."""
@@ -147,8 +151,16 @@ def scattered_extra(q: ArrayLike, y: ArrayLike, spacing2: float) -> float | None
     k = SCATTER_NEIGHBOURS + 1
     if len(extra) < k:
         return None
-    _, idx = cKDTree(ya).query(extra, k=k)
-    local = ya[idx] - ya[idx].mean(axis=1, keepdims=True)  # (n, k, 2)
+    return min(_anisotropy(extra, ya), _anisotropy(extra, extra))
+
+
+def _anisotropy(points: np.ndarray, among: np.ndarray) -> float:
+    """The median over `points` of the ratio of the smaller to the larger principal
+    variance of each point's :data:`SCATTER_NEIGHBOURS` + 1 nearest in `among` (the point
+    itself included when it is one of `among`)."""
+    k = SCATTER_NEIGHBOURS + 1
+    _, idx = cKDTree(among).query(points, k=k)
+    local = among[idx] - among[idx].mean(axis=1, keepdims=True)  # (n, k, 2)
     cov = np.einsum("nki,nkj->nij", local, local)
     low, high = np.linalg.eigvalsh(cov).T
     return float(np.median(low / np.maximum(high, np.finfo(float).tiny)))

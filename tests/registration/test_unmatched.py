@@ -107,7 +107,8 @@ def test_scattered_extra_tells_outliers_from_a_piece_of_outline_not_reached() ->
     assert curve is not None and curve < SCATTER_MIN / 3
     # two random subsets of one outline (80 and 120 points): the gaps leave single
     # points off the model, along the outline, their nearest subject points beside them
-    # (among the off points alone their neighbours lie across the shape: 0.21-0.22 here)
+    # (among the off points alone their neighbours lie across the shape: 0.21-0.22 here;
+    # the lower of the two readings counts)
     dense = base_outline(400)
     for seed in (1, 5):
         rng = np.random.default_rng(seed)
