@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import importlib
 import sys
-from collections import Counter
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import ModuleType
@@ -13,38 +12,6 @@ from typing import Any
 import pytest
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
-
-#: The test files that take longest, longest first (seconds of one session's
-#: ``--durations`` on the 2-core machine, bench/RESULTS.md 10.2). The suite runs a file
-#: per worker at a time (``--dist loadfile``), and xdist would order the files by their
-#: number of tests, which puts these few-test files last: the suite then ended on one of
-#: them with the other worker idle. They go first, the rest after them by number of
-#: tests, as xdist would (``--no-loadscope-reorder`` keeps this order), so the many
-#: short files fill in at the end.
-SLOW_FILES = (
-    "tests/service/test_schemathesis.py",  # 290 (SQLite; again on PostgreSQL in CI)
-    "tests/service/test_resilience.py",  # 190
-    "tests/service/test_page_states.py",  # 115
-    "tests/service/test_cli_client.py",  # 110
-    "tests/service/test_cancel.py",  # 95
-    "tests/service/test_page_browser.py",  # 85
-    "tests/service/test_page_big_tree.py",  # 80
-    "tests/service/test_callbacks.py",  # 75
-    "tests/service/test_dask_jobs.py",  # 70
-    "tests/service/test_demo.py",  # 70
-)
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Run :data:`SLOW_FILES` first, then the other files by their number of tests; each
-    file's tests keep their order (a stable sort on a key of the file alone)."""
-    def file_of(item: pytest.Item) -> str:
-        return item.nodeid.split("::", 1)[0]
-
-    rank = {name: i for i, name in enumerate(SLOW_FILES)}
-    count = Counter(file_of(item) for item in items)
-    items.sort(key=lambda item: (rank.get(file_of(item), len(rank)), -count[file_of(item)],
-                                 file_of(item)))
 
 
 @pytest.fixture()
