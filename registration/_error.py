@@ -122,7 +122,11 @@ def unmatched_side(q: ArrayLike, y: ArrayLike, spacing2: float) -> str | None:
     counterpart for (:data:`UNMATCHED_RATIO`): ``"subject"`` (outliers, a speck, an extra
     stroke on the subject), ``"model"`` (the subject is part of the model: occluded, cut
     off), or None. `spacing2`: the subject's mean squared point spacing h^2."""
-    to_subject, to_model = directed_errors(q, y)
+    return _side(*directed_errors(q, y), spacing2)
+
+
+def _side(to_subject: float, to_model: float, spacing2: float) -> str | None:
+    """:func:`unmatched_side` from the two halves of e (means)."""
     if max(to_subject, to_model) <= spacing2:
         return None
     if to_model > UNMATCHED_RATIO * to_subject:
@@ -142,14 +146,12 @@ def scattered_extra(q: ArrayLike, y: ArrayLike, spacing2: float) -> float | None
     above :data:`SCATTER_MIN`: scattered, as outliers are). None when the subject has no such
     points, or too few of them to tell (fewer than ``SCATTER_NEIGHBOURS + 1``).
     `spacing2`: the subject's mean squared point spacing h^2."""
-    forward, backward = _nearest_squared(q, y)
-    to_subject, to_model = float(forward.mean()), float(backward.mean())
-    if max(to_subject, to_model) <= spacing2 or not to_model > UNMATCHED_RATIO * to_subject:
+    forward, backward = _nearest_squared(q, y)  # one pass for the halves and the points
+    if _side(float(forward.mean()), float(backward.mean()), spacing2) != "subject":
         return None
     ya = np.asarray(y, dtype=np.float64)
     extra = ya[backward > EXTRA_SPACINGS ** 2 * spacing2]
-    k = SCATTER_NEIGHBOURS + 1
-    if len(extra) < k:
+    if len(extra) < SCATTER_NEIGHBOURS + 1:
         return None
     return min(_anisotropy(extra, ya), _anisotropy(extra, extra))
 
