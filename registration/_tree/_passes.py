@@ -28,9 +28,11 @@ from ._tasks import (
     POSE_DISTINCT_DEG,
     POSE_MARGIN,
     _lowest_error,
+    _part_of_model,
     _RegOutcome,
     _RegTask,
     _run_tasks,
+    _subject_half,
 )
 
 #: How far apart (RMS, in the subject's RMS radius) two registrations of a subject put the
@@ -212,7 +214,18 @@ def _attach_leaves(
     lower correspondence error than preferring unfolded registrations by confidence in
     every family (bench/RESULTS.md). A warp that folds locally is kept when its e is the
     lowest (a leaf is never a parent, so the fold does not spread), reporting confidence
-    0. The subject is attached as a leaf: never a parent, its confidence and the reason
+    0. Two kinds of subject e cannot compare registrations of (bench/RESULTS.md 7.59,
+    7.60; ``quality["leaf_compared_by"]``: "e", "root" or "subject"):
+
+    - with scattered points without counterpart (outliers): e falls most where the model
+      is pulled over them; the root's own registration is kept ("root");
+    - part of the model (occluded, cut off: the root's registration leaves part of the
+      model without counterpart, `_part_of_model`): e falls most where the whole model is
+      squeezed onto the part; the registration that covers the subject's points closest
+      is kept (`_subject_half`, as the poses of one task are compared; "subject"), and
+      the polish, whose every stage is kept by e, is not run on it.
+
+    The subject is attached as a leaf: never a parent, its confidence and the reason
     it was not accepted reported. It stays unattached only when no registration could be
     run.
     """
@@ -241,11 +254,25 @@ def _attach_leaves(
         # the lowest e: every candidate registers the same subject, so e compares like
         # with like; a local fold does not disqualify (a leaf is never a parent)
         best = _lowest_error(pool, key=lambda o: (o.error, -nodes[o.member].confidence))
+        chosen_by = f"the lowest e of {len(pool)} registrations"
+        compared_by = "e"
         direct = [o for o in pool if o.member == coll.root]
         if _scattered(best) and direct:
             # e cannot compare registrations onto scattered points (it falls most where
             # the model is pulled over them): the fewest links, the root's own
             best = _lowest_error(direct)
+            chosen_by, compared_by = "the root's own registration (scattered points)", "root"
+        elif direct and _part_of_model(_lowest_error(direct), coll.normed[s],
+                                       coll.spacing2[s]):
+            # the subject is part of the model: e falls most where the whole model is
+            # squeezed onto the part, so the registrations are compared by how closely
+            # each covers the subject's points, as the poses of one task are (`_pose_term`)
+            term = _subject_half(coll.normed[s])
+            best = _lowest_error(pool, key=lambda o: (term(o), o.error))
+            chosen_by = (f"of {len(pool)} registrations, the one closest to every point of "
+                         "the subject (it is part of the model: the root's registration "
+                         "leaves part of the model without counterpart)")
+            compared_by = "subject"
         parent = nodes[best.member]
         res, _ = _subject_from_outcome(coll, best, parent, joined=parent.joined, leaf=True)
         why = next((a.reason for a in reversed(r.attempts) if a.member == best.member), None)
@@ -254,8 +281,9 @@ def _attach_leaves(
                    f"{best.min_jacobian:.3g}): confidence 0; {len(usable)} of the {len(pool)} "
                    "registrations tried do not fold")
         res.attempts = r.attempts
+        res.quality = {**(res.quality or {}), "leaf_compared_by": compared_by}
         res.reason = (
-            f"low-confidence leaf: the lowest e of {len(pool)} registrations, from "
+            f"low-confidence leaf: {chosen_by}, from "
             f"{coll.names[best.member]}; not accepted into the tree"
             + (f" ({why})" if why else " (the tree stopped growing before reaching it)")
         )

@@ -309,6 +309,9 @@ class _PolishTask:
     # the subject's chain is one CPD from the root (layer 2, at the working resolution):
     # the polish is kept only as `_single_edge_refusal` allows
     single_edge: bool = False
+    # the subject is a leaf that is part of the model (``quality["leaf_compared_by"]``
+    # "subject", `_passes._attach_leaves`): no polish (`_part_refusal`)
+    part_of_model: bool = False
     # end with the step towards plain CPD (`_along_plain`): at the resolution the result
     # is reported at, once (not at a working resolution a stored one follows)
     along_plain: bool = True
@@ -918,6 +921,22 @@ def _scattered_refusal(task: _PolishTask) -> dict[str, Any] | None:
                       "would pull the model over"}
 
 
+def _part_refusal(task: _PolishTask) -> dict[str, Any] | None:
+    """Why no polish is run for the subject (recorded in ``quality["polish_not_kept"]``),
+    or None: it is a leaf that is part of the model (occluded, cut off;
+    ``task.part_of_model``). Each of the polish's stages is kept by e, which also counts
+    the model's points without counterpart and falls most where the whole model is
+    squeezed onto the part: on the Chui & Rangarajan occlusion series (Chinese character,
+    trial 2, level 5) the polish of the root's registration took e from 0.038 to 0.005
+    and the correspondence error from 0.018 to 0.30 of the radius (bench/RESULTS.md
+    7.60)."""
+    if not task.part_of_model:
+        return None
+    return {"error_before": task.error, "error": task.error,
+            "reason": "the subject is part of the model (occluded or cut off), and each "
+                      "stage's e would squeeze the whole model onto it"}
+
+
 def _unpolished(task: _PolishTask, refused: dict[str, Any]) -> _PolishOutcome:
     """The outcome of a polish not kept: the subject keeps the registration it starts
     from (`task.start`), whose correspondences it already has."""
@@ -928,9 +947,9 @@ def _unpolished(task: _PolishTask, refused: dict[str, Any]) -> _PolishOutcome:
 
 
 def _polish_task(task: _PolishTask) -> _PolishOutcome:
-    scattered = _scattered_refusal(task)
-    if scattered is not None:
-        return _unpolished(task, scattered)
+    refused = _scattered_refusal(task) or _part_refusal(task)
+    if refused is not None:
+        return _unpolished(task, refused)
     chain = _stages(task.start, task.error, task.y, task.cpd, task.spacing2,
                     task.model_irregularity, task.irregularity, task.stage_control)
     edge, edge_q, edge_info = None, None, None
@@ -1204,4 +1223,5 @@ def _polish_subject_task(
         from_parent=from_parent, edge_affine=edge_affine,
         edge_within_chain_e=stored is None, control=control,
         subject_control=subject_control, stage_control=stage_control,
-        single_edge=stored is None and r.layer == 2, along_plain=along_plain)
+        single_edge=stored is None and r.layer == 2, along_plain=along_plain,
+        part_of_model=(r.quality or {}).get("leaf_compared_by") == "subject")

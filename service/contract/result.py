@@ -135,6 +135,16 @@ class Quality(_Open):
         "model point alone) when the pose as given left part of the model with no "
         "counterpart on the subject (the subject is part of the model: occluded, cut off), "
         "where e would favour a turn that squeezes the whole model onto the part.")
+    leaf_compared_by: Literal["e", "root", "subject"] | None = Field(
+        default=None, description="A low-confidence leaf (the tree did not accept it): how "
+        "its registration was chosen among those tried. 'e': the lowest e. 'root': the "
+        "root's own, when the subject has points scattered off the registered model "
+        "(outliers), which e pulls the model over. 'subject': the one closest to every "
+        "subject point (the mean squared distance from each subject point to the nearest "
+        "model point) when the root's registration leaves part of the model with no "
+        "counterpart on the subject (the subject is part of the model: occluded, cut off), "
+        "where e would favour squeezing the whole model onto the part; such a leaf is not "
+        "polished. Null for subjects the tree accepted.")
     symmetric_edge: bool | None = Field(
         default=None, description="The dynamic tree's edge was made symmetric: CPD's "
         "registration moved halfway to the subject's registered back onto the member.")
