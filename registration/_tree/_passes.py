@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from .._error import part_of_model
 from .._executor import Executor
 from .._points import rms_distance
 from .._result import SubjectResult
@@ -28,7 +29,6 @@ from ._tasks import (
     POSE_DISTINCT_DEG,
     POSE_MARGIN,
     _lowest_error,
-    _part_of_model,
     _RegOutcome,
     _RegTask,
     _run_tasks,
@@ -220,7 +220,8 @@ def _attach_leaves(
     - with scattered points without counterpart (outliers): e falls most where the model
       is pulled over them; the root's own registration is kept ("root");
     - part of the model (occluded, cut off: the root's registration leaves part of the
-      model without counterpart, `_part_of_model`): e falls most where the whole model is
+      model without counterpart, and the subject lies on the model,
+      :func:`~registration._error.part_of_model`): e falls most where the whole model is
       squeezed onto the part; the registration that covers the subject's points closest
       is kept (`_subject_half`, as the poses of one task are compared; "subject"), and
       the polish, whose every stage is kept by e, is not run on it.
@@ -262,8 +263,8 @@ def _attach_leaves(
             # the model is pulled over them): the fewest links, the root's own
             best = _lowest_error(direct)
             chosen_by, compared_by = "the root's own registration (scattered points)", "root"
-        elif direct and _part_of_model(_lowest_error(direct), coll.normed[s],
-                                       coll.spacing2[s]):
+        elif direct and part_of_model(_lowest_error(direct).warped, coll.normed[s],
+                                      coll.spacing2[s]):
             # the subject is part of the model: e falls most where the whole model is
             # squeezed onto the part, so the registrations are compared by how closely
             # each covers the subject's points, as the poses of one task are (`_pose_term`)

@@ -438,22 +438,15 @@ def _pose_term(given: _RegOutcome, task: _RegTask
     radius (bench/RESULTS.md 7.58). A turn still wins when it covers the subject's
     points closer by the start's margin, as a true turn does. Returns the term and its
     name (``pose_compared_by``: "e" or "subject")."""
-    if not _part_of_model(given, task.y, task.spacing2):
+    if unmatched_side(given.warped, task.y, task.spacing2) != "model":
         return (lambda out: out.error), "e"
     return _subject_half(task.y), "subject"
-
-
-def _part_of_model(out: _RegOutcome, y: FloatArray, spacing2: float) -> bool:
-    """Whether the registration `out` leaves part of the model with no counterpart on the
-    subject `y` (:func:`~registration._error.unmatched_side` ``"model"``): the subject is
-    part of the model, occluded or cut off. `spacing2`: the subject's h^2."""
-    return unmatched_side(out.warped, y, spacing2) == "model"
 
 
 def _subject_half(y: FloatArray) -> Callable[[_RegOutcome], float]:
     """The subject's half of e of a registration onto `y`: the mean squared distance from
     each subject point to the nearest registered model point. What registrations of a
-    subject that is part of the model (`_part_of_model`) are compared by: e also counts
+    subject that is part of the model are compared by: e also counts
     the model's points without counterpart, and falls most where the whole model is
     squeezed onto the part the subject has (`_pose_term`,
     `_passes._attach_leaves`)."""

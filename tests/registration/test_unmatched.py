@@ -20,6 +20,7 @@ from registration._error import (
     SCATTER_MIN,
     UNMATCHED_RATIO,
     directed_errors,
+    part_of_model,
     scattered_extra,
     unmatched_side,
 )
@@ -157,6 +158,37 @@ def _cut_sector(shape: np.ndarray, half_angle: float, seed: int) -> np.ndarray:
     angle = np.arctan2(*(shape - shape.mean(axis=0)).T[::-1])
     towards = np.random.default_rng(seed).uniform(-np.pi, np.pi)
     return shape[np.abs((angle - towards + np.pi) % (2 * np.pi) - np.pi) > half_angle]
+
+
+def _pushed_out(shape: np.ndarray, centre: np.ndarray, half_angle: float, towards: float,
+                by: float) -> np.ndarray:
+    """`shape` with its points within `half_angle` of the direction `towards` (radians)
+    from `centre` moved `by` outwards, radially."""
+    off = shape - centre
+    angle = np.arctan2(off[:, 1], off[:, 0])
+    inside = np.abs((angle - towards + np.pi) % (2 * np.pi) - np.pi) < half_angle
+    radial = off / np.linalg.norm(off, axis=1, keepdims=True)
+    return shape + by * inside[:, None] * radial
+
+
+def test_part_of_model_is_a_part_that_lies_on_the_model_not_a_misfit() -> None:
+    """The subject is part of the model when a piece of the model lies off it and the
+    subject lies on the model. A registration off the subject somewhere leaves both
+    shapes off the other there, about alike: with a piece cut away too, the model's half
+    of e is still the larger, but the share of the subject's points off the model rules
+    out a part once it is more than half the model's."""
+    model = base_outline(240)
+    centre = model.mean(axis=0)
+    subject = _cut_sector(model[::2], 0.2 * np.pi, seed=0)  # a fifth of the outline gone
+    h2 = mean_spacing2(subject)
+    assert part_of_model(model, subject, h2)
+    assert not part_of_model(model, model[::2], mean_spacing2(model[::2]))
+    # the part, its points also pushed 3 spacings off the model in another sector
+    towards = float(np.arctan2(*(subject - centre).mean(axis=0)[::-1]))  # the part's side
+    for half_angle, part in ((0.05 * np.pi, True), (0.25 * np.pi, False)):
+        off = _pushed_out(subject, centre, half_angle, towards, 3 * np.sqrt(h2))
+        assert unmatched_side(model, off, h2) == "model"
+        assert part_of_model(model, off, h2) is part
 
 
 def test_a_leaf_that_is_part_of_the_model_is_chosen_by_its_own_points_and_not_polished(
