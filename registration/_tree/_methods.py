@@ -11,6 +11,7 @@ from typing import Any, Unpack
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .._error import part_of_model
 from .._executor import Executor
 from .._pose import PoseSpec
 from .._result import Attempt, CollectionResult, SubjectResult
@@ -152,6 +153,7 @@ def build_dynamic_tree(
     waiting = set(subjects_idx)
     tried: set[tuple[int, int]] = set()
     rejected: dict[int, list[_RegOutcome]] = {}
+    parts: set[int] = set()  # subjects that are part of the model
     e_ref: float | None = None  # the lower quartile of the first round's e
     frontier = [root]
     # the round of growth: each tries the waiting subjects from the last round's new
@@ -194,9 +196,13 @@ def build_dynamic_tree(
         accepted: dict[int, list[_RegOutcome]] = {}
         limits = {out.subject: _error_limit(tau_err, error_threshold is not None,
                                             floors[out.subject]) for out in outcomes}
+        # a subject is part of the model by the root's registration of it, the one the
+        # chain's links cannot have squeezed (`_rules._rejection`)
+        parts.update(out.subject for out in outcomes if out.member == root and part_of_model(
+            out.warped, coll.normed[out.subject], coll.spacing2[out.subject]))
         for out in outcomes:
             limit = limits[out.subject]
-            rejection = _rejection(out, limit, fold_check)
+            rejection = _rejection(out, limit, fold_check, part=out.subject in parts)
             ok = rejection is None
             reason = rejection or "accepted candidate"
             if not ok:

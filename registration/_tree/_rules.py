@@ -262,12 +262,17 @@ def _scattered(out: _RegOutcome) -> bool:
     return out.scattered is not None and out.scattered > SCATTER_MIN
 
 
-def _rejection(out: _RegOutcome, limit: float, fold_check: bool) -> str | None:
+def _rejection(out: _RegOutcome, limit: float, fold_check: bool,
+               part: bool = False) -> str | None:
     """Why the tree's rule refuses a registration (None: it accepts it): a fold, e at or
-    above `limit`, a confidence below ``MIN_CONFIDENCE``, or scattered points on the
-    subject without counterpart (`_scattered`), checked in that order. A subject with
-    outliers is so attached as a leaf, never a parent: each child of it would inherit
-    a registration pulled over its outliers (bench/RESULTS.md 7.59)."""
+    above `limit`, a confidence below ``MIN_CONFIDENCE``, scattered points on the
+    subject without counterpart (`_scattered`), or a subject that is part of the model
+    (`part`: the root's registration of it reads
+    :func:`~registration._error.part_of_model`), checked in that order. Such subjects
+    are so attached as leaves, never parents: each child of a subject with outliers
+    would inherit a registration pulled over them (bench/RESULTS.md 7.59), and e, which
+    counts the model's points without counterpart, accepts from a member the
+    registration that squeezes the whole model onto the part (7.60)."""
     if fold_check and not out.min_jacobian > 0:
         return "folded (Jacobian determinant <= 0)"
     if not out.error < limit:
@@ -279,4 +284,8 @@ def _rejection(out: _RegOutcome, limit: float, fold_check: bool) -> str | None:
         return (f"the subject has points scattered off the registered model (outliers; "
                 f"scatter {out.scattered:.2f} > {SCATTER_MIN:g}), which its e pulls the "
                 "model over")
+    if part:
+        return ("the subject is part of the model (occluded or cut off: the root's "
+                "registration leaves a piece of the model without counterpart), which e "
+                "would squeeze the whole model onto")
     return None

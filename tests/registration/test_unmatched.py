@@ -215,6 +215,8 @@ def test_a_leaf_that_is_part_of_the_model_is_chosen_by_its_own_points_and_not_po
         assert s.leaf and k not in parents
         assert s.quality["leaf_compared_by"] == "subject"
         assert "closest to every point of the subject" in s.reason
+        (root_try,) = [a for a in s.attempts if a.member == 0]
+        assert not root_try.accepted and root_try.reason  # e, or a part: never a parent
         assert "part of the model" in s.quality["polish_not_kept"]["reason"]
         assert "polish" not in s.quality
         tree_err.append(correspondence_error(s.warped, truth[k], shapes[k]))
