@@ -11,6 +11,7 @@ compares the poses of the second by how closely each covers the subject's own po
 from __future__ import annotations
 
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -191,6 +192,21 @@ def test_part_of_model_is_a_part_that_lies_on_the_model_not_a_misfit() -> None:
         assert part_of_model(model, off, h2) is part
 
 
+def _cut_chain(seed: int) -> tuple[list[np.ndarray], list[np.ndarray], Any, Any]:
+    """A chain of 6 generated outlines (120 points) with steps 3 and 5 cut (15% of the
+    outline each side of a random direction gone): the shapes, the root's true images,
+    the dynamic tree and plain CPD."""
+    fam = deformation_chains(base_outline(1500), n_chains=1, chain_length=6, step=0.08,
+                             n_points=120, seed=seed)
+    cut = {k: _cut_sector(fam.shapes[k], 0.15 * np.pi, seed=10 * seed + k - 1)
+           for k in (3, 5)}
+    shapes = [cut.get(k, s) for k, s in enumerate(fam.shapes)]
+    res = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
+    plain = register_direct(shapes, 0, cpd=FAST_CPD, prealign=False,
+                            executor=SerialExecutor())
+    return shapes, fam.root_images(0), res, plain
+
+
 def test_a_leaf_that_is_part_of_the_model_is_chosen_by_its_own_points_and_not_polished(
 ) -> None:
     """A chain with two subjects cut (15% of the outline each side of a direction gone):
@@ -198,16 +214,9 @@ def test_a_leaf_that_is_part_of_the_model_is_chosen_by_its_own_points_and_not_po
     closest to every subject point, not the lowest e, which squeezes the whole model onto
     the part; nor is it polished, whose stages are kept by e. Their correspondences are
     better than plain CPD's (the paper's baseline); by the lowest e and polished they were
-    1.25x plain CPD's on this collection (0.91x now)."""
-    fam = deformation_chains(base_outline(1500), n_chains=1, chain_length=6, step=0.08,
-                             n_points=120, seed=0)
-    cut = {3: _cut_sector(fam.shapes[3], 0.15 * np.pi, seed=2),
-           5: _cut_sector(fam.shapes[5], 0.15 * np.pi, seed=4)}
-    shapes = [cut.get(k, s) for k, s in enumerate(fam.shapes)]
-    res = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
-    plain = register_direct(shapes, 0, cpd=FAST_CPD, prealign=False,
-                            executor=SerialExecutor())
-    truth = fam.root_images(0)
+    1.25x plain CPD's on this collection (0.90x now)."""
+    shapes, truth, res, plain = _cut_chain(seed=0)
+    cut = (3, 5)
     parents = {s.parent for s in res.subjects}
     tree_err, plain_err = [], []
     for k in cut:
@@ -230,21 +239,13 @@ def test_a_part_is_not_accepted_even_when_its_e_passes() -> None:
     is a leaf (never a parent), chosen by its own points and not polished. Accepted, it
     was polished onto a squeeze and was a parent: the collection was 1.28x plain CPD's
     error (0.92x now)."""
-    fam = deformation_chains(base_outline(1500), n_chains=1, chain_length=6, step=0.08,
-                             n_points=120, seed=2)
-    cut = {3: _cut_sector(fam.shapes[3], 0.15 * np.pi, seed=22),
-           5: _cut_sector(fam.shapes[5], 0.15 * np.pi, seed=24)}
-    shapes = [cut.get(k, s) for k, s in enumerate(fam.shapes)]
-    res = build_dynamic_tree(shapes, 0, cpd=FAST_CPD, executor=SerialExecutor())
-    plain = register_direct(shapes, 0, cpd=FAST_CPD, prealign=False,
-                            executor=SerialExecutor())
+    shapes, truth, res, plain = _cut_chain(seed=2)
     s = res.subject(3)
     (root_try,) = [a for a in s.attempts if a.member == 0]
     assert root_try.error < root_try.limit and not root_try.accepted
     assert "part of the model" in root_try.reason
     assert s.leaf and s.quality["leaf_compared_by"] == "subject"
     assert 3 not in {t.parent for t in res.subjects}
-    truth = fam.root_images(0)
     tree_err = [correspondence_error(t.warped, truth[t.index], shapes[t.index])
                 for t in res.subjects]
     plain_err = [correspondence_error(plain.subject(t.index).warped, truth[t.index],
