@@ -58,7 +58,7 @@ SCATTER_NEIGHBOURS = 4
 #: The least share of the model's points inside a piece of it without counterpart on
 #: the subject (:func:`part_of_model`) for the subject to be part of the model. On the
 #: Chui & Rangarajan occlusion series 0.051-0.26; the far subjects of 永 chains whose
-#: other readings look like a part 0.010-0.018, random subsets of outlines 0 (bench/
+#: other readings look like a part 0.010-0.018, two random subsets of outlines 0 (bench/
 #: RESULTS.md 7.60). e's pull to squeeze the model onto the part grows with the piece;
 #: on a generated outline cut 5%, refusing the polish cost more than the squeeze (the
 #: correspondence error 0.033 -> 0.038 and 0.070 -> 0.088 of the radius).
@@ -158,15 +158,17 @@ def part_of_model(q: ArrayLike, y: ArrayLike, spacing2: float) -> bool:
     - those model points form a piece: at least :data:`PART_MIN_INSIDE` of the model's
       points lie inside one, they and their :data:`SCATTER_NEIGHBOURS` nearest model
       points all that far from the subject (the gaps of a sparse random sample of an
-      outline leave single model points off it, with no inside).
+      outline leave mostly single model points off it, with no inside; a gap long
+      enough to hold a piece of the outline counts).
 
     Measured on the root's registrations of the subjects of the default bench that read
     ``"model"`` (bench/RESULTS.md 7.60): the Chui & Rangarajan occlusion series, ratio 6.6
     or more (the model's share 0.13-0.35, the subject's 0-0.02), inside 0.051-0.26; an
     outline cut 15% each side of a direction, ratio 2.9; far subjects of 永 chains,
     ratio 1.2-1.7, or above 2 with inside 0.010-0.018; random subsets of 80-120 points of
-    an outline, ratio 5, inside 0. `spacing2`: the subject's mean squared point spacing
-    h^2."""
+    an outline, ratio 5, inside 0 on the two probed (7 of the bench's 15 such runs have a
+    subject with a gap that holds a piece). `spacing2`: the subject's mean squared point
+    spacing h^2."""
     qa = np.asarray(q, dtype=np.float64)
     forward, backward = _nearest_squared(qa, y)
     if _side(float(forward.mean()), float(backward.mean()), spacing2) != "model":
