@@ -179,8 +179,7 @@ def part_of_model(q: ArrayLike, y: ArrayLike, spacing2: float) -> bool:
         return False
     if model_off.sum() < SCATTER_NEIGHBOURS + 1:
         return False
-    _, idx = cKDTree(qa).query(qa[model_off], k=SCATTER_NEIGHBOURS + 1)
-    inside = int(model_off[idx].all(axis=1).sum())
+    inside = int(model_off[_neighbourhoods(qa[model_off], qa)].all(axis=1).sum())
     return inside >= PART_MIN_INSIDE * len(qa)
 
 
@@ -208,9 +207,16 @@ def _anisotropy(points: np.ndarray, among: np.ndarray) -> float:
     """The median over `points` of the ratio of the smaller to the larger principal
     variance of each point's :data:`SCATTER_NEIGHBOURS` + 1 nearest in `among` (the point
     itself included when it is one of `among`)."""
-    k = SCATTER_NEIGHBOURS + 1
-    _, idx = cKDTree(among).query(points, k=k)
+    idx = _neighbourhoods(points, among)
     local = among[idx] - among[idx].mean(axis=1, keepdims=True)  # (n, k, 2)
     cov = np.einsum("nki,nkj->nij", local, local)
     low, high = np.linalg.eigvalsh(cov).T
     return float(np.median(low / np.maximum(high, np.finfo(float).tiny)))
+
+
+def _neighbourhoods(points: np.ndarray, among: np.ndarray) -> np.ndarray:
+    """The indices into `among` of each of `points`' :data:`SCATTER_NEIGHBOURS` + 1
+    nearest (the point itself included when it is one of `among`), shape (n, k): the
+    neighbourhoods :func:`scattered_extra` and :func:`part_of_model` read."""
+    _, idx = cKDTree(among).query(points, k=SCATTER_NEIGHBOURS + 1)
+    return np.asarray(idx)
