@@ -48,6 +48,17 @@ T = TypeVar("T")
 POSE_DISTINCT_DEG = 20.0
 POSE_D_RATIO = 0.6
 POSE_MARGIN = 0.7
+#: The pose as given has failed, and another start's unfolded registration replaces it at
+#: no larger an e (not only below its margin: `_register_posed`), when CPD from it folds
+#: clearly: its least Jacobian determinant is below ``-FAILED_FOLD``. A warp that must
+#: turn the model to reach a really turned subject folds deeply: on real MPEG-7, every pose
+#: as given that gave way so (lmfish, bird, camel, 6 of them) had -0.29 to -3.2. A fold
+#: of a few hundredths is a kink over a few noisy points: on the Chui & Rangarajan noise
+#: series (fish, trial 0, level 5) CPD as given reached -0.015 at 0.72 of the radius from
+#: the truth, and a turn of 105 degrees won at 0.73x its e, 1.81 from the truth, making
+#: direct CPD 1.93x plain CPD on that run (bench/RESULTS.md 7.61). A registration that
+#: folds at all still counts as folded everywhere else (the acceptance rule, the leaves).
+FAILED_FOLD = 0.1
 #: The margin of an ``"aligned"`` start (`_Start.decided`): the pose as given again,
 #: pre-aligned by affine ICP with a turn of the model's (or root's) symmetry undone. Its
 #: e differs from the pose as given's only by how the two fit what breaks the symmetry,
@@ -378,7 +389,8 @@ def _register_task(task: _RegTask) -> _RegOutcome:
 
     The pose as given (the first start) is kept unless another start's registration does
     not fold and reaches an e below its start's margin (``POSE_MARGIN``) times the pose
-    as given's, or the pose as given folds and the other reaches no larger an e. A
+    as given's, or the pose as given folds clearly (``FAILED_FOLD``) and the other
+    reaches no larger an e. A
     rotated pose thus earns its place by the registration it leads to, not by D alone;
     a turn the model is nearly symmetric under is not tried at all, the pose as given
     aligned by affine ICP in its place (`_Start.decided`). No other start is tried when
@@ -414,9 +426,9 @@ def _register_posed(task: _RegTask) -> _RegOutcome:
     for st, other in zip(starts[1:], outs[1:], strict=True):
         if not other.min_jacobian > 0:
             continue
-        folded = not chosen.min_jacobian > 0
+        failed = chosen.min_jacobian < -FAILED_FOLD
         assert term is not None
-        if term(other) < st.margin * term(chosen) or (folded and other.error <= chosen.error):
+        if term(other) < st.margin * term(chosen) or (failed and other.error <= chosen.error):
             chosen, margin = other, st.margin
     errors: dict[str, float] = {}
     for o in outs:  # two turned starts: the lower e
