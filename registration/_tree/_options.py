@@ -74,7 +74,8 @@ class MethodOptions(TypedDict, total=False):
         map including reflections (the paper's ``det(A) != 0``). Outside "affine" the
         affine ICP never mirrors. The pose as given is always registered; another pose is
         tried when its D is below 0.6 of the pose as given's and replaces it only when
-        CPD from it reaches less than half the pose as given's e.""")]
+        CPD from it reaches less than 0.7 of the pose as given's e (no larger an e where
+        CPD from the pose as given folds clearly).""")]
     max_rotation: Annotated[float | None, Option(None, "float, optional", """
         Half-width in degrees of the "upright" mode (default 30); given alone, it
         selects that mode (glyph scans, aligned outlines).""")]
