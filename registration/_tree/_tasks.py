@@ -51,8 +51,9 @@ POSE_MARGIN = 0.7
 #: The pose as given has failed, and another start's unfolded registration replaces it at
 #: no larger an e (not only below its margin: `_register_posed`), when CPD from it folds
 #: clearly: its least Jacobian determinant is below ``-FAILED_FOLD``. A warp that must
-#: turn the model to reach a really turned subject folds deeply: on real MPEG-7, every pose
-#: as given that gave way so (lmfish, bird, camel, 6 of them) had -0.29 to -3.2. A fold
+#: turn the model to reach a really turned subject folds deeply: on real MPEG-7, 5 of the
+#: 6 poses as given that gave way so (lmfish, bird, camel) had -0.29 to -3.2; the sixth
+#: (horse, -0.009) gave way to a turn at 0.97x its e, which e cannot rank. A fold
 #: of a few hundredths is a kink over a few noisy points: on the Chui & Rangarajan noise
 #: series (fish, trial 0, level 5) CPD as given reached -0.015 at 0.72 of the radius from
 #: the truth, and a turn of 105 degrees won at 0.73x its e, 1.81 from the truth, making
@@ -390,14 +391,13 @@ def _register_task(task: _RegTask) -> _RegOutcome:
     The pose as given (the first start) is kept unless another start's registration does
     not fold and reaches an e below its start's margin (``POSE_MARGIN``) times the pose
     as given's, or the pose as given folds clearly (``FAILED_FOLD``) and the other
-    reaches no larger an e. A
-    rotated pose thus earns its place by the registration it leads to, not by D alone;
-    a turn the model is nearly symmetric under is not tried at all, the pose as given
-    aligned by affine ICP in its place (`_Start.decided`). No other start is tried when
-    the pose as given's registration does not fold and its e is within the sampling
-    floor (``SPACING_FACTOR`` times the subject's h^2): e cannot show a closer fit.
-    The registration kept records how scattered the subject's points without
-    counterpart on it are (``scattered``), for the tree's acceptance rule.
+    reaches no larger an e. A rotated pose thus earns its place by the registration it
+    leads to, not by D alone; a turn the model is nearly symmetric under is not tried at
+    all, the pose as given aligned by affine ICP in its place (`_Start.decided`). No
+    other start is tried when the pose as given's registration does not fold and its e
+    is within the sampling floor (``SPACING_FACTOR`` times the subject's h^2): e cannot
+    show a closer fit. The registration kept records how scattered the subject's points
+    without counterpart on it are (``scattered``), for the tree's acceptance rule.
     """
     out = _register_posed(task)
     return replace(out, scattered=scattered_extra(out.warped, task.y, task.spacing2))
