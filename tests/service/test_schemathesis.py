@@ -15,8 +15,7 @@ multipart, CSV/TXT, NPY, PNG and JPEG bodies). Every response is checked:
 
 The server is a ``regtree serve`` subprocess (see ``conftest.Service``) over a temporary
 SQLite file, and again over a scratch PostgreSQL database when ``REGTREE_TEST_POSTGRES_URL``
-is set (every test here runs once per database: ``[sqlite]`` here, ``[postgresql]`` in
-``test_schemathesis_postgres.py``). Each is
+is set (every test here runs once per database: ``[sqlite]``, ``[postgresql]``). Each is
 seeded with a collection of shapes, a finished job and a cancelled one, so that
 path parameters (and the ids inside a job's body) hit existing resources too, not only 404s:
 schema hooks mix the known ids into what schemathesis generates, and valid files into the
@@ -59,6 +58,8 @@ schemathesis = pytest.importorskip("schemathesis", reason="schemathesis is not i
 from hypothesis import strategies as st  # noqa: E402
 
 from tests.service.conftest import (  # noqa: E402
+    POSTGRES_SKIP_REASON,
+    POSTGRES_URL,
     Service,
     assert_problem,
     circle,
@@ -119,23 +120,24 @@ class Known:
         return cid in (str(self.collection_id), str(self.victim_collection_id))
 
 
-def fuzzed_database(kind: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+@pytest.fixture(
+    scope="module",
+    params=[
+        "sqlite",
+        pytest.param(
+            "postgresql", marks=pytest.mark.skipif(not POSTGRES_URL, reason=POSTGRES_SKIP_REASON)
+        ),
+    ],
+)
+def database_url(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[str]:
     """The database of the fuzzed server: a SQLite file, or a scratch PostgreSQL database."""
-    if kind == "sqlite":
+    if request.param == "sqlite":
         yield f"sqlite:///{tmp_path_factory.mktemp('schemathesis-db') / 'regtree.sqlite'}"
         return
     with postgres_scratch_database() as url:
         yield url
-
-
-@pytest.fixture(scope="module", params=["sqlite"])
-def database_url(
-    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
-) -> Iterator[str]:
-    """SQLite here; PostgreSQL in ``test_schemathesis_postgres.py``, the same tests in a
-    file of their own, so that pytest-xdist (``--dist loadfile``, one file per worker at a
-    time) runs the two fuzzes side by side instead of one after the other."""
-    yield from fuzzed_database(request.param, tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
