@@ -4,7 +4,8 @@ Archive tools compare hundreds of glyph instances, so the page must stay usable 
 hundreds of nodes: "Fit" shows the whole tree, the wheel and the buttons zoom, dragging pans,
 and the search box finds a shape by a part of its name (any case), opens it and brings it
 into view at a readable size. Runs a real job (121 shapes of 32 points, CPD capped at 40
-iterations, no direct CPD: a few seconds) on the real service.
+iterations, no direct CPD, the pose as given: these generated shapes are not turned, and the
+turned starts took 12 of the job's 28 s in one process) on the real service.
 
 The timings the test sees are printed (``pytest -s``), never asserted: the time the page takes
 from the tree picture's text to an interactive tree (``#ui-tree[data-render-ms]``), and from
@@ -98,18 +99,34 @@ def test_big_tree_fit_zoom_search(
         collection_id = create_collection(client, "glyph instances")
         ids = upload_family(client, collection_id, shapes)
         started = time.monotonic()
-        # an error threshold a little under the automatic one (0.0097 here) leaves a few
-        # shapes unattached (8 of 120 when written), so that their list is seen too
-        job_id = submit_job(
-            client, collection_id, ids[0], cpd={"max_iter": 40}, error_threshold=0.0085
-        )["id"]
+        job_id = submit_job(client, collection_id, ids[0], cpd={"max_iter": 40}, pose="as_given")[
+            "id"
+        ]
         assert wait_job(client, job_id, timeout=180)["status"] == "succeeded"
         job_s = time.monotonic() - started
         result = client.get(f"/v1/jobs/{job_id}/result").json()
 
     subjects = {s["shape_id"]: s for s in result["subjects"]}
     attached = [s for s in subjects.values() if s["attached"]]
-    unattached = [s for s in subjects.values() if not s["attached"]]
+    # the page is handed a result in which 8 childless subjects found no usable registration
+    # (today's tree attaches every one of these shapes), so that the list of unattached shapes
+    # is seen beside a tree this big too; the tree's picture is the job's own
+    parents = {s["parent_shape_id"] for s in result["subjects"]}
+    childless = [s["shape_id"] for s in result["subjects"] if s["shape_id"] not in parents]
+    gone = set(childless[:: max(1, len(childless) // 8)][:8])
+    doctored = {
+        **result,
+        "subjects": [
+            {**s, "attached": False, "status": "unattached", "layer": None, "parent": None,
+             "parent_shape_id": None, "confidence": None, "leaf": False,
+             "reason": "no member gave a usable registration"}
+            if s["shape_id"] in gone else s
+            for s in result["subjects"]
+        ],
+    }  # fmt: skip
+    page.route(f"**/v1/jobs/{job_id}/result", lambda route: route.fulfill(json=doctored))
+    unattached = [s for s in doctored["subjects"] if not s["attached"]]
+    assert len(unattached) == 8
 
     opened = time.monotonic()
     page.goto(f"{svc.base_url}/ui#/jobs/{job_id}")
@@ -160,7 +177,8 @@ def test_big_tree_fit_zoom_search(
     assert "/subjects/" not in page.url
 
     # search: a part of a deep shape's name in another case finds it; picking it opens it
-    target = max(attached, key=lambda s: (s["layer"], s["shape_id"]))
+    kept = [s for s in attached if s["shape_id"] not in gone]
+    target = max(kept, key=lambda s: (s["layer"], s["shape_id"]))
     query = target["name"].split("_", 1)[1].upper()  # "SONG_CHAIN3-STEP12", no glyph
     expected = [n for n in (s["name"] for s in subjects.values()) if query.lower() in n.lower()]
     page.click("#ui-zoom-fit")
@@ -210,13 +228,12 @@ def test_big_tree_fit_zoom_search(
 
     # unattached shapes: readable buttons under the tree, whatever its zoom; one opens its
     # subject with the reason
-    if unattached:
-        first = unattached[0]["shape_id"]
-        chip = page.locator(f"#ui-unattached-list button[data-shape-id='{first}']")
-        size = chip.evaluate("b => parseFloat(getComputedStyle(b).fontSize)")
-        assert size >= 11
-        chip.click()
-        expect(page.locator("#ui-subject-title")).to_have_text(unattached[0]["name"])
-        expect(chip).to_have_class("chip selected")
+    first = unattached[0]["shape_id"]
+    chip = page.locator(f"#ui-unattached-list button[data-shape-id='{first}']")
+    size = chip.evaluate("b => parseFloat(getComputedStyle(b).fontSize)")
+    assert size >= 11
+    chip.click()
+    expect(page.locator("#ui-subject-title")).to_have_text(unattached[0]["name"])
+    expect(chip).to_have_class("chip selected")
 
     assert big_browser.errors == []
