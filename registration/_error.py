@@ -50,9 +50,9 @@ EXTRA_SPACINGS = 2.0
 #: along its gaps whose nearest such points lie across the shape (0.21-0.27), and reads
 #: the outlier series' Chinese character at 0.06-0.25, where few points are left off a
 #: registration (3-33 off plain CPD's, of 52-157 outliers, at levels 2-4). The subject's
-#: points misread one kind of outline: the tips of thin fins the
-#: registration has not reached, whose nearest subject points lie on both sides of the
-#: fin (an MPEG-7 fish at 0.26, bench/RESULTS.md 7.59 and 7.62).
+#: points misread one kind of outline: the tips of thin fins the registration has not
+#: reached, whose nearest subject points lie on both sides of the fin (an MPEG-7 fish at
+#: 0.26, bench/RESULTS.md 7.59 and 7.62).
 SCATTER_MIN = 0.15
 SCATTER_NEIGHBOURS = 4
 
