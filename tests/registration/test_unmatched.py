@@ -157,9 +157,9 @@ def test_a_subject_with_outliers_is_never_chained() -> None:
     deformations of the root, four of them with 50-200 outliers strewn over their box
     and one without. Every subject with outliers is a leaf registered from the root, none
     is chained through another member, and the correspondences beat plain CPD's. With
-    the lower of two readings (neighbours among the off points too, which read few
-    points off a registration as a curve) one subject with outliers was accepted, another
-    chained below it, and the tree was 1.05x plain CPD's on this collection (0.98x now)."""
+    the lower of two readings (neighbours among the off points too) one subject with
+    outliers was accepted, another chained below it, and the tree was 1.05x plain CPD's
+    on this collection (0.98x now)."""
     fam = deformation_chains(base_outline(1500), n_chains=5, chain_length=1, step=0.12,
                              n_points=100, seed=1)
     shapes = [fam.shapes[0], fam.shapes[1]]
