@@ -33,10 +33,12 @@ from registration.synthetic import base_outline, correspondence_error, deformati
 FAST_CPD = CPDOptions(max_iter=60)
 
 
-def _with_outliers(shape: np.ndarray, count: int, seed: int) -> np.ndarray:
-    """`shape` with `count` points scattered uniformly over its box, in a random order."""
+def _with_outliers(shape: np.ndarray, count: int, seed: int, pad: float = 0.0) -> np.ndarray:
+    """`shape` with `count` points scattered uniformly over its box (widened by `pad` of
+    its extent on each side), in a random order."""
     rng = np.random.default_rng(seed)
     lo, hi = shape.min(axis=0), shape.max(axis=0)
+    lo, hi = lo - pad * (hi - lo), hi + pad * (hi - lo)
     out = np.concatenate([shape, rng.uniform(lo, hi, size=(count, 2))])
     return out[rng.permutation(len(out))]
 
@@ -162,13 +164,9 @@ def test_a_subject_with_outliers_is_never_chained() -> None:
     on this collection (0.98x now)."""
     fam = deformation_chains(base_outline(1500), n_chains=5, chain_length=1, step=0.12,
                              n_points=100, seed=1)
-    shapes = [fam.shapes[0], fam.shapes[1]]
-    for i, s in enumerate(fam.shapes[2:], start=1):
-        rng = np.random.default_rng(100 + i)
-        pad = 0.15 * np.ptp(s, axis=0)
-        both = np.concatenate([s, rng.uniform(s.min(axis=0) - pad, s.max(axis=0) + pad,
-                                              size=(50 * i, 2))])
-        shapes.append(both[rng.permutation(len(both))])
+    shapes = [fam.shapes[0], fam.shapes[1],
+              *(_with_outliers(s, 50 * i, seed=100 + i, pad=0.15)
+                for i, s in enumerate(fam.shapes[2:], start=1))]
     truth = fam.root_images(0)
     res = build_dynamic_tree(shapes, 0, executor=SerialExecutor())
     plain = register_direct(shapes, 0, prealign=False, executor=SerialExecutor())
