@@ -55,6 +55,7 @@ from ._tasks import (
     _RegTask,
     _run_tasks,
     _starts,
+    _turns_wait,
 )
 
 
@@ -97,7 +98,14 @@ def build_dynamic_tree(
         above the subject's sampling floor) is registered from the root too, and the
         root's is kept instead when accepted at below 0.7x its e: an edge that missed
         the turn between a member and a subject fits the wrong pose at 2-3x the e right
-        ones reach, under the error threshold (bench/RESULTS.md 7.50).
+        ones reach, under the error threshold (bench/RESULTS.md 7.50). In a collection
+        that grows as given (at least twice as many subjects joined keeping their
+        member's pose as turning it), a kept registration that turned its member's pose
+        (``quality["pose"] == "rotated"``) waits while other subjects of its layer join
+        as given: its subject is tried from the next layers' members too, and joins
+        turned only when no registration that keeps the pose comes within the margin a
+        turn must earn, or when a layer adds no subject as given (bench/RESULTS.md
+        7.63).
     fold_check : bool
         Also reject registrations whose displacement field folds the model (Jacobian
         determinant <= 0 at a model point): e can be small while correspondences are wrong.
@@ -156,6 +164,9 @@ def build_dynamic_tree(
     parts: set[int] = set()  # subjects that are part of the model
     e_ref: float | None = None  # the lower quartile of the first round's e
     frontier = [root]
+    # turned registrations waiting while the tree still grows as given (`_turns_wait`)
+    held: dict[int, _RegOutcome] = {}
+    joined = [0, 0]  # how many subjects joined keeping their member's pose, and turned
     # the round of growth: each tries the waiting subjects from the last round's new
     # members (from every member after a stall's bridges; a subject's layer is its depth,
     # one below its parent's, whichever round it joined in); progress names it "round N"
@@ -168,7 +179,7 @@ def build_dynamic_tree(
             return False
         return bool(sim_rule.bridge(sim, nodes, waiting, tried))
 
-    while waiting and frontier:
+    while waiting and (frontier or held):
         grown += 1
         _ensure_frontier(sim, frontier, waiting, allowed, executor, progress,
                          f"similarity round {grown - 1}")
@@ -183,19 +194,19 @@ def build_dynamic_tree(
                 for _, m in cands:
                     tried.add((m, s))
                     tasks.append(edge(m, s, nodes[m].layer + 1, nodes[m].q))
-            if tasks or not bridge():
+            if tasks or held or not bridge():
                 break
-        if not tasks:
+        if not tasks and not held:
             break
         runs += len(tasks)
-        outcomes = _run_tasks(tasks, executor, progress, f"round {grown - 1}")
+        outcomes = _run_tasks(tasks, executor, progress, f"round {grown - 1}") if tasks else []
         if e_ref is None:  # the first round's: the root's registrations of its nearest
             e_ref = _lower_quartile_error(outcomes)
         if tau_err is None:
             tau_err = _auto_error_threshold(e_ref)
         accepted: dict[int, list[_RegOutcome]] = {}
-        limits = {out.subject: _error_limit(tau_err, error_threshold is not None,
-                                            floors[out.subject]) for out in outcomes}
+        limits = {s: _error_limit(tau_err, error_threshold is not None, floors[s])
+                  for s in {out.subject for out in outcomes} | held.keys()}
         # a subject is part of the model by the root's registration of it, the one the
         # chain's links cannot have squeezed (`_rules._rejection`)
         parts.update(out.subject for out in outcomes if out.member == root and part_of_model(
@@ -210,12 +221,15 @@ def build_dynamic_tree(
             results[out.subject].attempts.append(_attempt(out, limit, reason))
             if ok:
                 accepted.setdefault(out.subject, []).append(out)
+        for s, out in held.items():
+            accepted.setdefault(s, []).append(out)
         best = {s: _lowest_error(outs) for s, outs in accepted.items()}
         if run.prealign and run.pose.any_rotation:  # an edge can miss a turn only there
             runs += _again_from_root(
                 coll, results, best, tried,
                 {s: max(AGAIN_E_FACTOR * e_ref, floors[s]) for s in best}, limits,
                 fold_check, edge, nodes[root].q, executor, progress, f"round {grown - 1}")
+        held = _turns_wait(best, joined)
         new_frontier = []
         for s, out in sorted(best.items()):
             res, node = _subject_from_outcome(coll, out, nodes[out.member], joined=grown)
@@ -228,6 +242,7 @@ def build_dynamic_tree(
             nodes[s] = node
             waiting.discard(s)
             new_frontier.append(s)
+            joined[out.pose == "rotated"] += 1
         if not new_frontier and waiting and bridge():
             new_frontier = list(nodes)  # stalled: the next nearest bridges, from any member
         frontier = new_frontier

@@ -515,6 +515,42 @@ def _lowest_error(outs: Sequence[_RegOutcome],
     return best
 
 
+def _turns_wait(best: dict[int, _RegOutcome], joined: Sequence[int]) -> dict[int, _RegOutcome]:
+    """Take out of one round's `best` registrations (subject -> kept registration) those
+    that turned their member's pose (``pose == "rotated"``) and return them, when the
+    tree grows as given: others of the round keep their member's pose, and at least
+    twice as many subjects keep it as turn it, counting those of the round with the
+    subjects joined before (`joined`: how many kept the pose, how many turned). Those
+    subjects wait: they stay among the waiting ones, so the next rounds' new members are
+    tried on them too, and each one's turned registration competes with theirs by
+    :func:`_lowest_error` (a turn must reach below ``POSE_MARGIN`` times the e of those
+    that keep their pose). When a round adds no subject as given, the turns join.
+
+    A turn the similarity offers between two members far apart on the collection's
+    deformations can fit better than the pose as given does, though the truth is the pose
+    as given: the subject's near neighbours, which would register it as given, have not
+    joined yet. On the skeleton of an isosceles triangle (a Y whose arms affine ICP fits
+    about as well a third of a turn round), chained (bench/bench_heldout.py, seed 2), an
+    edge between two chains' members turned the Y 119 degrees at 0.45x the e as given,
+    and the subject's chain neighbour, registered later, followed it: both 1.8 of the
+    radius from the truth. Waiting, the subject joined from that neighbour as given, at
+    about the turn's e (bench/RESULTS.md 7.63).
+
+    Only where the collection is upright does the pose as given deserve that wait: there
+    nearly every registration keeps it, while in a collection turned at random about a
+    third do, those whose turn affine ICP reaches from the pose as given. At the rounds
+    where a turn was kept: 80-95% on six MPEG-7 classes, 31-54% on lmfish (its instances
+    lie at many angles), none on flatfish; 10-54% (median 28%) on glyphs turned at random
+    within +-180 degrees. There, later members' registrations as given won over right
+    turns: with the turns waiting at any share, 11 -> 21 of those 240 subjects were
+    registered wrong; waiting from half, 12."""
+    turned = [s for s, out in best.items() if out.pose == "rotated"]
+    kept = joined[0] + len(best) - len(turned)
+    if len(turned) == len(best) or kept < 2 * (joined[1] + len(turned)):
+        return {}
+    return {s: best.pop(s) for s in turned}
+
+
 def _starts(sim: Similarity, member: int, subject: int) -> tuple[_Start, ...]:
     """The pose as given; and the similarity's best pose when it is another pose (turned
     by more than ``POSE_DISTINCT_DEG`` or of the other handedness) that fits clearly
