@@ -539,11 +539,11 @@ def _turns_wait(best: dict[int, _RegOutcome], joined: Sequence[int]) -> dict[int
     Only where the collection is upright does the pose as given deserve that wait: there
     nearly every registration keeps it, while in a collection turned at random about a
     third do, those whose turn affine ICP reaches from the pose as given. At the rounds
-    where a turn was kept: 80-95% on six MPEG-7 classes, 31-54% on lmfish (its instances
-    lie at many angles), none on flatfish; 10-54% (median 28%) on glyphs turned at random
-    within +-180 degrees. There, later members' registrations as given won over right
-    turns: with the turns waiting at any share, 11 -> 21 of those 240 subjects were
-    registered wrong; waiting from half, 12."""
+    where a turn was kept: 80-95% on MPEG-7 (eight classes, two roots each), but for
+    lmfish, 31-54% (its instances lie at many angles), and flatfish from one root, none;
+    10-54% (median 28%) on glyphs turned at random within +-180 degrees. There, later
+    members' registrations as given won over right turns: with the turns waiting at any
+    share, 11 -> 21 of those 240 subjects were registered wrong; waiting from half, 12."""
     turned = [s for s, out in best.items() if out.pose == "rotated"]
     kept = joined[0] + len(best) - len(turned)
     if len(turned) == len(best) or kept < 2 * (joined[1] + len(turned)):
