@@ -104,8 +104,8 @@ def build_dynamic_tree(
         (``quality["pose"] == "rotated"``) waits while other subjects of its layer join
         as given: its subject is tried from the next layers' members too, and joins
         turned only when no registration that keeps the pose comes within the margin a
-        turn must earn, or when a layer adds no subject as given (bench/RESULTS.md
-        7.63).
+        turn must earn, or when a layer adds no subject as given (its ``reason`` then
+        says it waited; bench/RESULTS.md 7.63).
     fold_check : bool
         Also reject registrations whose displacement field folds the model (Jacobian
         determinant <= 0 at a model point): e can be small while correspondences are wrong.
@@ -167,6 +167,7 @@ def build_dynamic_tree(
     # turned registrations waiting while the tree still grows as given (`_turns_wait`)
     held: dict[int, _RegOutcome] = {}
     joined = [0, 0]  # how many subjects joined keeping their member's pose, and turned
+    waited: dict[int, tuple[int, int]] = {}  # subject -> round it first waited, the turn's member
     # the round of growth: each tries the waiting subjects from the last round's new
     # members (from every member after a stall's bridges; a subject's layer is its depth,
     # one below its parent's, whichever round it joined in); progress names it "round N"
@@ -230,6 +231,8 @@ def build_dynamic_tree(
                 {s: max(AGAIN_E_FACTOR * e_ref, floors[s]) for s in best}, limits,
                 fold_check, edge, nodes[root].q, executor, progress, f"round {grown - 1}")
         held = _turns_wait(best, joined)
+        for s, out in held.items():
+            waited.setdefault(s, (grown, out.member))
         new_frontier = []
         for s, out in sorted(best.items()):
             res, node = _subject_from_outcome(coll, out, nodes[out.member], joined=grown)
@@ -238,6 +241,13 @@ def build_dynamic_tree(
                 for a in results[s].attempts
             ]
             res.reason = f"registered from {coll.names[out.member]} (layer {out.layer - 1})"
+            if s in waited:  # say why it joined later than its turn was found
+                first, turn = waited.pop(s)
+                rounds = f"{grown - first} round{'s' if grown - first > 1 else ''}"
+                res.reason += (f"; turned, after waiting {rounds} while the tree grew as given"
+                               if out.pose == "rotated" else
+                               f"; as given, after a turn from {coll.names[turn]} waited "
+                               f"{rounds}")
             results[s] = res
             nodes[s] = node
             waiting.discard(s)

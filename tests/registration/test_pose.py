@@ -1,6 +1,8 @@
 """The pose option: four documented modes, no mirror unless asked, the pose as given
 always a candidate, and a rotated pose kept only when its registration earns it."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -525,3 +527,6 @@ def test_a_turn_between_members_far_apart_waits_for_the_subjects_neighbours():
         assert err < 0.3, (fam.names[k], err, s.parent, s.quality)
     last = tree.subject(6)
     assert last.parent == 5 and (last.quality or {}).get("pose") == "as given"
+    assert re.match(
+        rf"registered from {tree.subject(5).name} \(layer \d\); as given, after a turn "
+        rf"from {tree.subject(8).name} waited \d rounds?", last.reason), last.reason
